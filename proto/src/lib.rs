@@ -1,1 +1,81 @@
-//! placeholder
+//! cosurg wire protocol: messages, codec, framing and sans-IO session state machines.
+//!
+//! This crate knows nothing about sockets, async runtimes or wall clocks: time is passed in
+//! as `u64` microseconds, bytes in and out as slices and vectors (the model is quinn-proto
+//! under quinn). The coordinator (`cosurg-server`) and the sites (`cosurg`) drive it.
+//!
+//! * [`msg`] — every message ([`Message`]) with its fields and units;
+//! * [`codec`] — [`encode`]/[`decode`] (version tag + postcard), [`FrameDecoder`] for
+//!   length-prefixed stream frames, datagram budget checks;
+//! * [`quant`] — quantised node states with a stated, tested error bound;
+//! * [`join`] — [`JoinHandshake`]: validate a join against the [`SessionConfig`];
+//! * [`ownership`] — [`OwnershipArbiter`]: region ownership, instructor first, then earlier claim;
+//! * [`baseline`] — [`BaselineTracker`]: which keyframes each receiver acknowledged;
+//! * [`clock`] — [`ClockFilter`]: NTP-style offset/RTT with minimum-delay window and slewing;
+//! * [`liveness`] — [`PeerLiveness`]: heartbeats, timeout after 2.4 intervals.
+//!
+//! ## Channels
+//! | channel | messages |
+//! |---|---|
+//! | session-control bidi stream (opened by the site), frames | Join, Welcome, Refusal, KeyframeAck, Ownership*, Teaching, Command, Leave, Status, SiteJoined (and TreeDelta too big for a datagram) |
+//! | datagrams (≤ 1100 B) | ClockPing/Pong, SimTime, ToolPose, TreeDelta, Heartbeat |
+//! | one uni stream per message, one frame | Keyframe, Snapshot |
+
+pub mod baseline;
+pub mod clock;
+pub mod codec;
+pub mod join;
+pub mod liveness;
+pub mod msg;
+pub mod ownership;
+pub mod quant;
+
+/// Protocol version carried in [`msg::Join`]; its low byte is the wire tag of every message.
+pub const PROTOCOL_VERSION: u16 = 1;
+
+/// ALPN identifier of the protocol, used by both TLS sides.
+pub const ALPN: &[u8] = b"cosurg/1";
+
+/// QUIC application error codes used when closing a connection.
+pub mod close_code {
+    /// Normal end of session (leave, coordinator shutdown).
+    pub const NORMAL: u32 = 0;
+    pub const WRONG_TOKEN: u32 = 1;
+    pub const WRONG_VERSION: u32 = 2;
+    pub const WRONG_SCENE: u32 = 3;
+    pub const WRONG_SESSION: u32 = 4;
+    pub const NAME_TAKEN: u32 = 5;
+    pub const FULL: u32 = 6;
+    pub const KICKED: u32 = 7;
+    pub const MALFORMED: u32 = 8;
+    /// The peer violated the protocol after joining (e.g. bad control frame).
+    pub const PROTOCOL_ERROR: u32 = 9;
+    /// No Join within the allowed time.
+    pub const JOIN_TIMEOUT: u32 = 10;
+    /// The peer could not keep up with its reliable control traffic.
+    pub const OVERLOADED: u32 = 11;
+    /// The peer stopped sending heartbeats (after having sent some).
+    pub const TIMED_OUT: u32 = 12;
+}
+
+/// QUIC stream error codes (`SendStream::reset`, `RecvStream::stop`).
+pub mod stream_code {
+    /// A newer keyframe of the same region superseded this stream's keyframe.
+    pub const SUPERSEDED: u32 = 1;
+    /// The stream's content was malformed or too large; the receiver stopped reading.
+    pub const MALFORMED: u32 = 2;
+    /// The receiver does not accept this kind of stream from this sender (e.g. observer).
+    pub const REFUSED: u32 = 3;
+}
+
+pub use baseline::{BaselineConfig, BaselineEvent, BaselineTracker};
+pub use clock::{ClockFilter, ClockFilterConfig, ClockSample};
+pub use codec::{
+    DEFAULT_DATAGRAM_BUDGET, DEFAULT_MAX_FRAME, DatagramTooLarge, DecodeError, FrameDecoder,
+    FrameError, decode, encode, encode_datagram, encode_frame,
+};
+pub use join::{JoinHandshake, SessionConfig};
+pub use liveness::{LivenessEvent, PeerLiveness};
+pub use msg::*;
+pub use ownership::{OwnershipArbiter, OwnershipOutcome};
+pub use quant::{QuantError, QuantisedNodes};

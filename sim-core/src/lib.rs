@@ -1,1 +1,30 @@
-//! placeholder
+//! # cosurg-sim-core
+//!
+//! The deformation engine of one site: it ties the adaptive embedded lattice
+//! ([`sim_lattice`]), the finite elements ([`sim_fem`]) and a scene ([`sim_scene`])
+//! together into a [`Simulation`] that steps at a fixed time step.
+//!
+//! * [`Simulation`] — one organ (all bodies of a scene share one lattice): per-node state
+//!   indexed by lattice [`NodeId`], per-leaf materials from the scene's inclusions,
+//!   embedded surfaces and probes, fixed nodes and loads, and the FEM system rebuilt
+//!   whenever the lattice topology changes.
+//! * [`SimOptions`] — every knob of a step (model, polar method and tolerance, rotation
+//!   sharing angle, stiffness kernel, solver budget), defaulted from the scene.
+//!
+//! No IO beyond what the scene already loaded, no threads, no async: for a given input
+//! sequence a simulation is deterministic.
+//!
+//! Units: SI throughout (m, s, kg, N, Pa).
+
+mod engine;
+mod error;
+mod options;
+mod sharing;
+
+pub use engine::{Simulation, StepReport, Surface};
+pub use error::SimError;
+pub use options::SimOptions;
+pub use sim_fem;
+pub use sim_lattice;
+pub use sim_lattice::{NodeId, TetId};
+pub use sim_scene;

@@ -1,0 +1,11 @@
+//! The cosurg site: simulation thread, haptic loop, tools, QUIC link to the coordinator,
+//! and the commands of the `cosurg` command line (see `main.rs`).
+
+pub mod cli;
+pub mod link;
+pub mod output;
+pub mod plot;
+pub mod run;
+pub mod scene_arg;
+pub mod solve;
+pub mod stats;

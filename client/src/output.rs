@@ -1,0 +1,180 @@
+//! ParaView output of a running simulation: per frame, the lattice's leaf tets (level,
+//! type, material, tree), each embedded surface and the tools, collected into one PVD
+//! time series; OBJ of the deformed surfaces at the end.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use nalgebra::{UnitQuaternion, Vector3};
+use sim_core::Simulation;
+use sim_core::sim_scene::vtk::{self, Cells, DataArray, Encoding, Pvd, UnstructuredGrid};
+
+type V3 = Vector3<f64>;
+
+/// A tool as drawn in a frame: pose, jaw opening and the force it feels.
+#[derive(Clone, Debug)]
+pub struct ToolFrame {
+    pub name: String,
+    pub position: V3,
+    pub orientation: UnitQuaternion<f64>,
+    /// Jaw opening angle (rad); 0 for tools without jaws.
+    pub jaw: f64,
+    /// Force on the tool (N).
+    pub force: V3,
+}
+
+/// Writes a VTU/PVD time series into one folder.
+pub struct SeriesWriter {
+    dir: PathBuf,
+    pvd: Pvd,
+    frame: usize,
+}
+
+impl SeriesWriter {
+    /// A writer into `dir` (created).
+    pub fn new(dir: &Path) -> Result<Self> {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        Ok(SeriesWriter {
+            dir: dir.to_path_buf(),
+            pvd: Pvd::new(),
+            frame: 0,
+        })
+    }
+
+    /// The output folder.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Writes one frame at the simulation's current time. `node_force` (N, by node id) is
+    /// written as the lattice's `contact_force` point array when given.
+    pub fn write_frame(
+        &mut self,
+        sim: &Simulation,
+        tools: &[ToolFrame],
+        node_force: Option<&[V3]>,
+    ) -> Result<()> {
+        let t = sim.time();
+        let f = self.frame;
+        let lattice = sim.lattice();
+        // Compact numbering of live nodes.
+        let mut compact = vec![u32::MAX; lattice.node_capacity()];
+        let mut points = Vec::with_capacity(lattice.node_count());
+        let mut disp = Vec::with_capacity(lattice.node_count());
+        let mut vel = Vec::with_capacity(lattice.node_count());
+        let mut force = Vec::with_capacity(lattice.node_count());
+        let mut fixed = Vec::with_capacity(lattice.node_count());
+        let (x, v) = (sim.positions(), sim.velocities());
+        for n in lattice.nodes() {
+            let i = n.0 as usize;
+            compact[i] = points.len() as u32;
+            points.push(x[i]);
+            disp.push(x[i] - lattice.node_rest(n));
+            vel.push(v[i]);
+            force.push(
+                node_force
+                    .and_then(|nf| nf.get(i).copied())
+                    .unwrap_or_default(),
+            );
+            fixed.push(sim.is_fixed(n) as i32);
+        }
+        let leaves = lattice.leaves();
+        let tets: Vec<[u32; 4]> = leaves
+            .iter()
+            .map(|&t| lattice.tet_nodes(t).map(|n| compact[n.0 as usize]))
+            .collect();
+        let level: Vec<i32> = leaves
+            .iter()
+            .map(|&t| i32::from(lattice.tet_level(t)))
+            .collect();
+        let ty: Vec<i32> = leaves.iter().map(|&t| lattice.tet_type(t) as i32).collect();
+        let material: Vec<i32> = leaves
+            .iter()
+            .map(|&t| sim.leaf_material(t).map_or(-1, |m| m as i32))
+            .collect();
+        let root: Vec<u32> = leaves.iter().map(|t| t.root).collect();
+        let heap: Vec<u32> = leaves.iter().map(|t| t.heap).collect();
+        let grid = UnstructuredGrid::new(&points, Cells::Tets(&tets))
+            .with_point_data(DataArray::vectors("displacement", &disp))
+            .with_point_data(DataArray::vectors("velocity", &vel))
+            .with_point_data(DataArray::vectors("contact_force", &force))
+            .with_point_data(DataArray::ints("fixed", &fixed))
+            .with_cell_data(DataArray::ints("level", &level))
+            .with_cell_data(DataArray::ints("type", &ty))
+            .with_cell_data(DataArray::ints("material", &material))
+            .with_cell_data(DataArray::uints("tree_root", &root))
+            .with_cell_data(DataArray::uints("tree_heap_index", &heap));
+        let name = format!("lattice_{f:05}.vtu");
+        vtk::write_vtu_file(self.dir.join(&name), &grid, Encoding::Binary)?;
+        self.pvd.push(t, 0, name);
+
+        for (k, s) in sim.surfaces().iter().enumerate() {
+            let d: Vec<V3> = s
+                .deformed
+                .iter()
+                .zip(&s.rest.vertices)
+                .map(|(a, b)| a - b)
+                .collect();
+            let grid = UnstructuredGrid::new(&s.deformed, Cells::Triangles(&s.rest.triangles))
+                .with_point_data(DataArray::vectors("displacement", &d));
+            let name = format!("surface_{}_{f:05}.vtu", sanitize(&s.name));
+            vtk::write_vtu_file(self.dir.join(&name), &grid, Encoding::Binary)?;
+            self.pvd.push(t, 1 + k as u32, name);
+        }
+
+        if !tools.is_empty() {
+            let poses: Vec<(V3, UnitQuaternion<f64>)> =
+                tools.iter().map(|t| (t.position, t.orientation)).collect();
+            let jaw: Vec<f64> = tools.iter().map(|t| t.jaw).collect();
+            let force: Vec<V3> = tools.iter().map(|t| t.force).collect();
+            let name = format!("tools_{f:05}.vtu");
+            let path = self.dir.join(&name);
+            let file = std::fs::File::create(&path)
+                .with_context(|| format!("creating {}", path.display()))?;
+            let mut w = std::io::BufWriter::new(file);
+            vtk::write_poses_vtu(
+                &mut w,
+                &poses,
+                vec![
+                    DataArray::scalars("jaw_angle_rad", &jaw),
+                    DataArray::vectors("force_N", &force),
+                ],
+                Encoding::Ascii,
+            )
+            .with_context(|| format!("writing {}", path.display()))?;
+            self.pvd.push(t, 1 + sim.surfaces().len() as u32, name);
+        }
+        self.pvd.write_file(self.dir.join("series.pvd"))?;
+        self.frame += 1;
+        Ok(())
+    }
+
+    /// Writes each deformed surface as `<name>_final.obj`.
+    pub fn write_obj(&self, sim: &Simulation) -> Result<Vec<PathBuf>> {
+        let mut out = Vec::new();
+        for s in sim.surfaces() {
+            let path = self.dir.join(format!("{}_final.obj", sanitize(&s.name)));
+            vtk::write_surface_obj(
+                &path,
+                &s.deformed,
+                &s.rest.triangles,
+                6,
+                &format!(
+                    "cosurg deformed surface {} at t = {} s, scene {}",
+                    s.name,
+                    sim.time(),
+                    sim.scene().hash
+                ),
+            )
+            .with_context(|| format!("writing {}", path.display()))?;
+            out.push(path);
+        }
+        Ok(out)
+    }
+}
+
+fn sanitize(name: &str) -> String {
+    name.chars()
+        .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
+        .collect()
+}

@@ -1,0 +1,460 @@
+//! Wire messages.
+//!
+//! Every message is one variant of [`Message`]. The serialised form is postcard, whose enum
+//! tags are the variant indices: **variants and fields are only ever appended** within one
+//! [`crate::PROTOCOL_VERSION`]; any other change bumps the version (and the tag byte written by
+//! [`crate::codec::encode`]).
+//!
+//! Units: SI (m, s, rad, m/s, rad/s). Wall-clock and coordinator timestamps are microseconds
+//! (`u64`, `*_us`) on the clock named in the field's doc. Simulation times are seconds (`f64`).
+
+use serde::{Deserialize, Serialize};
+
+use crate::quant::QuantisedNodes;
+
+/// Site identifier, assigned by the coordinator in [`Welcome`]. `0` is never assigned (it names
+/// the coordinator itself where a sender is needed).
+pub type SiteId = u16;
+/// Region identifier (chosen by the scene; opaque to the protocol).
+pub type RegionId = u32;
+/// Keyframe identifier: per region, strictly increasing. A site that takes over a region
+/// continues from the newest id it has seen for that region + 1.
+pub type KeyframeId = u64;
+/// The coordinator's own site id in messages it originates.
+pub const COORDINATOR_SITE: SiteId = 0;
+
+/// What a site may do in the session.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum Role {
+    /// May reset the scene, kick sites, start/stop teaching playback; wins ownership conflicts.
+    Instructor,
+    /// Interacts with the organ; relays tool poses and region state.
+    Trainee,
+    /// Receives only: anything it sends except session control is dropped by the coordinator.
+    Observer,
+}
+
+impl Role {
+    /// True for roles whose simulation state is relayed to the others.
+    pub fn may_send_state(self) -> bool {
+        !matches!(self, Role::Observer)
+    }
+}
+
+impl std::fmt::Display for Role {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Role::Instructor => "instructor",
+            Role::Trainee => "trainee",
+            Role::Observer => "observer",
+        })
+    }
+}
+
+impl std::str::FromStr for Role {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.to_ascii_lowercase().as_str() {
+            "instructor" => Ok(Role::Instructor),
+            "trainee" => Ok(Role::Trainee),
+            "observer" => Ok(Role::Observer),
+            other => Err(format!(
+                "unknown role {other:?} (instructor|trainee|observer)"
+            )),
+        }
+    }
+}
+
+/// First message of a site, on the session-control stream.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Join {
+    /// The sender's [`crate::PROTOCOL_VERSION`].
+    pub protocol_version: u16,
+    /// Lower-case hex SHA-256 of the scene the site loaded.
+    pub scene_hash: String,
+    pub role: Role,
+    /// Human-readable site name, unique within the session.
+    pub site_name: String,
+    /// Session name the site wants to join.
+    pub session: String,
+    /// Shared session secret.
+    pub token: String,
+}
+
+/// Description of the session a site joined.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SessionInfo {
+    pub name: String,
+    /// Hex SHA-256 of the scene every site must run.
+    pub scene_hash: String,
+    pub max_sites: u16,
+    pub protocol_version: u16,
+    /// Interval at which sites should send [`Message::Heartbeat`] (µs).
+    pub heartbeat_interval_us: u64,
+}
+
+/// One row of the site list.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SiteEntry {
+    pub site: SiteId,
+    pub name: String,
+    pub role: Role,
+}
+
+/// Positive answer to a [`Join`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Welcome {
+    /// The id assigned to the joining site.
+    pub site: SiteId,
+    pub session: SessionInfo,
+    /// All sites in the session, including the new one.
+    pub sites: Vec<SiteEntry>,
+    /// Coordinator clock (µs) when the Welcome was produced.
+    pub coordinator_time_us: u64,
+}
+
+/// Machine-readable reason of a [`Refusal`].
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub enum RefusalReason {
+    WrongToken,
+    WrongVersion { server: u16, client: u16 },
+    WrongScene { expected: String },
+    WrongSession,
+    NameTaken,
+    Full,
+    Kicked,
+    Malformed,
+}
+
+impl RefusalReason {
+    /// QUIC application error code used when the coordinator closes the connection after
+    /// sending this refusal (see [`crate::close_code`]).
+    pub fn close_code(&self) -> u32 {
+        use crate::close_code::*;
+        match self {
+            RefusalReason::WrongToken => WRONG_TOKEN,
+            RefusalReason::WrongVersion { .. } => WRONG_VERSION,
+            RefusalReason::WrongScene { .. } => WRONG_SCENE,
+            RefusalReason::WrongSession => WRONG_SESSION,
+            RefusalReason::NameTaken => NAME_TAKEN,
+            RefusalReason::Full => FULL,
+            RefusalReason::Kicked => KICKED,
+            RefusalReason::Malformed => MALFORMED,
+        }
+    }
+}
+
+/// Negative answer to a [`Join`] (or notice of a kick). The connection is closed after it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Refusal {
+    pub reason: RefusalReason,
+    /// Human-readable explanation.
+    pub text: String,
+}
+
+/// Clock ping (client → coordinator, datagram). `t1_us`: client clock at send.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ClockPing {
+    pub seq: u32,
+    pub t1_us: u64,
+}
+
+/// Clock pong (coordinator → client, datagram): echoes `t1`, adds coordinator receive (`t2`)
+/// and send (`t3`) times. The client adds its receive time `t4` and feeds
+/// [`crate::clock::ClockSample`] to a [`crate::clock::ClockFilter`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ClockPong {
+    pub seq: u32,
+    pub t1_us: u64,
+    pub t2_us: u64,
+    pub t3_us: u64,
+}
+
+/// A site's simulation clock (datagram, relayed to all other sites).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SimTimeStamp {
+    pub site: SiteId,
+    /// Simulation time (s).
+    pub sim_time_s: f64,
+    /// Number of simulation steps taken.
+    pub step: u64,
+    /// Sender's estimate of the coordinator clock at send (µs).
+    pub wall_send_us: u64,
+}
+
+/// Pose of one tool (datagram, relayed).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ToolPose {
+    pub site: SiteId,
+    pub tool: u8,
+    /// Simulation time of the pose (s).
+    pub sim_time_s: f64,
+    /// Tool tip position (m).
+    pub position: [f32; 3],
+    /// Orientation quaternion `[w, x, y, z]`.
+    pub orientation: [f32; 4],
+    /// Jaw opening angle (rad).
+    pub jaw_rad: f32,
+    /// Linear velocity (m/s).
+    pub velocity: [f32; 3],
+    /// Angular velocity (rad/s).
+    pub angular_velocity: [f32; 3],
+}
+
+/// Full state of one region (unidirectional stream, relayed; latest kept for late joiners).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RegionKeyframe {
+    pub region: RegionId,
+    pub keyframe: KeyframeId,
+    /// Site owning the region (the sender).
+    pub owner: SiteId,
+    /// Simulation time of the state (s).
+    pub sim_time_s: f64,
+    /// Topology epoch: bumped by a scene reset; frames of an older epoch are stale.
+    pub epoch: u32,
+    /// Tree state (split bits over heap indices) of the region, opaque to the protocol.
+    pub tree_bits: Vec<u8>,
+    /// Node ids with quantised positions and velocities.
+    pub nodes: QuantisedNodes,
+}
+
+/// Change of a region's tree state relative to an acknowledged keyframe (datagram when it
+/// fits, else control stream).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TreeDelta {
+    pub region: RegionId,
+    pub site: SiteId,
+    pub epoch: u32,
+    pub sim_time_s: f64,
+    /// The keyframe the delta applies to; every receiver has acknowledged it.
+    pub base_keyframe: KeyframeId,
+    /// XOR of the base keyframe's tree bits and the current ones (opaque bytes, may be
+    /// run-length or otherwise compressed by the simulation layer).
+    pub xor_bits: Vec<u8>,
+}
+
+/// A receiver acknowledges a keyframe (control stream; relayed to the region's owner).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct KeyframeAck {
+    pub region: RegionId,
+    pub keyframe: KeyframeId,
+    /// The acknowledging site (filled in / overwritten by the coordinator).
+    pub site: SiteId,
+}
+
+/// A site asks to own a region (its tool touches it).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct OwnershipRequest {
+    pub region: RegionId,
+    /// When the site first touched the region, on the coordinator clock (µs). Used to let the
+    /// earlier claim win when two requests cross in flight.
+    pub claim_time_us: u64,
+}
+
+/// The coordinator grants a region (broadcast to all sites).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct OwnershipGrant {
+    pub region: RegionId,
+    pub site: SiteId,
+    /// Previous owner that lost the region to this grant, if any.
+    pub previous: Option<SiteId>,
+}
+
+/// A region became free (broadcast).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct OwnershipRelease {
+    pub region: RegionId,
+    pub site: SiteId,
+}
+
+/// Why an ownership request was denied.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum DenyReason {
+    /// Another site holds the region and has precedence.
+    HeldByOther,
+    /// Observers never own regions.
+    ObserverCannotOwn,
+    /// A release for a region the site does not own.
+    NotOwner,
+}
+
+/// An ownership request (or release) was denied (to the requester only).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct OwnershipDeny {
+    pub region: RegionId,
+    pub holder: Option<SiteId>,
+    pub reason: DenyReason,
+}
+
+/// Region ownership at snapshot time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RegionOwner {
+    pub region: RegionId,
+    pub site: SiteId,
+}
+
+/// Sent to a late joiner after [`Welcome`] (unidirectional stream).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Snapshot {
+    /// Newest simulation time known to the coordinator (s).
+    pub sim_time_s: f64,
+    pub epoch: u32,
+    pub owners: Vec<RegionOwner>,
+    /// Latest keyframe of every region.
+    pub keyframes: Vec<RegionKeyframe>,
+}
+
+/// One timed tool sample of a teaching trajectory.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ToolSample {
+    /// Time since the start of the trajectory (s).
+    pub t_s: f64,
+    pub position: [f32; 3],
+    pub orientation: [f32; 4],
+    pub jaw_rad: f32,
+}
+
+/// A recorded instructor trajectory (control stream), replayed on trainees' devices.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TeachingTrajectory {
+    pub id: u32,
+    pub tool: u8,
+    pub samples: Vec<ToolSample>,
+}
+
+/// Instructor commands (control stream; instructor only, relayed to all sites).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Command {
+    /// All sites reload the scene and bump the topology epoch to `epoch`.
+    ResetScene {
+        epoch: u32,
+    },
+    /// Remove a site from the session.
+    KickSite {
+        site: SiteId,
+        reason: String,
+    },
+    /// Replay trajectory `trajectory` from simulation time `start_sim_time_s`.
+    StartPlayback {
+        trajectory: u32,
+        start_sim_time_s: f64,
+    },
+    StopPlayback {
+        trajectory: u32,
+    },
+}
+
+/// A site leaves (control stream) or the coordinator announces a departure.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Leave {
+    pub site: SiteId,
+    pub reason: String,
+}
+
+/// Liveness (datagram, both directions).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Heartbeat {
+    pub site: SiteId,
+    pub time_us: u64,
+}
+
+/// One row of [`Status`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SiteStatus {
+    pub site: SiteId,
+    pub name: String,
+    pub role: Role,
+    /// Latest simulation time reported by the site (s).
+    pub sim_time_s: f64,
+    pub step: u64,
+    /// Round-trip time coordinator ↔ site (µs).
+    pub rtt_us: u32,
+}
+
+/// Periodic site table (coordinator → all, control stream).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Status {
+    pub coordinator_time_us: u64,
+    pub sites: Vec<SiteStatus>,
+}
+
+/// Every message of protocol version 1. Append new variants at the end only.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Message {
+    Join(Join),
+    Welcome(Welcome),
+    Refusal(Refusal),
+    ClockPing(ClockPing),
+    ClockPong(ClockPong),
+    SimTime(SimTimeStamp),
+    ToolPose(ToolPose),
+    Keyframe(RegionKeyframe),
+    TreeDelta(TreeDelta),
+    KeyframeAck(KeyframeAck),
+    OwnershipRequest(OwnershipRequest),
+    OwnershipGrant(OwnershipGrant),
+    OwnershipRelease(OwnershipRelease),
+    OwnershipDeny(OwnershipDeny),
+    Snapshot(Snapshot),
+    Teaching(TeachingTrajectory),
+    Command(Command),
+    Leave(Leave),
+    Heartbeat(Heartbeat),
+    Status(Status),
+    /// A site joined (coordinator → others, control stream).
+    SiteJoined(SiteEntry),
+}
+
+/// Which transport a message normally travels on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Channel {
+    /// The bidirectional session-control stream (reliable, ordered).
+    Control,
+    /// QUIC datagrams (unreliable, newest wins). Fall back to `Control` if too large.
+    Datagram,
+    /// One unidirectional stream per message (reliable, may be reset when superseded).
+    UniStream,
+}
+
+impl Message {
+    /// Short name of the variant, for logs and counters.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Message::Join(_) => "join",
+            Message::Welcome(_) => "welcome",
+            Message::Refusal(_) => "refusal",
+            Message::ClockPing(_) => "clock-ping",
+            Message::ClockPong(_) => "clock-pong",
+            Message::SimTime(_) => "sim-time",
+            Message::ToolPose(_) => "tool-pose",
+            Message::Keyframe(_) => "keyframe",
+            Message::TreeDelta(_) => "tree-delta",
+            Message::KeyframeAck(_) => "keyframe-ack",
+            Message::OwnershipRequest(_) => "ownership-request",
+            Message::OwnershipGrant(_) => "ownership-grant",
+            Message::OwnershipRelease(_) => "ownership-release",
+            Message::OwnershipDeny(_) => "ownership-deny",
+            Message::Snapshot(_) => "snapshot",
+            Message::Teaching(_) => "teaching",
+            Message::Command(_) => "command",
+            Message::Leave(_) => "leave",
+            Message::Heartbeat(_) => "heartbeat",
+            Message::Status(_) => "status",
+            Message::SiteJoined(_) => "site-joined",
+        }
+    }
+
+    /// The channel this message normally uses.
+    pub fn channel(&self) -> Channel {
+        match self {
+            Message::ClockPing(_)
+            | Message::ClockPong(_)
+            | Message::SimTime(_)
+            | Message::ToolPose(_)
+            | Message::TreeDelta(_)
+            | Message::Heartbeat(_) => Channel::Datagram,
+            Message::Keyframe(_) | Message::Snapshot(_) => Channel::UniStream,
+            _ => Channel::Control,
+        }
+    }
+}

@@ -1,0 +1,1010 @@
+//! The coordinator's async shell: QUIC endpoint, one task per connection, relaying.
+//!
+//! Channels (see also the table in `proto`'s crate docs):
+//! * **session-control stream** — a bidirectional stream the site opens first; length-prefixed
+//!   frames. Site → coordinator: `Join` first, then ownership requests/releases, keyframe
+//!   acks, teaching trajectories and commands (instructor), `Leave`. Coordinator → site:
+//!   `Welcome`/`Refusal`, grants/denials/releases, relayed acks, commands, `SiteJoined`,
+//!   `Leave`, periodic `Status`.
+//! * **datagrams** — clock pings (answered by the coordinator, which is the session's clock
+//!   reference), heartbeats (both ways), and sim-time stamps, tool poses and small tree
+//!   deltas, relayed to every other site with the sender's id enforced.
+//! * **unidirectional streams** — one per keyframe (site → coordinator → every other site,
+//!   at priority [`KEYFRAME_PRIORITY`]; a stream still unacknowledged when a newer keyframe of
+//!   the same region arrives is reset with `stream_code::SUPERSEDED`) and one snapshot per
+//!   late joiner right after its Welcome.
+//!
+//! A site that sends garbage (undecodable datagrams, truncated or oversized streams, bad
+//! control frames) only has those messages dropped and counted ([`CoordinatorStats`]); other
+//! sites are not affected. A control stream whose framing breaks closes that site's
+//! connection with `close_code::PROTOCOL_ERROR`.
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use bytes::Bytes;
+use proto::{
+    FrameDecoder, FrameError, Heartbeat, KeyframeId, Message, RegionId, Role, SessionConfig,
+    SiteId, close_code, stream_code,
+};
+use quinn::{Connection, Endpoint, RecvStream, SendStream, VarInt};
+use tokio::sync::{mpsc, oneshot};
+use tokio::task::JoinSet;
+use tracing::{debug, info, warn};
+
+use crate::session::{Action, DatagramVerdict, Session, Target};
+use crate::tls::{Identity, TlsError};
+
+/// Send priority of relayed keyframe and snapshot streams (the control stream has 0).
+pub const KEYFRAME_PRIORITY: i32 = -1;
+/// Queue length of a site's control-stream writer; a site that lets it overflow is closed
+/// with `close_code::OVERLOADED`.
+pub const CONTROL_QUEUE: usize = 4096;
+/// Time a keyframe stream may take to arrive completely.
+pub const STREAM_READ_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// Coordinator errors.
+#[derive(Debug, thiserror::Error)]
+pub enum ServerError {
+    #[error(transparent)]
+    Tls(#[from] TlsError),
+    #[error("cannot listen on {addr}: {source}")]
+    Bind {
+        addr: SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+/// Configuration of a coordinator.
+#[derive(Debug, Clone)]
+pub struct CoordinatorConfig {
+    /// UDP address to listen on (`127.0.0.1:0` picks a free port).
+    pub listen: SocketAddr,
+    pub session: SessionConfig,
+    pub identity: Identity,
+    /// Interval of the status log line and `Status` broadcast; `None`: off.
+    pub status_interval: Option<Duration>,
+    /// Time a new connection has to open its control stream and send `Join`.
+    pub join_timeout: Duration,
+    /// Maximum frame size on streams (bytes).
+    pub max_frame: usize,
+}
+
+impl CoordinatorConfig {
+    /// Defaults: listen on `127.0.0.1:0`, status every 5 s, join timeout 10 s.
+    pub fn new(session: SessionConfig, identity: Identity) -> Self {
+        Self {
+            listen: SocketAddr::from(([127, 0, 0, 1], 0)),
+            session,
+            identity,
+            status_interval: Some(Duration::from_secs(5)),
+            join_timeout: Duration::from_secs(10),
+            max_frame: proto::DEFAULT_MAX_FRAME,
+        }
+    }
+
+    /// Same with a fresh in-memory self-signed identity (tests, in-process demo).
+    pub fn ephemeral(session: SessionConfig) -> Result<Self, TlsError> {
+        let (id, _, _) = Identity::generate_self_signed()?;
+        Ok(Self::new(session, id))
+    }
+}
+
+/// Counters (monotonic since start).
+#[derive(Debug, Default)]
+struct Counters {
+    connections: AtomicU64,
+    handshake_failures: AtomicU64,
+    refused: AtomicU64,
+    joined: AtomicU64,
+    left: AtomicU64,
+    datagrams_in: AtomicU64,
+    datagrams_relayed: AtomicU64,
+    datagrams_send_failed: AtomicU64,
+    malformed_datagrams: AtomicU64,
+    control_frames_in: AtomicU64,
+    malformed_control: AtomicU64,
+    keyframes_in: AtomicU64,
+    keyframes_relayed: AtomicU64,
+    keyframe_streams_reset: AtomicU64,
+    malformed_streams: AtomicU64,
+    dropped_messages: AtomicU64,
+    overloaded: AtomicU64,
+}
+
+/// Snapshot of the coordinator's counters.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct CoordinatorStats {
+    /// Incoming QUIC connection attempts.
+    pub connections: u64,
+    /// Failed TLS/QUIC handshakes (e.g. wrong ALPN).
+    pub handshake_failures: u64,
+    /// Joins refused at the application layer.
+    pub refused: u64,
+    pub joined: u64,
+    pub left: u64,
+    pub datagrams_in: u64,
+    /// Datagrams sent to recipients (one per recipient).
+    pub datagrams_relayed: u64,
+    pub datagrams_send_failed: u64,
+    pub malformed_datagrams: u64,
+    pub control_frames_in: u64,
+    pub malformed_control: u64,
+    pub keyframes_in: u64,
+    /// Keyframe streams completed to recipients (one per recipient).
+    pub keyframes_relayed: u64,
+    /// Relayed keyframe streams reset because a newer keyframe superseded them.
+    pub keyframe_streams_reset: u64,
+    /// Unidirectional streams that were truncated, oversized, undecodable or not a keyframe.
+    pub malformed_streams: u64,
+    /// Well-formed messages dropped by policy (observer, not owner, stale, …).
+    pub dropped_messages: u64,
+    /// Sites closed because their control queue overflowed.
+    pub overloaded: u64,
+}
+
+impl Counters {
+    fn snapshot(&self) -> CoordinatorStats {
+        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        CoordinatorStats {
+            connections: g(&self.connections),
+            handshake_failures: g(&self.handshake_failures),
+            refused: g(&self.refused),
+            joined: g(&self.joined),
+            left: g(&self.left),
+            datagrams_in: g(&self.datagrams_in),
+            datagrams_relayed: g(&self.datagrams_relayed),
+            datagrams_send_failed: g(&self.datagrams_send_failed),
+            malformed_datagrams: g(&self.malformed_datagrams),
+            control_frames_in: g(&self.control_frames_in),
+            malformed_control: g(&self.malformed_control),
+            keyframes_in: g(&self.keyframes_in),
+            keyframes_relayed: g(&self.keyframes_relayed),
+            keyframe_streams_reset: g(&self.keyframe_streams_reset),
+            malformed_streams: g(&self.malformed_streams),
+            dropped_messages: g(&self.dropped_messages),
+            overloaded: g(&self.overloaded),
+        }
+    }
+}
+
+fn inc(a: &AtomicU64) {
+    a.fetch_add(1, Ordering::Relaxed);
+}
+
+/// The coordinator clock: µs since the Unix epoch at start, advanced monotonically.
+#[derive(Debug, Clone, Copy)]
+pub struct CoordinatorClock {
+    start: Instant,
+    base_us: u64,
+}
+
+impl CoordinatorClock {
+    pub fn new() -> Self {
+        let base_us = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map(|d| d.as_micros() as u64)
+            .unwrap_or(0);
+        Self {
+            start: Instant::now(),
+            base_us,
+        }
+    }
+
+    pub fn now_us(&self) -> u64 {
+        self.base_us + self.start.elapsed().as_micros() as u64
+    }
+}
+
+impl Default for CoordinatorClock {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+enum CtrlItem {
+    Frame(Bytes),
+    CloseAfterFlush { code: u32, reason: String },
+}
+
+struct Inflight {
+    keyframe: KeyframeId,
+    token: u64,
+    cancel: oneshot::Sender<()>,
+}
+
+struct Peer {
+    conn: Connection,
+    ctrl: mpsc::Sender<CtrlItem>,
+    inflight: HashMap<RegionId, Inflight>,
+    /// (udp rx bytes, udp tx bytes) at the last status line.
+    last_bytes: (u64, u64),
+}
+
+struct State {
+    session: Session,
+    peers: HashMap<SiteId, Peer>,
+    next_token: u64,
+}
+
+struct Shared {
+    clock: CoordinatorClock,
+    state: Mutex<State>,
+    counters: Counters,
+    max_frame: usize,
+    join_timeout: Duration,
+}
+
+impl Shared {
+    fn lock(&self) -> MutexGuard<'_, State> {
+        // A panic while holding the lock would be a bug; keep serving regardless.
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Execute session actions. Called with the state locked.
+    fn execute(&self, st: &mut State, actions: Vec<Action>) {
+        for a in actions {
+            match a {
+                Action::Control { to, msg } => {
+                    let frame = Bytes::from(proto::encode_frame(&msg));
+                    let mut overloaded = Vec::new();
+                    for (&id, peer) in st.peers.iter() {
+                        if !to.includes(id) {
+                            continue;
+                        }
+                        match peer.ctrl.try_send(CtrlItem::Frame(frame.clone())) {
+                            Ok(()) => {}
+                            Err(mpsc::error::TrySendError::Full(_)) => overloaded.push(id),
+                            Err(mpsc::error::TrySendError::Closed(_)) => {}
+                        }
+                    }
+                    for id in overloaded {
+                        inc(&self.counters.overloaded);
+                        warn!(site = id, "control queue overflow; closing the site");
+                        if let Some(p) = st.peers.remove(&id) {
+                            p.conn.close(
+                                VarInt::from_u32(close_code::OVERLOADED),
+                                b"control queue overflow",
+                            );
+                        }
+                        let more = st.session.site_left(id, "overloaded");
+                        self.execute(st, more);
+                    }
+                }
+                Action::Close { site, code, reason } => {
+                    if let Some(p) = st.peers.remove(&site)
+                        && p.ctrl
+                            .try_send(CtrlItem::CloseAfterFlush {
+                                code,
+                                reason: reason.clone(),
+                            })
+                            .is_err()
+                    {
+                        p.conn.close(VarInt::from_u32(code), reason.as_bytes());
+                    }
+                }
+                Action::Drop { site, kind, reason } => {
+                    inc(&self.counters.dropped_messages);
+                    debug!(site, kind, ?reason, "message dropped");
+                }
+            }
+        }
+    }
+}
+
+/// Handle of a running coordinator.
+pub struct CoordinatorHandle {
+    shared: Arc<Shared>,
+    endpoint: Endpoint,
+    tasks: JoinSet<()>,
+    local_addr: SocketAddr,
+    fingerprint: String,
+}
+
+/// The coordinator.
+pub struct Coordinator;
+
+impl Coordinator {
+    /// Bind the endpoint and start serving. Must be called within a tokio runtime.
+    /// Returns the handle and the bound address.
+    pub fn bind(config: CoordinatorConfig) -> Result<(CoordinatorHandle, SocketAddr), ServerError> {
+        let server_config = crate::tls::server_config(&config.identity)?;
+        let endpoint =
+            Endpoint::server(server_config, config.listen).map_err(|source| ServerError::Bind {
+                addr: config.listen,
+                source,
+            })?;
+        let local_addr = endpoint.local_addr().map_err(|source| ServerError::Bind {
+            addr: config.listen,
+            source,
+        })?;
+        let heartbeat_us = config.session.heartbeat_interval_us.max(10_000);
+        let shared = Arc::new(Shared {
+            clock: CoordinatorClock::new(),
+            state: Mutex::new(State {
+                session: Session::new(config.session.clone()),
+                peers: HashMap::new(),
+                next_token: 0,
+            }),
+            counters: Counters::default(),
+            max_frame: config.max_frame,
+            join_timeout: config.join_timeout,
+        });
+        let mut tasks = JoinSet::new();
+        tasks.spawn(accept_loop(shared.clone(), endpoint.clone()));
+        tasks.spawn(housekeeping(
+            shared.clone(),
+            Duration::from_micros(heartbeat_us),
+        ));
+        if let Some(iv) = config.status_interval.filter(|d| !d.is_zero()) {
+            tasks.spawn(status_loop(shared.clone(), iv));
+        }
+        let fingerprint = config.identity.fingerprint();
+        info!(
+            %local_addr,
+            session = %config.session.name,
+            max_sites = config.session.max_sites,
+            %fingerprint,
+            "coordinator listening"
+        );
+        Ok((
+            CoordinatorHandle {
+                shared,
+                endpoint,
+                tasks,
+                local_addr,
+                fingerprint,
+            },
+            local_addr,
+        ))
+    }
+}
+
+impl CoordinatorHandle {
+    pub fn local_addr(&self) -> SocketAddr {
+        self.local_addr
+    }
+
+    /// SHA-256 fingerprint of the certificate presented (`AB:CD:…`).
+    pub fn fingerprint(&self) -> &str {
+        &self.fingerprint
+    }
+
+    pub fn stats(&self) -> CoordinatorStats {
+        self.shared.counters.snapshot()
+    }
+
+    /// The current site table.
+    pub fn status(&self) -> proto::Status {
+        let now = self.shared.clock.now_us();
+        self.shared.lock().session.status(now)
+    }
+
+    /// Coordinator clock now (µs).
+    pub fn now_us(&self) -> u64 {
+        self.shared.clock.now_us()
+    }
+
+    /// Close all connections and stop serving.
+    pub async fn shutdown(mut self) {
+        self.endpoint.close(
+            VarInt::from_u32(close_code::NORMAL),
+            b"coordinator shutting down",
+        );
+        self.tasks.abort_all();
+        let _ = tokio::time::timeout(Duration::from_secs(1), self.endpoint.wait_idle()).await;
+        info!("coordinator stopped");
+    }
+}
+
+async fn accept_loop(shared: Arc<Shared>, endpoint: Endpoint) {
+    let mut conns = JoinSet::new();
+    while let Some(incoming) = endpoint.accept().await {
+        inc(&shared.counters.connections);
+        conns.spawn(handle_incoming(shared.clone(), incoming));
+        while conns.try_join_next().is_some() {}
+    }
+}
+
+/// Periodic: coordinator heartbeats, liveness, RTT table.
+async fn housekeeping(shared: Arc<Shared>, interval: Duration) {
+    let mut tick = tokio::time::interval(interval);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tick.tick().await;
+        let now = shared.clock.now_us();
+        let mut st = shared.lock();
+        let st = &mut *st;
+        let hb = Bytes::from(proto::encode(&Message::Heartbeat(Heartbeat {
+            site: proto::COORDINATOR_SITE,
+            time_us: now,
+        })));
+        for (&id, p) in st.peers.iter() {
+            let _ = p.conn.send_datagram(hb.clone());
+            st.session
+                .set_rtt(id, p.conn.rtt().as_micros().min(u32::MAX as u128) as u32);
+        }
+        let actions = st.session.poll_liveness(now);
+        for a in &actions {
+            if let Action::Close { site, .. } = a {
+                warn!(site, "site timed out (no heartbeat)");
+            }
+        }
+        shared.execute(st, actions);
+    }
+}
+
+/// Periodic status line (tracing) and `Status` broadcast.
+async fn status_loop(shared: Arc<Shared>, interval: Duration) {
+    let mut tick = tokio::time::interval(interval);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    tick.tick().await;
+    let mut last = Instant::now();
+    loop {
+        tick.tick().await;
+        let dt = last.elapsed().as_secs_f64().max(1e-3);
+        last = Instant::now();
+        let now = shared.clock.now_us();
+        let mut st = shared.lock();
+        let st = &mut *st;
+        let max_sim = st.session.max_sim_time();
+        let mut parts = Vec::new();
+        let (mut up_total, mut down_total) = (0.0, 0.0);
+        for s in st.session.sites() {
+            let id = s.entry.site;
+            let (up, down) = match st.peers.get_mut(&id) {
+                Some(p) => {
+                    let stats = p.conn.stats();
+                    let (rx, tx) = (stats.udp_rx.bytes, stats.udp_tx.bytes);
+                    let r = (
+                        (rx - p.last_bytes.0.min(rx)) as f64 / dt,
+                        (tx - p.last_bytes.1.min(tx)) as f64 / dt,
+                    );
+                    p.last_bytes = (rx, tx);
+                    r
+                }
+                None => (0.0, 0.0),
+            };
+            up_total += up;
+            down_total += down;
+            parts.push(format!(
+                "#{id} {} ({}) sim {:.3} s lag {:.3} s rtt {:.1} ms up {:.1} kB/s down {:.1} kB/s",
+                s.entry.name,
+                s.entry.role,
+                s.sim_time_s,
+                max_sim - s.sim_time_s,
+                s.rtt_us as f64 / 1000.0,
+                up / 1000.0,
+                down / 1000.0
+            ));
+        }
+        let c = shared.counters.snapshot();
+        info!(
+            sites = parts.len(),
+            up_kB_s = format!("{:.1}", up_total / 1000.0),
+            down_kB_s = format!("{:.1}", down_total / 1000.0),
+            malformed = c.malformed_datagrams + c.malformed_streams + c.malformed_control,
+            dropped = c.dropped_messages,
+            "status: {}",
+            if parts.is_empty() {
+                "no sites".to_string()
+            } else {
+                parts.join("; ")
+            }
+        );
+        let status = st.session.status(now);
+        shared.execute(
+            st,
+            vec![Action::Control {
+                to: Target::All,
+                msg: Message::Status(status),
+            }],
+        );
+    }
+}
+
+/// Write a refusal on the control stream, wait briefly for it to be acknowledged, then
+/// close the connection with the refusal's application error code.
+async fn refuse(conn: &Connection, send: Option<&mut SendStream>, refusal: proto::Refusal) {
+    let code = refusal.reason.close_code();
+    let text = refusal.text.clone();
+    if let Some(send) = send {
+        let frame = proto::encode_frame(&Message::Refusal(refusal));
+        if send.write_all(&frame).await.is_ok() && send.finish().is_ok() {
+            let _ = tokio::time::timeout(Duration::from_secs(2), send.stopped()).await;
+        }
+    }
+    conn.close(VarInt::from_u32(code), text.as_bytes());
+}
+
+fn alpn_of(conn: &Connection) -> Option<Vec<u8>> {
+    conn.handshake_data()?
+        .downcast::<quinn::crypto::rustls::HandshakeData>()
+        .ok()?
+        .protocol
+}
+
+async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
+    let remote = incoming.remote_address();
+    let conn = match incoming.await {
+        Ok(c) => c,
+        Err(e) => {
+            inc(&shared.counters.handshake_failures);
+            info!(%remote, error = %e, "handshake failed");
+            return;
+        }
+    };
+    if alpn_of(&conn).as_deref() != Some(proto::ALPN) {
+        inc(&shared.counters.handshake_failures);
+        warn!(%remote, "connection without the cosurg ALPN; closing");
+        conn.close(
+            VarInt::from_u32(close_code::PROTOCOL_ERROR),
+            b"ALPN cosurg/1 required",
+        );
+        return;
+    }
+    let deadline = tokio::time::Instant::now() + shared.join_timeout;
+    let (mut send, mut recv) = match tokio::time::timeout_at(deadline, conn.accept_bi()).await {
+        Ok(Ok(s)) => s,
+        Ok(Err(e)) => {
+            debug!(%remote, error = %e, "connection ended before opening a control stream");
+            return;
+        }
+        Err(_) => {
+            conn.close(
+                VarInt::from_u32(close_code::JOIN_TIMEOUT),
+                b"no control stream",
+            );
+            return;
+        }
+    };
+    let mut dec = FrameDecoder::new(shared.max_frame.min(64 * 1024));
+    let first = tokio::time::timeout_at(deadline, read_one(&mut recv, &mut dec)).await;
+    let join = match first {
+        Ok(Ok(Message::Join(j))) => j,
+        Ok(Ok(other)) => {
+            inc(&shared.counters.refused);
+            warn!(%remote, kind = other.kind(), "first control message is not a Join");
+            refuse(
+                &conn,
+                Some(&mut send),
+                proto::Refusal {
+                    reason: proto::RefusalReason::Malformed,
+                    text: format!("expected Join, got {}", other.kind()),
+                },
+            )
+            .await;
+            return;
+        }
+        Ok(Err(e)) => {
+            inc(&shared.counters.refused);
+            inc(&shared.counters.malformed_control);
+            warn!(%remote, error = %e, "bad Join");
+            refuse(
+                &conn,
+                Some(&mut send),
+                proto::Refusal {
+                    reason: proto::RefusalReason::Malformed,
+                    text: format!("bad Join: {e}"),
+                },
+            )
+            .await;
+            return;
+        }
+        Err(_) => {
+            conn.close(
+                VarInt::from_u32(close_code::JOIN_TIMEOUT),
+                b"no Join received",
+            );
+            return;
+        }
+    };
+    // From here on control frames may be large (teaching trajectories); frames pipelined
+    // after the Join stay buffered in `dec`.
+    dec.set_max_frame(shared.max_frame);
+
+    let now = shared.clock.now_us();
+    let (tx, rx) = mpsc::channel(CONTROL_QUEUE);
+    let joined = {
+        let mut st = shared.lock();
+        let st = &mut *st;
+        match st.session.join(&join, now) {
+            Err(r) => Err(r),
+            Ok(j) => {
+                let site = j.welcome.site;
+                let _ = tx.try_send(CtrlItem::Frame(Bytes::from(proto::encode_frame(
+                    &Message::Welcome(j.welcome.clone()),
+                ))));
+                st.peers.insert(
+                    site,
+                    Peer {
+                        conn: conn.clone(),
+                        ctrl: tx,
+                        inflight: HashMap::new(),
+                        last_bytes: (0, 0),
+                    },
+                );
+                shared.execute(st, j.actions);
+                Ok((site, j.snapshot))
+            }
+        }
+    };
+    let (site, snapshot) = match joined {
+        Ok(x) => x,
+        Err(refusal) => {
+            inc(&shared.counters.refused);
+            info!(%remote, site = %join.site_name, reason = ?refusal.reason, "join refused");
+            refuse(&conn, Some(&mut send), refusal).await;
+            return;
+        }
+    };
+    inc(&shared.counters.joined);
+    info!(%remote, site, name = %join.site_name, role = %join.role, "site joined");
+    tokio::spawn(control_writer(conn.clone(), send, rx));
+    {
+        let frame = Bytes::from(proto::encode_frame(&Message::Snapshot(snapshot)));
+        let conn = conn.clone();
+        tokio::spawn(async move {
+            if let Err(e) = send_stream_once(&conn, frame, None).await {
+                debug!(site, error = %e, "snapshot not delivered");
+            }
+        });
+    }
+
+    let reason = tokio::select! {
+        r = control_reader(&shared, site, &conn, recv, dec) => r,
+        r = datagram_loop(&shared, site, &conn) => r,
+        r = uni_loop(&shared, site, &conn) => r,
+    };
+
+    // Cleanup: unless a Close action already took the peer out (leave/kick/timeout, whose
+    // writer closes after flushing), close the connection now.
+    let close_now = {
+        let mut st = shared.lock();
+        let st = &mut *st;
+        let ours = st
+            .peers
+            .get(&site)
+            .is_some_and(|p| p.conn.stable_id() == conn.stable_id());
+        if ours {
+            st.peers.remove(&site);
+        }
+        let actions = st.session.site_left(site, &reason);
+        shared.execute(st, actions);
+        ours
+    };
+    if close_now {
+        conn.close(VarInt::from_u32(close_code::NORMAL), reason.as_bytes());
+    }
+    inc(&shared.counters.left);
+    info!(site, %reason, "site left");
+}
+
+/// Read exactly one message from a stream (used for the Join).
+async fn read_one(recv: &mut RecvStream, dec: &mut FrameDecoder) -> Result<Message, String> {
+    loop {
+        match dec.next_message() {
+            Ok(Some(m)) => return Ok(m),
+            Ok(None) => {}
+            Err(e) => return Err(e.to_string()),
+        }
+        match recv
+            .read_chunk(dec.wanted().clamp(1, 64 * 1024), true)
+            .await
+        {
+            Ok(Some(c)) => dec.push(&c.bytes),
+            Ok(None) => {
+                return Err(dec
+                    .finish()
+                    .err()
+                    .map_or("control stream ended before Join".into(), |e| e.to_string()));
+            }
+            Err(e) => return Err(e.to_string()),
+        }
+    }
+}
+
+async fn control_writer(conn: Connection, mut send: SendStream, mut rx: mpsc::Receiver<CtrlItem>) {
+    while let Some(item) = rx.recv().await {
+        match item {
+            CtrlItem::Frame(b) => {
+                if let Err(e) = send.write_chunk(b).await {
+                    debug!(error = %e, "control stream write failed");
+                    return;
+                }
+            }
+            CtrlItem::CloseAfterFlush { code, reason } => {
+                if send.finish().is_ok() {
+                    let _ = tokio::time::timeout(Duration::from_secs(2), send.stopped()).await;
+                }
+                conn.close(VarInt::from_u32(code), reason.as_bytes());
+                return;
+            }
+        }
+    }
+    let _ = send.finish();
+}
+
+async fn control_reader(
+    shared: &Shared,
+    site: SiteId,
+    conn: &Connection,
+    mut recv: RecvStream,
+    mut dec: FrameDecoder,
+) -> String {
+    loop {
+        loop {
+            match dec.next_message() {
+                Ok(Some(m)) => {
+                    inc(&shared.counters.control_frames_in);
+                    let now = shared.clock.now_us();
+                    let mut st = shared.lock();
+                    let st = &mut *st;
+                    let actions = st.session.on_control(site, m, now);
+                    shared.execute(st, actions);
+                }
+                Ok(None) => break,
+                Err(FrameError::Decode(e)) => {
+                    inc(&shared.counters.malformed_control);
+                    warn!(site, error = %e, "undecodable control frame dropped");
+                }
+                Err(e) => {
+                    inc(&shared.counters.malformed_control);
+                    warn!(site, error = %e, "control stream framing broken; closing the site");
+                    conn.close(
+                        VarInt::from_u32(close_code::PROTOCOL_ERROR),
+                        format!("control stream: {e}").as_bytes(),
+                    );
+                    return format!("protocol error: {e}");
+                }
+            }
+        }
+        match recv.read_chunk(64 * 1024, true).await {
+            Ok(Some(c)) => dec.push(&c.bytes),
+            Ok(None) => {
+                if let Err(e) = dec.finish() {
+                    inc(&shared.counters.malformed_control);
+                    warn!(site, error = %e, "control stream ended mid-frame");
+                }
+                return "control stream closed".into();
+            }
+            Err(e) => return format!("control stream: {e}"),
+        }
+    }
+}
+
+async fn datagram_loop(shared: &Shared, site: SiteId, conn: &Connection) -> String {
+    let mut malformed_logged = 0u64;
+    loop {
+        let d = match conn.read_datagram().await {
+            Ok(d) => d,
+            Err(e) => return format!("connection: {e}"),
+        };
+        inc(&shared.counters.datagrams_in);
+        let now = shared.clock.now_us();
+        let msg = match proto::decode(&d) {
+            Ok(m) => m,
+            Err(e) => {
+                let n = shared
+                    .counters
+                    .malformed_datagrams
+                    .fetch_add(1, Ordering::Relaxed);
+                // Log the first few per connection, then every 1000th.
+                if malformed_logged < 5 || n.is_multiple_of(1000) {
+                    warn!(site, len = d.len(), error = %e, "malformed datagram dropped");
+                }
+                malformed_logged += 1;
+                continue;
+            }
+        };
+        let mut st = shared.lock();
+        let st = &mut *st;
+        match st.session.on_datagram(site, msg, now) {
+            DatagramVerdict::Relay { msg, restamped } => {
+                let bytes = if restamped {
+                    Bytes::from(proto::encode(&msg))
+                } else {
+                    d
+                };
+                let mut fallback = Vec::new();
+                for (&id, p) in st.peers.iter() {
+                    if id == site {
+                        continue;
+                    }
+                    match p.conn.send_datagram(bytes.clone()) {
+                        Ok(()) => inc(&shared.counters.datagrams_relayed),
+                        Err(quinn::SendDatagramError::TooLarge)
+                            if matches!(msg, Message::TreeDelta(_)) =>
+                        {
+                            fallback.push(id)
+                        }
+                        Err(e) => {
+                            inc(&shared.counters.datagrams_send_failed);
+                            debug!(to = id, error = %e, "datagram relay failed");
+                        }
+                    }
+                }
+                let actions = fallback
+                    .into_iter()
+                    .map(|id| Action::Control {
+                        to: Target::One(id),
+                        msg: msg.clone(),
+                    })
+                    .collect();
+                shared.execute(st, actions);
+            }
+            DatagramVerdict::Reply(mut m) => {
+                if let Message::ClockPong(p) = &mut m {
+                    p.t3_us = shared.clock.now_us();
+                }
+                let _ = conn.send_datagram(Bytes::from(proto::encode(&m)));
+            }
+            DatagramVerdict::Consumed => {}
+            DatagramVerdict::Drop(reason) => {
+                inc(&shared.counters.dropped_messages);
+                debug!(site, ?reason, "datagram dropped");
+            }
+        }
+    }
+}
+
+async fn uni_loop(shared: &Arc<Shared>, site: SiteId, conn: &Connection) -> String {
+    let mut readers = JoinSet::new();
+    loop {
+        let mut recv = match conn.accept_uni().await {
+            Ok(r) => r,
+            Err(e) => return format!("connection: {e}"),
+        };
+        let observer = shared.lock().session.role(site) == Some(Role::Observer);
+        if observer {
+            inc(&shared.counters.dropped_messages);
+            let _ = recv.stop(VarInt::from_u32(stream_code::REFUSED));
+            continue;
+        }
+        readers.spawn(read_keyframe_stream(shared.clone(), site, recv));
+        while readers.try_join_next().is_some() {}
+    }
+}
+
+async fn read_keyframe_stream(shared: Arc<Shared>, site: SiteId, mut recv: RecvStream) {
+    let limit = shared.max_frame + proto::codec::FRAME_HEADER_LEN;
+    let bad = |recv: &mut RecvStream, what: String| {
+        inc(&shared.counters.malformed_streams);
+        warn!(site, "{what}; stream dropped");
+        let _ = recv.stop(VarInt::from_u32(stream_code::MALFORMED));
+    };
+    let buf = match tokio::time::timeout(STREAM_READ_TIMEOUT, recv.read_to_end(limit)).await {
+        Ok(Ok(b)) => b,
+        Ok(Err(quinn::ReadToEndError::TooLong)) => {
+            return bad(&mut recv, format!("stream longer than {limit} bytes"));
+        }
+        Ok(Err(e)) => {
+            inc(&shared.counters.malformed_streams);
+            debug!(site, error = %e, "keyframe stream aborted");
+            return;
+        }
+        Err(_) => return bad(&mut recv, "stream too slow".into()),
+    };
+    let mut dec = FrameDecoder::new(shared.max_frame);
+    dec.push(&buf);
+    let kf = match (dec.next_message(), dec.finish()) {
+        (Ok(Some(Message::Keyframe(k))), Ok(())) => k,
+        (Ok(Some(other)), Ok(())) => {
+            return bad(
+                &mut recv,
+                format!("unexpected {} on a stream", other.kind()),
+            );
+        }
+        (Ok(Some(_)), Err(e)) => return bad(&mut recv, format!("trailing data: {e}")),
+        (Ok(None), Err(e)) | (Err(e), _) => {
+            return bad(&mut recv, format!("bad stream ({} bytes): {e}", buf.len()));
+        }
+        (Ok(None), Ok(())) => return bad(&mut recv, "empty stream".into()),
+    };
+    let region = kf.region;
+    let keyframe_id = kf.keyframe;
+    let now = shared.clock.now_us();
+    let mut st = shared.lock();
+    let st = &mut *st;
+    let stored = match st.session.on_keyframe(site, kf, Bytes::from(buf), now) {
+        Ok(s) => s,
+        Err(reason) => {
+            inc(&shared.counters.dropped_messages);
+            debug!(site, region, keyframe_id, ?reason, "keyframe dropped");
+            return;
+        }
+    };
+    inc(&shared.counters.keyframes_in);
+    for (&id, peer) in st.peers.iter_mut() {
+        if id == site {
+            continue;
+        }
+        if let Some(old) = peer.inflight.remove(&region) {
+            debug!(
+                to = id,
+                region,
+                old = old.keyframe,
+                new = keyframe_id,
+                "superseding keyframe stream"
+            );
+            let _ = old.cancel.send(());
+        }
+        let (ctx, crx) = oneshot::channel();
+        st.next_token += 1;
+        let token = st.next_token;
+        peer.inflight.insert(
+            region,
+            Inflight {
+                keyframe: keyframe_id,
+                token,
+                cancel: ctx,
+            },
+        );
+        let conn = peer.conn.clone();
+        let frame = stored.frame.clone();
+        let shared = shared.clone();
+        tokio::spawn(async move {
+            let r = send_stream_once(&conn, frame, Some(crx)).await;
+            match &r {
+                Ok(true) => inc(&shared.counters.keyframes_relayed),
+                Ok(false) => inc(&shared.counters.keyframe_streams_reset),
+                Err(e) => debug!(to = id, region, error = %e, "keyframe relay failed"),
+            }
+            let mut st = shared.lock();
+            if let Some(p) = st.peers.get_mut(&id)
+                && p.inflight.get(&region).is_some_and(|i| i.token == token)
+            {
+                p.inflight.remove(&region);
+            }
+        });
+    }
+}
+
+/// Send one frame on a new unidirectional stream at [`KEYFRAME_PRIORITY`] and wait until the
+/// peer acknowledged it. `Ok(false)`: cancelled (stream reset with `SUPERSEDED`).
+async fn send_stream_once(
+    conn: &Connection,
+    frame: Bytes,
+    cancel: Option<oneshot::Receiver<()>>,
+) -> Result<bool, String> {
+    let cancelled = async move {
+        match cancel {
+            Some(rx) => {
+                let _ = rx.await;
+            }
+            None => std::future::pending::<()>().await,
+        }
+    };
+    tokio::pin!(cancelled);
+    let mut s = tokio::select! {
+        s = conn.open_uni() => s.map_err(|e| e.to_string())?,
+        _ = &mut cancelled => return Ok(false),
+    };
+    let _ = s.set_priority(KEYFRAME_PRIORITY);
+    let done = {
+        let write = async {
+            s.write_chunk(frame).await.map_err(|e| e.to_string())?;
+            s.finish().map_err(|e| e.to_string())?;
+            match s.stopped().await {
+                Ok(None) => Ok(()),
+                Ok(Some(code)) => Err(format!("peer stopped the stream ({code})")),
+                Err(e) => Err(e.to_string()),
+            }
+        };
+        tokio::select! {
+            r = write => Some(r),
+            _ = &mut cancelled => None,
+        }
+    };
+    match done {
+        Some(r) => r.map(|()| true),
+        None => {
+            let _ = s.reset(VarInt::from_u32(stream_code::SUPERSEDED));
+            Ok(false)
+        }
+    }
+}

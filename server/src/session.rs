@@ -1,0 +1,922 @@
+//! The coordinator's session logic, sans IO: joins, roles, relay decisions, ownership, the
+//! latest keyframe per region, the site table. The async shell in [`crate::coordinator`]
+//! feeds it decoded messages with the coordinator time (µs) and executes the returned
+//! [`Action`]s; nothing here touches a socket or a clock.
+
+use std::collections::BTreeMap;
+
+use bytes::Bytes;
+use proto::{
+    Command, JoinHandshake, KeyframeId, Leave, Message, OwnershipArbiter, PeerLiveness, Refusal,
+    RegionId, RegionKeyframe, Role, SessionConfig, SiteEntry, SiteId, SiteStatus, Snapshot, Status,
+    TeachingTrajectory, Welcome, close_code,
+};
+
+/// Recipients of a control message.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Target {
+    One(SiteId),
+    AllExcept(SiteId),
+    All,
+}
+
+impl Target {
+    pub fn includes(&self, site: SiteId) -> bool {
+        match *self {
+            Target::One(s) => s == site,
+            Target::AllExcept(s) => s != site,
+            Target::All => true,
+        }
+    }
+}
+
+/// Why a message was not relayed or applied.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DropReason {
+    /// Observers only receive.
+    Observer,
+    /// Only instructors may send this.
+    NotInstructor,
+    /// The sender does not own the region.
+    NotOwner,
+    /// Message of an older topology epoch.
+    StaleEpoch,
+    /// Keyframe not newer than the one held.
+    StaleKeyframe,
+    /// Internally inconsistent content (e.g. node arrays of different lengths).
+    Inconsistent,
+    /// Message kind not accepted from a site on this channel.
+    NotAllowed,
+    /// No recipient (e.g. ack for a region whose owner left).
+    NoRecipient,
+    /// Sender is not (or no longer) a member.
+    UnknownSite,
+}
+
+/// Something the shell must do.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Action {
+    /// Send `msg` reliably on the control stream of every site in `to`.
+    Control { to: Target, msg: Message },
+    /// Close a site's connection once its queued control frames are flushed.
+    Close {
+        site: SiteId,
+        code: u32,
+        reason: String,
+    },
+    /// A message from `site` was dropped (count and log it).
+    Drop {
+        site: SiteId,
+        kind: &'static str,
+        reason: DropReason,
+    },
+}
+
+/// What to do with a datagram.
+#[derive(Debug, Clone, PartialEq)]
+pub enum DatagramVerdict {
+    /// Relay to all other sites. `restamped`: the message differs from what was received
+    /// (sender id corrected), so the received bytes cannot be forwarded as they are.
+    Relay {
+        msg: Message,
+        restamped: bool,
+    },
+    /// Answer the sender with this message (a clock pong: the shell fills in `t3_us`).
+    Reply(Message),
+    /// Consumed by the coordinator.
+    Consumed,
+    Drop(DropReason),
+}
+
+/// A stored keyframe: the decoded message and its encoded frame for relaying.
+#[derive(Debug, Clone)]
+pub struct StoredKeyframe {
+    pub keyframe: RegionKeyframe,
+    /// The length-prefixed frame as relayed.
+    pub frame: Bytes,
+}
+
+/// Per-site state.
+#[derive(Debug, Clone)]
+pub struct SiteState {
+    pub entry: SiteEntry,
+    pub sim_time_s: f64,
+    pub step: u64,
+    /// Coordinator time of the last sim-time stamp (µs).
+    pub sim_time_at_us: u64,
+    pub rtt_us: u32,
+    pub joined_at_us: u64,
+    /// Armed by the site's first heartbeat.
+    pub liveness: Option<PeerLiveness>,
+}
+
+/// Result of a successful join.
+#[derive(Debug, Clone)]
+pub struct Joined {
+    pub welcome: Welcome,
+    /// Snapshot to send on a unidirectional stream right after the Welcome.
+    pub snapshot: Snapshot,
+    /// Further actions (SiteJoined to others, teaching state to the newcomer).
+    pub actions: Vec<Action>,
+}
+
+/// Session logic.
+#[derive(Debug)]
+pub struct Session {
+    join: JoinHandshake,
+    arbiter: OwnershipArbiter,
+    sites: BTreeMap<SiteId, SiteState>,
+    keyframes: BTreeMap<RegionId, StoredKeyframe>,
+    epoch: u32,
+    trajectories: BTreeMap<u32, TeachingTrajectory>,
+    playback: Option<Command>,
+}
+
+impl Session {
+    pub fn new(config: SessionConfig) -> Self {
+        Self {
+            join: JoinHandshake::new(config),
+            arbiter: OwnershipArbiter::default(),
+            sites: BTreeMap::new(),
+            keyframes: BTreeMap::new(),
+            epoch: 0,
+            trajectories: BTreeMap::new(),
+            playback: None,
+        }
+    }
+
+    pub fn config(&self) -> &SessionConfig {
+        self.join.config()
+    }
+
+    pub fn epoch(&self) -> u32 {
+        self.epoch
+    }
+
+    pub fn site(&self, site: SiteId) -> Option<&SiteState> {
+        self.sites.get(&site)
+    }
+
+    pub fn sites(&self) -> impl Iterator<Item = &SiteState> {
+        self.sites.values()
+    }
+
+    pub fn role(&self, site: SiteId) -> Option<Role> {
+        self.sites.get(&site).map(|s| s.entry.role)
+    }
+
+    pub fn owner(&self, region: RegionId) -> Option<SiteId> {
+        self.arbiter.owner(region)
+    }
+
+    pub fn keyframe(&self, region: RegionId) -> Option<&StoredKeyframe> {
+        self.keyframes.get(&region)
+    }
+
+    /// Newest simulation time reported by any site (s).
+    pub fn max_sim_time(&self) -> f64 {
+        self.sites
+            .values()
+            .map(|s| s.sim_time_s)
+            .fold(0.0, f64::max)
+    }
+
+    /// Current snapshot for a late joiner.
+    pub fn snapshot(&self) -> Snapshot {
+        Snapshot {
+            sim_time_s: self.max_sim_time(),
+            epoch: self.epoch,
+            owners: self.arbiter.owners(),
+            keyframes: self
+                .keyframes
+                .values()
+                .map(|k| k.keyframe.clone())
+                .collect(),
+        }
+    }
+
+    /// Handle a Join at coordinator time `now_us`.
+    pub fn join(&mut self, join: &proto::Join, now_us: u64) -> Result<Joined, Refusal> {
+        let welcome = self.join.handle_join(join, now_us)?;
+        let entry = SiteEntry {
+            site: welcome.site,
+            name: join.site_name.clone(),
+            role: join.role,
+        };
+        self.sites.insert(
+            welcome.site,
+            SiteState {
+                entry: entry.clone(),
+                sim_time_s: 0.0,
+                step: 0,
+                sim_time_at_us: now_us,
+                rtt_us: 0,
+                joined_at_us: now_us,
+                liveness: None,
+            },
+        );
+        let site = welcome.site;
+        let mut actions = vec![Action::Control {
+            to: Target::AllExcept(site),
+            msg: Message::SiteJoined(entry),
+        }];
+        for t in self.trajectories.values() {
+            actions.push(Action::Control {
+                to: Target::One(site),
+                msg: Message::Teaching(t.clone()),
+            });
+        }
+        if let Some(p) = &self.playback {
+            actions.push(Action::Control {
+                to: Target::One(site),
+                msg: Message::Command(p.clone()),
+            });
+        }
+        Ok(Joined {
+            welcome,
+            snapshot: self.snapshot(),
+            actions,
+        })
+    }
+
+    /// A site is gone (left, lost, kicked, timed out). Idempotent.
+    pub fn site_left(&mut self, site: SiteId, reason: &str) -> Vec<Action> {
+        if self.sites.remove(&site).is_none() {
+            return Vec::new();
+        }
+        self.join.leave(site);
+        let mut actions: Vec<Action> = self
+            .arbiter
+            .site_left(site)
+            .into_iter()
+            .map(|r| Action::Control {
+                to: Target::All,
+                msg: Message::OwnershipRelease(r),
+            })
+            .collect();
+        actions.push(Action::Control {
+            to: Target::AllExcept(site),
+            msg: Message::Leave(Leave {
+                site,
+                reason: reason.to_string(),
+            }),
+        });
+        actions
+    }
+
+    fn heard(&mut self, site: SiteId, now_us: u64) {
+        if let Some(s) = self.sites.get_mut(&site)
+            && let Some(l) = s.liveness.as_mut()
+        {
+            l.on_heard(now_us);
+        }
+    }
+
+    fn drop_action(site: SiteId, msg: &Message, reason: DropReason) -> Vec<Action> {
+        vec![Action::Drop {
+            site,
+            kind: msg.kind(),
+            reason,
+        }]
+    }
+
+    /// Checks shared by datagram and control paths for relayed state messages; returns the
+    /// message with its sender id corrected.
+    fn check_state_msg(
+        &mut self,
+        site: SiteId,
+        msg: Message,
+        now_us: u64,
+    ) -> Result<(Message, bool), DropReason> {
+        let Some(state) = self.sites.get_mut(&site) else {
+            return Err(DropReason::UnknownSite);
+        };
+        if state.entry.role == Role::Observer {
+            return Err(DropReason::Observer);
+        }
+        let mut restamped = false;
+        let msg = match msg {
+            Message::SimTime(mut s) => {
+                restamped |= s.site != site;
+                s.site = site;
+                if s.sim_time_s.is_finite() {
+                    state.sim_time_s = s.sim_time_s;
+                    state.step = s.step;
+                    state.sim_time_at_us = now_us;
+                }
+                Message::SimTime(s)
+            }
+            Message::ToolPose(mut p) => {
+                restamped |= p.site != site;
+                p.site = site;
+                Message::ToolPose(p)
+            }
+            Message::TreeDelta(mut d) => {
+                if d.epoch != self.epoch {
+                    return Err(DropReason::StaleEpoch);
+                }
+                if self.arbiter.owner(d.region).is_some_and(|o| o != site) {
+                    return Err(DropReason::NotOwner);
+                }
+                restamped |= d.site != site;
+                d.site = site;
+                Message::TreeDelta(d)
+            }
+            _ => return Err(DropReason::NotAllowed),
+        };
+        Ok((msg, restamped))
+    }
+
+    /// Handle a datagram from `site`, received at coordinator time `now_us`.
+    pub fn on_datagram(&mut self, site: SiteId, msg: Message, now_us: u64) -> DatagramVerdict {
+        if !self.sites.contains_key(&site) {
+            return DatagramVerdict::Drop(DropReason::UnknownSite);
+        }
+        self.heard(site, now_us);
+        match msg {
+            Message::ClockPing(p) => DatagramVerdict::Reply(Message::ClockPong(proto::ClockPong {
+                seq: p.seq,
+                t1_us: p.t1_us,
+                t2_us: now_us,
+                t3_us: now_us,
+            })),
+            Message::Heartbeat(_) => {
+                let interval = self.config().heartbeat_interval_us;
+                if let Some(s) = self.sites.get_mut(&site)
+                    && s.liveness.is_none()
+                {
+                    s.liveness = Some(PeerLiveness::new(interval, now_us));
+                }
+                DatagramVerdict::Consumed
+            }
+            m @ (Message::SimTime(_) | Message::ToolPose(_) | Message::TreeDelta(_)) => {
+                match self.check_state_msg(site, m, now_us) {
+                    Ok((msg, restamped)) => DatagramVerdict::Relay { msg, restamped },
+                    Err(r) => DatagramVerdict::Drop(r),
+                }
+            }
+            _ => DatagramVerdict::Drop(DropReason::NotAllowed),
+        }
+    }
+
+    /// Validate and store a keyframe received from `site` on a unidirectional stream. On
+    /// success returns the frame to relay to all other sites (re-encoded if the owner field
+    /// had to be corrected).
+    pub fn on_keyframe(
+        &mut self,
+        site: SiteId,
+        mut kf: RegionKeyframe,
+        frame: Bytes,
+        now_us: u64,
+    ) -> Result<StoredKeyframe, DropReason> {
+        let Some(role) = self.role(site) else {
+            return Err(DropReason::UnknownSite);
+        };
+        self.heard(site, now_us);
+        if role == Role::Observer {
+            return Err(DropReason::Observer);
+        }
+        if kf.epoch != self.epoch {
+            return Err(DropReason::StaleEpoch);
+        }
+        if self.arbiter.owner(kf.region).is_some_and(|o| o != site) {
+            return Err(DropReason::NotOwner);
+        }
+        if !kf.nodes.is_consistent() {
+            return Err(DropReason::Inconsistent);
+        }
+        if self
+            .keyframes
+            .get(&kf.region)
+            .is_some_and(|k| k.keyframe.keyframe >= kf.keyframe)
+        {
+            return Err(DropReason::StaleKeyframe);
+        }
+        let frame = if kf.owner != site {
+            kf.owner = site;
+            Bytes::from(proto::encode_frame(&Message::Keyframe(kf.clone())))
+        } else {
+            frame
+        };
+        let stored = StoredKeyframe {
+            keyframe: kf,
+            frame,
+        };
+        self.keyframes
+            .insert(stored.keyframe.region, stored.clone());
+        Ok(stored)
+    }
+
+    /// Newest stored keyframe id of a region.
+    pub fn latest_keyframe_id(&self, region: RegionId) -> Option<KeyframeId> {
+        self.keyframes.get(&region).map(|k| k.keyframe.keyframe)
+    }
+
+    /// Handle a message from `site`'s control stream.
+    pub fn on_control(&mut self, site: SiteId, msg: Message, now_us: u64) -> Vec<Action> {
+        let Some(role) = self.role(site) else {
+            return Self::drop_action(site, &msg, DropReason::UnknownSite);
+        };
+        self.heard(site, now_us);
+        let instructor = role == Role::Instructor;
+        match msg {
+            Message::KeyframeAck(mut a) => {
+                a.site = site;
+                match self.keyframes.get(&a.region).map(|k| k.keyframe.owner) {
+                    Some(owner) if owner != site && self.sites.contains_key(&owner) => {
+                        vec![Action::Control {
+                            to: Target::One(owner),
+                            msg: Message::KeyframeAck(a),
+                        }]
+                    }
+                    _ => Self::drop_action(site, &Message::KeyframeAck(a), DropReason::NoRecipient),
+                }
+            }
+            Message::OwnershipRequest(r) => {
+                let o = self.arbiter.request(site, role, r, now_us);
+                vec![Action::Control {
+                    to: o.recipient().map_or(Target::All, Target::One),
+                    msg: o.message(),
+                }]
+            }
+            Message::OwnershipRelease(r) => {
+                let o = self.arbiter.release(site, r.region);
+                vec![Action::Control {
+                    to: o.recipient().map_or(Target::All, Target::One),
+                    msg: o.message(),
+                }]
+            }
+            Message::Teaching(t) => {
+                if !instructor {
+                    return Self::drop_action(
+                        site,
+                        &Message::Teaching(t),
+                        DropReason::NotInstructor,
+                    );
+                }
+                self.trajectories.insert(t.id, t.clone());
+                // Keep memory bounded: at most 16 trajectories.
+                while self.trajectories.len() > 16 {
+                    self.trajectories.pop_first();
+                }
+                vec![Action::Control {
+                    to: Target::AllExcept(site),
+                    msg: Message::Teaching(t),
+                }]
+            }
+            Message::Command(c) => {
+                if !instructor {
+                    return Self::drop_action(
+                        site,
+                        &Message::Command(c),
+                        DropReason::NotInstructor,
+                    );
+                }
+                self.command(site, c)
+            }
+            Message::Leave(l) => {
+                let mut a = self.site_left(site, &format!("left: {}", l.reason));
+                a.push(Action::Close {
+                    site,
+                    code: close_code::NORMAL,
+                    reason: "bye".into(),
+                });
+                a
+            }
+            Message::Heartbeat(_) => Vec::new(),
+            m @ (Message::SimTime(_) | Message::ToolPose(_) | Message::TreeDelta(_)) => {
+                let kind = m.kind();
+                match self.check_state_msg(site, m, now_us) {
+                    Ok((msg, _)) => vec![Action::Control {
+                        to: Target::AllExcept(site),
+                        msg,
+                    }],
+                    Err(reason) => vec![Action::Drop { site, kind, reason }],
+                }
+            }
+            other => Self::drop_action(site, &other, DropReason::NotAllowed),
+        }
+    }
+
+    fn command(&mut self, site: SiteId, c: Command) -> Vec<Action> {
+        match c {
+            Command::ResetScene { .. } => {
+                self.epoch = self.epoch.wrapping_add(1);
+                self.keyframes.clear();
+                self.arbiter.clear();
+                self.playback = None;
+                vec![Action::Control {
+                    to: Target::All,
+                    msg: Message::Command(Command::ResetScene { epoch: self.epoch }),
+                }]
+            }
+            Command::KickSite {
+                site: target,
+                reason,
+            } => {
+                let Some((entry, refusal)) = self.join.kick(target, &reason) else {
+                    return vec![Action::Drop {
+                        site,
+                        kind: "command",
+                        reason: DropReason::NoRecipient,
+                    }];
+                };
+                // `join.kick` removed the member and banned its name; `site_left` below
+                // completes the departure (ownership, site table, Leave to the others).
+                let _ = entry;
+                let mut a = vec![Action::Control {
+                    to: Target::One(target),
+                    msg: Message::Refusal(refusal),
+                }];
+                a.extend(self.site_left(target, &format!("kicked: {reason}")));
+                a.push(Action::Close {
+                    site: target,
+                    code: close_code::KICKED,
+                    reason: format!("kicked by the instructor: {reason}"),
+                });
+                a
+            }
+            c @ Command::StartPlayback { .. } => {
+                self.playback = Some(c.clone());
+                vec![Action::Control {
+                    to: Target::AllExcept(site),
+                    msg: Message::Command(c),
+                }]
+            }
+            c @ Command::StopPlayback { .. } => {
+                self.playback = None;
+                vec![Action::Control {
+                    to: Target::AllExcept(site),
+                    msg: Message::Command(c),
+                }]
+            }
+        }
+    }
+
+    /// Record the transport RTT of a site.
+    pub fn set_rtt(&mut self, site: SiteId, rtt_us: u32) {
+        if let Some(s) = self.sites.get_mut(&site) {
+            s.rtt_us = rtt_us;
+        }
+    }
+
+    /// Liveness check: sites that sent heartbeats and then fell silent for 2.4 intervals.
+    pub fn poll_liveness(&mut self, now_us: u64) -> Vec<Action> {
+        let dead: Vec<SiteId> = self
+            .sites
+            .iter_mut()
+            .filter_map(|(&id, s)| {
+                let l = s.liveness.as_mut()?;
+                (l.poll(now_us) == Some(proto::LivenessEvent::TimedOut)).then_some(id)
+            })
+            .collect();
+        let mut actions = Vec::new();
+        for site in dead {
+            actions.extend(self.site_left(site, "timed out"));
+            actions.push(Action::Close {
+                site,
+                code: close_code::TIMED_OUT,
+                reason: "no heartbeat".into(),
+            });
+        }
+        actions
+    }
+
+    /// The site table.
+    pub fn status(&self, now_us: u64) -> Status {
+        Status {
+            coordinator_time_us: now_us,
+            sites: self
+                .sites
+                .values()
+                .map(|s| SiteStatus {
+                    site: s.entry.site,
+                    name: s.entry.name.clone(),
+                    role: s.entry.role,
+                    sim_time_s: s.sim_time_s,
+                    step: s.step,
+                    rtt_us: s.rtt_us,
+                })
+                .collect(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proto::*;
+
+    fn session() -> Session {
+        Session::new(SessionConfig {
+            scene_hash: Some("ab".into()),
+            max_sites: 8,
+            ..SessionConfig::new("s", "t")
+        })
+    }
+
+    fn join(s: &mut Session, name: &str, role: Role) -> SiteId {
+        s.join(
+            &Join {
+                protocol_version: PROTOCOL_VERSION,
+                scene_hash: "ab".into(),
+                role,
+                site_name: name.into(),
+                session: "s".into(),
+                token: "t".into(),
+            },
+            0,
+        )
+        .unwrap()
+        .welcome
+        .site
+    }
+
+    fn kf(region: RegionId, id: KeyframeId, owner: SiteId, epoch: u32) -> RegionKeyframe {
+        RegionKeyframe {
+            region,
+            keyframe: id,
+            owner,
+            sim_time_s: 0.0,
+            epoch,
+            tree_bits: vec![1],
+            nodes: QuantisedNodes::default(),
+        }
+    }
+
+    fn pose(site: SiteId) -> Message {
+        Message::ToolPose(ToolPose {
+            site,
+            tool: 0,
+            sim_time_s: 0.0,
+            position: [0.0; 3],
+            orientation: [1.0, 0.0, 0.0, 0.0],
+            jaw_rad: 0.0,
+            velocity: [0.0; 3],
+            angular_velocity: [0.0; 3],
+        })
+    }
+
+    #[test]
+    fn datagram_relay_restamps_sender_and_observer_dropped() {
+        let mut s = session();
+        let a = join(&mut s, "a", Role::Trainee);
+        let o = join(&mut s, "o", Role::Observer);
+        match s.on_datagram(a, pose(99), 5) {
+            DatagramVerdict::Relay {
+                msg: Message::ToolPose(p),
+                restamped,
+            } => {
+                assert_eq!(p.site, a);
+                assert!(restamped);
+            }
+            v => panic!("{v:?}"),
+        }
+        assert_eq!(
+            s.on_datagram(o, pose(o), 5),
+            DatagramVerdict::Drop(DropReason::Observer)
+        );
+        assert!(matches!(
+            s.on_datagram(o, Message::ClockPing(ClockPing { seq: 1, t1_us: 2 }), 7),
+            DatagramVerdict::Reply(Message::ClockPong(ClockPong {
+                seq: 1,
+                t1_us: 2,
+                t2_us: 7,
+                ..
+            }))
+        ));
+        assert_eq!(
+            s.on_datagram(42, pose(42), 5),
+            DatagramVerdict::Drop(DropReason::UnknownSite)
+        );
+    }
+
+    #[test]
+    fn keyframes_owner_epoch_and_staleness() {
+        let mut s = session();
+        let a = join(&mut s, "a", Role::Trainee);
+        let b = join(&mut s, "b", Role::Trainee);
+        let o = join(&mut s, "o", Role::Observer);
+        assert!(s.on_keyframe(a, kf(1, 1, a, 0), Bytes::new(), 0).is_ok());
+        assert_eq!(
+            s.on_keyframe(a, kf(1, 1, a, 0), Bytes::new(), 0)
+                .unwrap_err(),
+            DropReason::StaleKeyframe
+        );
+        assert_eq!(
+            s.on_keyframe(a, kf(1, 2, a, 3), Bytes::new(), 0)
+                .unwrap_err(),
+            DropReason::StaleEpoch
+        );
+        assert_eq!(
+            s.on_keyframe(o, kf(1, 2, o, 0), Bytes::new(), 0)
+                .unwrap_err(),
+            DropReason::Observer
+        );
+        s.on_control(
+            a,
+            Message::OwnershipRequest(OwnershipRequest {
+                region: 1,
+                claim_time_us: 0,
+            }),
+            0,
+        );
+        assert_eq!(
+            s.on_keyframe(b, kf(1, 5, b, 0), Bytes::new(), 0)
+                .unwrap_err(),
+            DropReason::NotOwner
+        );
+        // owner field corrected and re-encoded
+        let st = s.on_keyframe(a, kf(1, 3, 77, 0), Bytes::new(), 0).unwrap();
+        assert_eq!(st.keyframe.owner, a);
+        let mut d = FrameDecoder::default();
+        d.push(&st.frame);
+        assert!(matches!(d.next_message().unwrap(), Some(Message::Keyframe(k)) if k.owner == a));
+        let snap = s.snapshot();
+        assert_eq!(snap.keyframes.len(), 1);
+        assert_eq!(snap.owners, vec![RegionOwner { region: 1, site: a }]);
+    }
+
+    #[test]
+    fn ack_routed_to_keyframe_owner() {
+        let mut s = session();
+        let a = join(&mut s, "a", Role::Trainee);
+        let b = join(&mut s, "b", Role::Trainee);
+        s.on_keyframe(a, kf(4, 1, a, 0), Bytes::new(), 0).unwrap();
+        let acts = s.on_control(
+            b,
+            Message::KeyframeAck(KeyframeAck {
+                region: 4,
+                keyframe: 1,
+                site: 0,
+            }),
+            0,
+        );
+        assert_eq!(
+            acts,
+            vec![Action::Control {
+                to: Target::One(a),
+                msg: Message::KeyframeAck(KeyframeAck {
+                    region: 4,
+                    keyframe: 1,
+                    site: b
+                })
+            }]
+        );
+    }
+
+    #[test]
+    fn instructor_commands_and_kick() {
+        let mut s = session();
+        let i = join(&mut s, "prof", Role::Instructor);
+        let a = join(&mut s, "a", Role::Trainee);
+        // trainees cannot command
+        let acts = s.on_control(a, Message::Command(Command::ResetScene { epoch: 0 }), 0);
+        assert!(matches!(
+            acts[0],
+            Action::Drop {
+                reason: DropReason::NotInstructor,
+                ..
+            }
+        ));
+        // reset bumps epoch and clears keyframes
+        s.on_keyframe(a, kf(1, 1, a, 0), Bytes::new(), 0).unwrap();
+        let acts = s.on_control(i, Message::Command(Command::ResetScene { epoch: 0 }), 0);
+        assert_eq!(
+            acts,
+            vec![Action::Control {
+                to: Target::All,
+                msg: Message::Command(Command::ResetScene { epoch: 1 })
+            }]
+        );
+        assert!(s.keyframe(1).is_none());
+        // kick: refusal to the target, leave to others, close
+        s.on_control(
+            a,
+            Message::OwnershipRequest(OwnershipRequest {
+                region: 9,
+                claim_time_us: 0,
+            }),
+            0,
+        );
+        let acts = s.on_control(
+            i,
+            Message::Command(Command::KickSite {
+                site: a,
+                reason: "x".into(),
+            }),
+            0,
+        );
+        assert!(
+            matches!(&acts[0], Action::Control { to: Target::One(t), msg: Message::Refusal(r) } if *t == a && r.reason == RefusalReason::Kicked)
+        );
+        assert!(acts.iter().any(|x| matches!(x, Action::Control { msg: Message::OwnershipRelease(r), .. } if r.region == 9)));
+        assert!(
+            acts.iter().any(
+                |x| matches!(x, Action::Control { msg: Message::Leave(l), .. } if l.site == a)
+            )
+        );
+        assert!(
+            matches!(acts.last().unwrap(), Action::Close { site, code, .. } if *site == a && *code == close_code::KICKED)
+        );
+        assert!(s.site(a).is_none());
+        assert!(s.site_left(a, "again").is_empty());
+    }
+
+    #[test]
+    fn late_joiner_gets_teaching_state() {
+        let mut s = session();
+        let i = join(&mut s, "prof", Role::Instructor);
+        s.on_control(
+            i,
+            Message::Teaching(TeachingTrajectory {
+                id: 3,
+                tool: 0,
+                samples: vec![],
+            }),
+            0,
+        );
+        s.on_control(
+            i,
+            Message::Command(Command::StartPlayback {
+                trajectory: 3,
+                start_sim_time_s: 1.0,
+            }),
+            0,
+        );
+        let j = s
+            .join(
+                &Join {
+                    protocol_version: PROTOCOL_VERSION,
+                    scene_hash: "ab".into(),
+                    role: Role::Trainee,
+                    site_name: "late".into(),
+                    session: "s".into(),
+                    token: "t".into(),
+                },
+                0,
+            )
+            .unwrap();
+        assert!(j.actions.iter().any(|a| matches!(
+            a,
+            Action::Control {
+                msg: Message::Teaching(_),
+                ..
+            }
+        )));
+        assert!(j.actions.iter().any(|a| matches!(
+            a,
+            Action::Control {
+                msg: Message::Command(Command::StartPlayback { .. }),
+                ..
+            }
+        )));
+    }
+
+    #[test]
+    fn liveness_armed_by_first_heartbeat() {
+        let mut s = session();
+        let a = join(&mut s, "a", Role::Trainee);
+        let b = join(&mut s, "b", Role::Trainee);
+        assert!(
+            s.poll_liveness(100_000_000).is_empty(),
+            "not armed: no timeout"
+        );
+        s.on_datagram(
+            a,
+            Message::Heartbeat(Heartbeat {
+                site: a,
+                time_us: 0,
+            }),
+            100_000_000,
+        );
+        assert!(s.poll_liveness(100_000_000 + 1_100_000).is_empty());
+        let acts = s.poll_liveness(100_000_000 + 1_200_000);
+        assert!(
+            matches!(acts.last().unwrap(), Action::Close { site, code, .. } if *site == a && *code == close_code::TIMED_OUT)
+        );
+        assert!(s.site(b).is_some());
+    }
+
+    #[test]
+    fn status_table() {
+        let mut s = session();
+        let a = join(&mut s, "a", Role::Trainee);
+        s.on_datagram(
+            a,
+            Message::SimTime(SimTimeStamp {
+                site: a,
+                sim_time_s: 2.5,
+                step: 2500,
+                wall_send_us: 0,
+            }),
+            9,
+        );
+        s.set_rtt(a, 1234);
+        let st = s.status(10);
+        assert_eq!(st.sites[0].sim_time_s, 2.5);
+        assert_eq!(st.sites[0].step, 2500);
+        assert_eq!(st.sites[0].rtt_us, 1234);
+        assert_eq!(s.max_sim_time(), 2.5);
+    }
+}

@@ -1,0 +1,108 @@
+use nalgebra::Vector3;
+use sim_fem::{
+    ByersXu, Model, MullerIterative, NewtonParams, OperatorMode, PolarMethod, SolverParams,
+    StepParams, StiffnessMode,
+};
+use sim_scene::Scene;
+
+/// Every knob of a simulation step. [`SimOptions::from_scene`] takes the scene's
+/// `[simulation]` and `[features]` tables; callers (CLI, benches) override fields.
+#[derive(Clone, Debug)]
+pub struct SimOptions {
+    /// Time step (s).
+    pub dt: f64,
+    /// Constitutive model.
+    pub model: Model,
+    /// Rotation extractor (co-rotational model).
+    pub polar: PolarMethod,
+    /// Hierarchical rotation sharing: angle tolerance θ_tol in degrees; `None` (or 0)
+    /// extracts every leaf's rotation itself.
+    pub sharing_angle_deg: Option<f64>,
+    /// Template stiffness table (true) or per-element dense 12×12 matrices (false).
+    pub template_stiffness: bool,
+    /// Matrix-free or assembled CG operator.
+    pub operator: OperatorMode,
+    /// CG iteration budget and tolerance per step.
+    pub solver: SolverParams,
+    /// Newton iterations of the non-linear model's dynamic step.
+    pub newton: NewtonParams,
+    /// Skip rotation extraction for elements whose nodes moved less than this since the
+    /// last extraction (m); 0 disables the skip.
+    pub rest_threshold: f64,
+    /// Online refinement near tools (scene feature `adaptivity`).
+    pub adaptivity: bool,
+    /// Tool contact (scene feature `contact`).
+    pub contact: bool,
+    /// Gravity (m/s²).
+    pub gravity: Vector3<f64>,
+}
+
+impl SimOptions {
+    /// Options as the scene file asks for them.
+    pub fn from_scene(scene: &Scene) -> Self {
+        let s = &scene.simulation;
+        let f = &scene.features;
+        let polar = match s.polar {
+            sim_scene::PolarMethod::ByersXu => PolarMethod::ByersXu(ByersXu {
+                tol: s.polar_tolerance,
+                ..ByersXu::default()
+            }),
+            sim_scene::PolarMethod::Svd => PolarMethod::Svd,
+            sim_scene::PolarMethod::Muller => PolarMethod::Muller(MullerIterative {
+                tol: s.polar_tolerance,
+                ..MullerIterative::default()
+            }),
+            sim_scene::PolarMethod::ShapeMatching => PolarMethod::ShapeMatching,
+        };
+        SimOptions {
+            dt: s.dt,
+            model: model_from_scene(s.model),
+            polar,
+            sharing_angle_deg: (f.rotation_sharing && f.rotation_sharing_angle_deg > 0.0)
+                .then_some(f.rotation_sharing_angle_deg),
+            template_stiffness: f.template_stiffness,
+            operator: OperatorMode::MatrixFree,
+            solver: SolverParams {
+                max_iters: s.cg_iterations as usize,
+                tol: s.cg_tolerance,
+                warm_start: true,
+            },
+            newton: NewtonParams {
+                max_iters: 8,
+                tol: 1e-6,
+            },
+            // 1 µm: far below what a user sees or feels, far above round-off.
+            rest_threshold: if f.skip_rest { 1e-6 } else { 0.0 },
+            adaptivity: f.adaptivity,
+            contact: f.contact,
+            gravity: scene.gravity,
+        }
+    }
+
+    /// The FEM step parameters these options mean.
+    pub fn step_params(&self) -> StepParams {
+        StepParams {
+            model: self.model,
+            stiffness: if self.template_stiffness {
+                StiffnessMode::Template
+            } else {
+                StiffnessMode::Dense
+            },
+            operator: self.operator,
+            solver: self.solver,
+            gravity: self.gravity,
+            polar: self.polar,
+            rest_threshold: self.rest_threshold,
+            newton: (self.model == Model::StVK).then_some(self.newton),
+        }
+    }
+}
+
+/// The scene's model names mapped to the FEM models (`nonlinear` is St Venant–Kirchhoff).
+pub fn model_from_scene(m: sim_scene::Model) -> Model {
+    match m {
+        sim_scene::Model::Corotational => Model::Corotational,
+        sim_scene::Model::Linear => Model::Linear,
+        sim_scene::Model::Nonlinear => Model::StVK,
+    }
+}

@@ -1,0 +1,239 @@
+//! Jacobi-preconditioned conjugate gradients on 3-vector fields with Dirichlet projection,
+//! and a 3×3-block CSR pattern for the assembled operator.
+
+use nalgebra::{Matrix3, Vector3};
+
+type V3 = Vector3<f64>;
+
+/// CG control.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SolverParams {
+    /// Iteration budget.
+    pub max_iters: usize,
+    /// Stop when `‖b − A x‖₂ ≤ tol ‖b‖₂` (unpreconditioned residual, free DOFs).
+    pub tol: f64,
+    /// Start from the previous step's solution (dynamic steps only).
+    pub warm_start: bool,
+}
+
+impl SolverParams {
+    /// Real-time budget: 25 iterations, 1e-3 relative, cold start (SOFA-like budget).
+    ///
+    /// Warm-starting Δv with the previous step's Δv and truncating CG pumped energy into a
+    /// stiff beam (E = 1e6 Pa, dt = 33 ms: +890 J in 1 s); `pcg` therefore only keeps an
+    /// initial guess that lowers `½xᵀAx − bᵀx` below its value at 0, and warm start is
+    /// off by default.
+    pub fn realtime() -> Self {
+        Self {
+            max_iters: 25,
+            tol: 1e-3,
+            warm_start: false,
+        }
+    }
+    /// Reference accuracy: 1e-10 relative, up to 20 000 iterations.
+    pub fn accurate() -> Self {
+        Self {
+            max_iters: 20_000,
+            tol: 1e-10,
+            warm_start: false,
+        }
+    }
+}
+
+/// Outcome of a CG solve.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct CgResult {
+    /// Iterations done.
+    pub iterations: usize,
+    /// `‖b − A x‖/‖b‖` at exit (recursive residual).
+    pub relative_residual: f64,
+    /// Stopped on `pᵀ A p ≤ 0` (indefinite operator); `x` is the last iterate (or the
+    /// preconditioned residual if that happened at the first iteration).
+    pub negative_curvature: bool,
+}
+
+/// A symmetric operator on 3-vector fields.
+pub trait LinearOperator {
+    /// `out = A p`.
+    fn apply(&self, p: &[V3], out: &mut [V3]);
+    /// Diagonal of A (for Jacobi).
+    fn diagonal(&self) -> Vec<V3>;
+}
+
+fn dot(a: &[V3], b: &[V3]) -> f64 {
+    a.iter().zip(b).map(|(p, q)| p.dot(q)).sum()
+}
+
+/// Solve `A x = b` on the free nodes (`fixed[i]` ⇒ `x_i = 0`) with Jacobi-PCG from the
+/// initial guess in `x`.
+pub fn pcg(
+    op: &impl LinearOperator,
+    fixed: &[bool],
+    b: &[V3],
+    x: &mut [V3],
+    params: &SolverParams,
+) -> CgResult {
+    let n = b.len();
+    let project = |v: &mut [V3]| {
+        for (vi, f) in v.iter_mut().zip(fixed) {
+            if *f {
+                *vi = V3::zeros();
+            }
+        }
+    };
+    project(x);
+    let mut bb = b.to_vec();
+    project(&mut bb);
+    let bnorm = dot(&bb, &bb).sqrt();
+    if bnorm == 0.0 {
+        x.iter_mut().for_each(|v| *v = V3::zeros());
+        return CgResult::default();
+    }
+    let inv_diag: Vec<V3> = op
+        .diagonal()
+        .iter()
+        .map(|d| d.map(|c| if c > 0.0 { 1.0 / c } else { 1.0 }))
+        .collect();
+    let mut r = vec![V3::zeros(); n];
+    op.apply(x, &mut r);
+    for i in 0..n {
+        r[i] = bb[i] - r[i];
+    }
+    project(&mut r);
+    // Guard the initial guess: keep it only if it lowers φ(x) = ½xᵀAx − bᵀx below
+    // φ(0) = 0, i.e. −½ xᵀ(b + r) < 0.
+    let phi0: f64 = -0.5
+        * x.iter()
+            .zip(bb.iter().zip(&r))
+            .map(|(xi, (bi, ri))| xi.dot(&(bi + ri)))
+            .sum::<f64>();
+    if phi0 >= 0.0 && x.iter().any(|v| *v != V3::zeros()) {
+        x.iter_mut().for_each(|v| *v = V3::zeros());
+        r.copy_from_slice(&bb);
+    }
+    let mut z: Vec<V3> = r
+        .iter()
+        .zip(&inv_diag)
+        .map(|(a, d)| a.component_mul(d))
+        .collect();
+    let mut p = z.clone();
+    let mut rz = dot(&r, &z);
+    let mut ap = vec![V3::zeros(); n];
+    let mut res = CgResult {
+        relative_residual: dot(&r, &r).sqrt() / bnorm,
+        ..Default::default()
+    };
+    if res.relative_residual <= params.tol {
+        return res;
+    }
+    for k in 0..params.max_iters {
+        op.apply(&p, &mut ap);
+        project(&mut ap);
+        let pap = dot(&p, &ap);
+        if pap <= 0.0 || !pap.is_finite() {
+            res.negative_curvature = true;
+            if k == 0 {
+                x.copy_from_slice(&z);
+            }
+            tracing::trace!(k, "CG: non-positive curvature");
+            return res;
+        }
+        let alpha = rz / pap;
+        for i in 0..n {
+            x[i] += p[i] * alpha;
+            r[i] -= ap[i] * alpha;
+        }
+        res.iterations = k + 1;
+        res.relative_residual = dot(&r, &r).sqrt() / bnorm;
+        if res.relative_residual <= params.tol {
+            break;
+        }
+        for i in 0..n {
+            z[i] = r[i].component_mul(&inv_diag[i]);
+        }
+        let rz_new = dot(&r, &z);
+        let beta = rz_new / rz;
+        rz = rz_new;
+        for i in 0..n {
+            p[i] = z[i] + p[i] * beta;
+        }
+    }
+    res
+}
+
+/// Sparsity of a 3×3-block matrix on a tet mesh (node adjacency incl. the diagonal).
+#[derive(Clone, Debug)]
+pub struct BlockPattern {
+    row_ptr: Vec<usize>,
+    cols: Vec<usize>,
+    diag: Vec<usize>,
+    elem_slots: Vec<[usize; 16]>,
+}
+
+impl BlockPattern {
+    /// Pattern for `n` nodes and the given tets.
+    pub fn new(n: usize, tets: &[[usize; 4]]) -> Self {
+        let mut adj: Vec<Vec<usize>> = (0..n).map(|i| vec![i]).collect();
+        for t in tets {
+            for &a in t {
+                for &b in t {
+                    adj[a].push(b);
+                }
+            }
+        }
+        let mut row_ptr = Vec::with_capacity(n + 1);
+        let mut cols = Vec::new();
+        row_ptr.push(0);
+        for a in &mut adj {
+            a.sort_unstable();
+            a.dedup();
+            cols.extend_from_slice(a);
+            row_ptr.push(cols.len());
+        }
+        let find = |r: usize, c: usize| -> usize {
+            let s = &cols[row_ptr[r]..row_ptr[r + 1]];
+            row_ptr[r] + s.binary_search(&c).expect("in pattern")
+        };
+        let diag = (0..n).map(|i| find(i, i)).collect();
+        let elem_slots = tets
+            .iter()
+            .map(|t| {
+                let mut s = [0; 16];
+                for a in 0..4 {
+                    for b in 0..4 {
+                        s[4 * a + b] = find(t[a], t[b]);
+                    }
+                }
+                s
+            })
+            .collect();
+        Self {
+            row_ptr,
+            cols,
+            diag,
+            elem_slots,
+        }
+    }
+    /// Number of 3×3 blocks.
+    pub fn num_blocks(&self) -> usize {
+        self.cols.len()
+    }
+    /// Block slots of element `e`, index `4a + b`.
+    pub fn element_slots(&self, e: usize) -> &[usize; 16] {
+        &self.elem_slots[e]
+    }
+    /// Slot of each diagonal block.
+    pub fn diagonal_slots(&self) -> &[usize] {
+        &self.diag
+    }
+    /// `out = A p`.
+    pub fn multiply(&self, blocks: &[Matrix3<f64>], p: &[V3], out: &mut [V3]) {
+        for (i, o) in out.iter_mut().enumerate() {
+            let mut acc = V3::zeros();
+            for k in self.row_ptr[i]..self.row_ptr[i + 1] {
+                acc += blocks[k] * p[self.cols[k]];
+            }
+            *o = acc;
+        }
+    }
+}
