@@ -20,10 +20,18 @@ pub struct Cli {
 
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// The multi-site demo: a coordinator and N sites on loopback over QUIC/TLS.
+    Demo(crate::demo::DemoArgs),
+    /// Join a session as one site.
+    Join(crate::join::JoinArgs),
     /// Simulate a scene on this machine alone and write VTU/PVD + OBJ results.
     Run(crate::run::RunArgs),
     /// Static equilibrium of a scene under its loads and gravity.
     Solve(crate::solve::SolveArgs),
+    /// Benchmarks: cantilever, sweep, stress, sync.
+    Bench(crate::bench::BenchArgs),
+    /// User-space network impairment relay (UDP) between sites and a coordinator.
+    Netem(netem::NetemArgs),
 }
 
 /// Deformation models on the command line.
@@ -114,7 +122,15 @@ pub fn exit_code(e: &anyhow::Error) -> i32 {
 
 pub fn dispatch(cli: Cli) -> Result<()> {
     match cli.command {
+        Command::Demo(a) => crate::demo::demo(a),
+        Command::Join(a) => crate::join::join(a),
         Command::Run(a) => crate::run::run(a),
         Command::Solve(a) => crate::solve::solve(a),
+        Command::Bench(a) => crate::bench::run(a),
+        Command::Netem(a) => tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| anyhow::anyhow!("starting the tokio runtime: {e}"))?
+            .block_on(netem::run_cli(a)),
     }
 }

@@ -23,7 +23,7 @@ fn main() {
 fn init_tracing(verbose: u8) {
     use tracing_subscriber::EnvFilter;
     let default = match verbose {
-        0 => "warn,cosurg=info,cosurg_server=info",
+        0 => "warn,cosurg::=info",
         1 => "info",
         2 => "debug",
         _ => "trace",

@@ -35,6 +35,20 @@ const PALETTE: [RGBColor; 8] = [
     RGBColor(127, 127, 127),
 ];
 
+/// Registers the embedded font once: the pure-Rust text renderer has no system fonts.
+fn register_fonts() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        // One face for every family name plotters asks for.
+        for family in ["sans-serif", "serif", "monospace"] {
+            let face = epaint_default_fonts::UBUNTU_LIGHT;
+            if plotters::style::register_font(family, FontStyle::Normal, face).is_err() {
+                tracing::warn!("embedded plot font could not be loaded; plots lose their text");
+            }
+        }
+    });
+}
+
 /// Writes `<stem>.png` and `<stem>.svg` into `dir` and returns both paths.
 pub fn write_chart(
     dir: &Path,
@@ -42,6 +56,7 @@ pub fn write_chart(
     chart: &Chart,
     series: &[Series],
 ) -> Result<Vec<PathBuf>> {
+    register_fonts();
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let png = dir.join(format!("{stem}.png"));
     let svg = dir.join(format!("{stem}.svg"));
@@ -142,4 +157,38 @@ where
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn writes_png_and_svg_with_text() {
+        let dir = tempfile::tempdir().unwrap();
+        let files = write_chart(
+            dir.path(),
+            "t",
+            &Chart {
+                title: "title",
+                x_label: "x (s)",
+                y_label: "y (m)",
+                log_x: false,
+                log_y: true,
+                scatter: false,
+            },
+            &[Series {
+                label: "a".into(),
+                points: vec![(0.0, 1.0), (1.0, 10.0)],
+            }],
+        )
+        .unwrap();
+        for f in files {
+            assert!(
+                std::fs::metadata(&f).unwrap().len() > 1000,
+                "{}",
+                f.display()
+            );
+        }
+    }
 }

@@ -428,6 +428,9 @@ pub async fn run_cli(args: NetemArgs) -> anyhow::Result<()> {
     let relay = Relay::spawn(config)
         .await
         .with_context(|| format!("netem: cannot listen on {}", args.listen))?;
+    // Scripts read these lines (e.g. with `--listen 127.0.0.1:0`).
+    println!("netem listening: {}", relay.local_addr());
+    println!("netem upstream: {}", args.upstream);
     match args.seconds {
         Some(s) => {
             anyhow::ensure!(s.is_finite() && s >= 0.0, "--seconds must be ≥ 0");

@@ -14,6 +14,13 @@
 //!   the same region arrives is reset with `stream_code::SUPERSEDED`) and one snapshot per
 //!   late joiner right after its Welcome.
 //!
+//! A site may itself reset a keyframe stream it is still sending with
+//! `stream_code::SUPERSEDED` when it produced a newer keyframe of the region; such streams are
+//! counted apart (`superseded_streams_in`), not as malformed. A site's `Leave` reason is
+//! logged and relayed to the others (`left: REASON`). A quick reconnection whose name is still
+//! held by the site's silent previous connection replaces it (see
+//! [`crate::session::Session::join`]).
+//!
 //! A site that sends garbage (undecodable datagrams, truncated or oversized streams, bad
 //! control frames) only has those messages dropped and counted ([`CoordinatorStats`]); other
 //! sites are not affected. A control stream whose framing breaks closes that site's
@@ -101,6 +108,7 @@ struct Counters {
     handshake_failures: AtomicU64,
     refused: AtomicU64,
     joined: AtomicU64,
+    resumed: AtomicU64,
     left: AtomicU64,
     datagrams_in: AtomicU64,
     datagrams_relayed: AtomicU64,
@@ -111,6 +119,7 @@ struct Counters {
     keyframes_in: AtomicU64,
     keyframes_relayed: AtomicU64,
     keyframe_streams_reset: AtomicU64,
+    superseded_streams_in: AtomicU64,
     malformed_streams: AtomicU64,
     dropped_messages: AtomicU64,
     overloaded: AtomicU64,
@@ -126,6 +135,9 @@ pub struct CoordinatorStats {
     /// Joins refused at the application layer.
     pub refused: u64,
     pub joined: u64,
+    /// Joins that replaced a silent member of the same name (a quick reconnection; see
+    /// [`crate::session::Session::join`]). Also counted in `joined`.
+    pub resumed: u64,
     pub left: u64,
     pub datagrams_in: u64,
     /// Datagrams sent to recipients (one per recipient).
@@ -139,6 +151,9 @@ pub struct CoordinatorStats {
     pub keyframes_relayed: u64,
     /// Relayed keyframe streams reset because a newer keyframe superseded them.
     pub keyframe_streams_reset: u64,
+    /// Incoming keyframe streams the sending site reset with `stream_code::SUPERSEDED`
+    /// because a newer keyframe of the region replaced them (normal, not malformed).
+    pub superseded_streams_in: u64,
     /// Unidirectional streams that were truncated, oversized, undecodable or not a keyframe.
     pub malformed_streams: u64,
     /// Well-formed messages dropped by policy (observer, not owner, stale, …).
@@ -155,6 +170,7 @@ impl Counters {
             handshake_failures: g(&self.handshake_failures),
             refused: g(&self.refused),
             joined: g(&self.joined),
+            resumed: g(&self.resumed),
             left: g(&self.left),
             datagrams_in: g(&self.datagrams_in),
             datagrams_relayed: g(&self.datagrams_relayed),
@@ -165,6 +181,7 @@ impl Counters {
             keyframes_in: g(&self.keyframes_in),
             keyframes_relayed: g(&self.keyframes_relayed),
             keyframe_streams_reset: g(&self.keyframe_streams_reset),
+            superseded_streams_in: g(&self.superseded_streams_in),
             malformed_streams: g(&self.malformed_streams),
             dropped_messages: g(&self.dropped_messages),
             overloaded: g(&self.overloaded),
@@ -629,11 +646,11 @@ async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
                     },
                 );
                 shared.execute(st, j.actions);
-                Ok((site, j.snapshot))
+                Ok((site, j.snapshot, j.replaced))
             }
         }
     };
-    let (site, snapshot) = match joined {
+    let (site, snapshot, replaced) = match joined {
         Ok(x) => x,
         Err(refusal) => {
             inc(&shared.counters.refused);
@@ -643,6 +660,10 @@ async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
         }
     };
     inc(&shared.counters.joined);
+    if let Some(old) = replaced {
+        inc(&shared.counters.resumed);
+        info!(%remote, site, old, name = %join.site_name, "site reconnected; replaced its silent previous connection");
+    }
     info!(%remote, site, name = %join.site_name, role = %join.role, "site joined");
     tokio::spawn(control_writer(conn.clone(), send, rx));
     {
@@ -741,11 +762,22 @@ async fn control_reader(
             match dec.next_message() {
                 Ok(Some(m)) => {
                     inc(&shared.counters.control_frames_in);
+                    let leaving = match &m {
+                        Message::Leave(l) => Some(l.reason.clone()),
+                        _ => None,
+                    };
                     let now = shared.clock.now_us();
-                    let mut st = shared.lock();
-                    let st = &mut *st;
-                    let actions = st.session.on_control(site, m, now);
-                    shared.execute(st, actions);
+                    {
+                        let mut st = shared.lock();
+                        let st = &mut *st;
+                        let actions = st.session.on_control(site, m, now);
+                        shared.execute(st, actions);
+                    }
+                    if let Some(reason) = leaving {
+                        // The session closes the connection once the writer has flushed;
+                        // nothing after a Leave matters.
+                        return format!("left: {reason}");
+                    }
                 }
                 Ok(None) => break,
                 Err(FrameError::Decode(e)) => {
@@ -881,6 +913,19 @@ async fn read_keyframe_stream(shared: Arc<Shared>, site: SiteId, mut recv: RecvS
         Ok(Ok(b)) => b,
         Ok(Err(quinn::ReadToEndError::TooLong)) => {
             return bad(&mut recv, format!("stream longer than {limit} bytes"));
+        }
+        // The site replaced this keyframe by a newer one of the same region: normal.
+        Ok(Err(quinn::ReadToEndError::Read(quinn::ReadError::Reset(code))))
+            if code == VarInt::from_u32(stream_code::SUPERSEDED) =>
+        {
+            inc(&shared.counters.superseded_streams_in);
+            debug!(site, "incoming keyframe stream superseded by the site");
+            return;
+        }
+        // The connection ended (the site left or was lost): not the stream's fault.
+        Ok(Err(quinn::ReadToEndError::Read(quinn::ReadError::ConnectionLost(e)))) => {
+            debug!(site, error = %e, "keyframe stream ended with the connection");
+            return;
         }
         Ok(Err(e)) => {
             inc(&shared.counters.malformed_streams);

@@ -108,6 +108,9 @@ pub struct SiteState {
     pub joined_at_us: u64,
     /// Armed by the site's first heartbeat.
     pub liveness: Option<PeerLiveness>,
+    /// Coordinator time anything (datagram, control frame, keyframe) was last heard from the
+    /// site (µs); the join time until then.
+    pub last_heard_us: u64,
 }
 
 /// Result of a successful join.
@@ -116,9 +119,16 @@ pub struct Joined {
     pub welcome: Welcome,
     /// Snapshot to send on a unidirectional stream right after the Welcome.
     pub snapshot: Snapshot,
-    /// Further actions (SiteJoined to others, teaching state to the newcomer).
+    /// Further actions (SiteJoined to others, teaching state to the newcomer; when the join
+    /// resumed a silent member of the same name, that member's departure and close first).
     pub actions: Vec<Action>,
+    /// The silent member this join replaced (see [`Session::join`]).
+    pub replaced: Option<SiteId>,
 }
+
+/// A join may replace a member of the same name and role that has been silent for this
+/// many heartbeat intervals (see [`Session::join`]).
+pub const RESUME_SILENCE_INTERVALS: u64 = 2;
 
 /// Session logic.
 #[derive(Debug)]
@@ -195,8 +205,45 @@ impl Session {
         }
     }
 
+    /// The member a join of this name and role may replace: one of the same name and role
+    /// that has not been heard for [`RESUME_SILENCE_INTERVALS`] heartbeat intervals.
+    fn resumable(&self, join: &proto::Join, now_us: u64) -> Option<SiteId> {
+        let silence = RESUME_SILENCE_INTERVALS * self.config().heartbeat_interval_us;
+        self.sites
+            .values()
+            .find(|s| s.entry.name == join.site_name)
+            .filter(|s| {
+                s.entry.role == join.role && now_us.saturating_sub(s.last_heard_us) >= silence
+            })
+            .map(|s| s.entry.site)
+    }
+
     /// Handle a Join at coordinator time `now_us`.
+    ///
+    /// **Resume.** A site whose connection broke reconnects before the coordinator noticed
+    /// the loss (liveness needs 2.4 heartbeat intervals, the QUIC idle timeout 10 s); its
+    /// name is then still taken. If the join passes every other check (version, session,
+    /// token, scene, name) and the member holding the name has the same role and has been
+    /// silent for [`RESUME_SILENCE_INTERVALS`] heartbeat intervals, that member is removed
+    /// (as if timed out: ownership released, `Leave` to the others, its connection closed
+    /// with `close_code::TIMED_OUT`) and the join proceeds with a new site id. A member that
+    /// is still talking keeps its name ([`RefusalReason::NameTaken`]).
     pub fn join(&mut self, join: &proto::Join, now_us: u64) -> Result<Joined, Refusal> {
+        let mut actions = Vec::new();
+        let mut replaced = None;
+        if let Err(r) = self.join.validate(join)
+            && r.reason == proto::RefusalReason::NameTaken
+            && let Some(old) = self.resumable(join, now_us)
+        {
+            actions.extend(self.site_left(old, "replaced by its reconnection"));
+            actions.push(Action::Close {
+                site: old,
+                code: close_code::TIMED_OUT,
+                reason: "silent; replaced by a new connection of the same site".into(),
+            });
+            replaced = Some(old);
+        }
+        // After a replacement this cannot fail: the name and a slot were just freed.
         let welcome = self.join.handle_join(join, now_us)?;
         let entry = SiteEntry {
             site: welcome.site,
@@ -213,13 +260,14 @@ impl Session {
                 rtt_us: 0,
                 joined_at_us: now_us,
                 liveness: None,
+                last_heard_us: now_us,
             },
         );
         let site = welcome.site;
-        let mut actions = vec![Action::Control {
+        actions.push(Action::Control {
             to: Target::AllExcept(site),
             msg: Message::SiteJoined(entry),
-        }];
+        });
         for t in self.trajectories.values() {
             actions.push(Action::Control {
                 to: Target::One(site),
@@ -236,6 +284,7 @@ impl Session {
             welcome,
             snapshot: self.snapshot(),
             actions,
+            replaced,
         })
     }
 
@@ -265,10 +314,11 @@ impl Session {
     }
 
     fn heard(&mut self, site: SiteId, now_us: u64) {
-        if let Some(s) = self.sites.get_mut(&site)
-            && let Some(l) = s.liveness.as_mut()
-        {
-            l.on_heard(now_us);
+        if let Some(s) = self.sites.get_mut(&site) {
+            s.last_heard_us = s.last_heard_us.max(now_us);
+            if let Some(l) = s.liveness.as_mut() {
+                l.on_heard(now_us);
+            }
         }
     }
 
@@ -895,6 +945,68 @@ mod tests {
         assert!(
             matches!(acts.last().unwrap(), Action::Close { site, code, .. } if *site == a && *code == close_code::TIMED_OUT)
         );
+        assert!(s.site(b).is_some());
+    }
+
+    #[test]
+    fn quick_reconnect_replaces_a_silent_member_only() {
+        let mut s = session();
+        let iv = s.config().heartbeat_interval_us;
+        let again = |name: &str, role: Role, token: &str| Join {
+            protocol_version: PROTOCOL_VERSION,
+            scene_hash: "ab".into(),
+            role,
+            site_name: name.into(),
+            session: "s".into(),
+            token: token.into(),
+        };
+        let t0 = 1_000_000;
+        let a = s
+            .join(&again("a", Role::Trainee, "t"), t0)
+            .unwrap()
+            .welcome
+            .site;
+        let b = join(&mut s, "b", Role::Trainee);
+        s.on_control(
+            a,
+            Message::OwnershipRequest(OwnershipRequest {
+                region: 2,
+                claim_time_us: 0,
+            }),
+            t0,
+        );
+        // still talking: the name stays taken
+        s.on_datagram(
+            a,
+            Message::Heartbeat(Heartbeat {
+                site: a,
+                time_us: 0,
+            }),
+            t0 + iv,
+        );
+        let t = t0 + iv + RESUME_SILENCE_INTERVALS * iv - 1;
+        let r = s.join(&again("a", Role::Trainee, "t"), t).unwrap_err();
+        assert_eq!(r.reason, RefusalReason::NameTaken);
+        // silent long enough, but another role or a wrong token: no replacement
+        let t = t + 1;
+        let r = s.join(&again("a", Role::Instructor, "t"), t).unwrap_err();
+        assert_eq!(r.reason, RefusalReason::NameTaken);
+        let r = s.join(&again("a", Role::Trainee, "x"), t).unwrap_err();
+        assert_eq!(r.reason, RefusalReason::WrongToken);
+        assert!(s.site(a).is_some());
+        // same name and role, silent: replaced
+        let j = s.join(&again("a", Role::Trainee, "t"), t).unwrap();
+        assert_eq!(j.replaced, Some(a));
+        assert_ne!(j.welcome.site, a);
+        assert!(s.site(a).is_none());
+        assert_eq!(s.owner(2), None);
+        assert!(
+            j.actions.iter().any(
+                |x| matches!(x, Action::Control { msg: Message::Leave(l), .. } if l.site == a)
+            )
+        );
+        assert!(j.actions.iter().any(|x| matches!(x, Action::Close { site, code, .. } if *site == a && *code == close_code::TIMED_OUT)));
+        assert!(j.welcome.sites.iter().all(|e| e.site != a));
         assert!(s.site(b).is_some());
     }
 

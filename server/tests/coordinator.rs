@@ -851,6 +851,7 @@ async fn status_broadcast_and_leave() {
         loop {
             if let Message::Leave(l) = next_ctrl(&mut a).await {
                 assert_eq!(l.site, sb);
+                assert_eq!(l.reason, "left: done");
                 break;
             }
         }
@@ -936,4 +937,82 @@ async fn measure(
     }
     lat.sort_by(|a, b| a.partial_cmp(b).unwrap());
     lat
+}
+
+#[tokio::test]
+async fn keyframe_stream_superseded_by_its_sender_is_not_malformed() {
+    tokio::time::timeout(T, async {
+        let f = start();
+        let a = f.join("a", Role::Trainee).await;
+        // The site starts a keyframe stream, then replaces it by a newer keyframe: it resets
+        // the old stream with SUPERSEDED (what the site link does).
+        let mut s = a.conn.open_uni().await.unwrap();
+        s.write_all(&[0, 0, 4, 0, 1, 2, 3]).await.unwrap();
+        s.reset(quinn::VarInt::from_u32(stream_code::SUPERSEDED))
+            .unwrap();
+        link::send_uni(
+            &a.conn,
+            &Message::Keyframe(keyframe(5, 2, a.welcome.site, 16)),
+            0,
+        )
+        .await
+        .unwrap();
+        while f.handle.stats().superseded_streams_in < 1 || f.handle.stats().keyframes_in < 1 {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        // a reset with any other code still counts
+        let mut s = a.conn.open_uni().await.unwrap();
+        s.write_all(&[0, 0, 4, 0, 1]).await.unwrap();
+        s.reset(quinn::VarInt::from_u32(77)).unwrap();
+        while f.handle.stats().malformed_streams < 1 {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        let st = f.handle.stats();
+        assert_eq!(st.superseded_streams_in, 1, "{st:?}");
+        assert_eq!(st.malformed_streams, 1, "{st:?}");
+        f.handle.shutdown().await;
+    })
+    .await
+    .unwrap();
+}
+
+#[tokio::test]
+async fn quick_reconnect_replaces_the_silent_previous_connection() {
+    tokio::time::timeout(T, async {
+        let f = start();
+        let mut watcher = f.join("w", Role::Trainee).await;
+        // The old connection of site "r" lives on its own endpoint and goes silent (as when
+        // the site's process restarts behind a NAT that keeps the old path).
+        let old_ep = link::client_endpoint_on(
+            "127.0.0.1:0".parse().unwrap(),
+            tls::client_config_pinned(f.handle.fingerprint()).unwrap(),
+        )
+        .unwrap();
+        let old = link::connect_and_join(&old_ep, f.addr, "localhost", &join_msg("r", Role::Trainee))
+            .await
+            .unwrap();
+        let old_id = old.welcome.site;
+        assert!(matches!(next_ctrl(&mut watcher).await, Message::SiteJoined(e) if e.site == old_id));
+        // Silent for more than 2 heartbeat intervals (2 × 200 ms here): the reconnection wins.
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        let new = f.join("r", Role::Trainee).await;
+        assert_ne!(new.welcome.site, old_id);
+        assert!(new.welcome.sites.iter().all(|e| e.site != old_id));
+        match old.conn.closed().await {
+            quinn::ConnectionError::ApplicationClosed(c) => {
+                assert_eq!(c.error_code, quinn::VarInt::from_u32(close_code::TIMED_OUT))
+            }
+            e => panic!("{e}"),
+        }
+        assert!(matches!(next_ctrl(&mut watcher).await, Message::Leave(l) if l.site == old_id));
+        assert!(
+            matches!(next_ctrl(&mut watcher).await, Message::SiteJoined(e) if e.site == new.welcome.site)
+        );
+        let st = f.handle.stats();
+        assert_eq!((st.resumed, st.refused), (1, 0), "{st:?}");
+        assert_eq!(f.handle.status().sites.len(), 2);
+        f.handle.shutdown().await;
+    })
+    .await
+    .unwrap();
 }

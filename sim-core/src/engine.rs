@@ -35,6 +35,8 @@ pub struct StepReport {
     pub rebuilt: bool,
     /// Leaves sharing an ancestor's rotation this step.
     pub shared_rotations: usize,
+    /// Blocks whose rotation-sharing neighbour test ran this step.
+    pub sharing_blocks_tested: usize,
 }
 
 /// Which region of space gets which material.
@@ -94,6 +96,8 @@ pub struct Simulation {
     f_scene: Vec<V3>,
     /// Extra forces for the next step (N): contact, haptics, tests.
     f_extra: Vec<V3>,
+    /// Extra stiffness blocks `−∂f_extra/∂x` for the next step (N/m): contact, grasp.
+    k_extra: Vec<(usize, nalgebra::Matrix3<f64>)>,
     /// Nodes clamped by the scene's `[[fix]]` boxes.
     fixed_scene: Vec<bool>,
     /// Nodes whose motion is prescribed for the next step (sync takeover): target
@@ -278,6 +282,7 @@ impl Simulation {
             x,
             f_scene: vec![V3::zeros(); cap],
             f_extra: vec![V3::zeros(); cap],
+            k_extra: Vec::new(),
             fixed_scene: vec![false; cap],
             prescribed: HashMap::new(),
             materials,
@@ -438,14 +443,17 @@ impl Simulation {
             .map(|(a, b)| a + b)
             .collect();
         let (x0, v0) = (self.x.clone(), self.v.clone());
-        if let Some(shared) = self
-            .sharing
-            .update(&self.lattice, fem, &self.x, &self.options)
-        {
-            report.shared_rotations = shared;
+        if let Some(shared) = self.sharing.update(fem, &self.x, &self.options)? {
+            report.shared_rotations = shared.shared_elements;
+            report.sharing_blocks_tested = shared.blocks_tested;
         }
         let params = self.options.step_params();
-        let stats = match fem.step(&mut self.x, &mut self.v, &f_ext, dt, &params) {
+        // Extra stiffness (contact) applies to this step only.
+        fem.set_external_stiffness(&self.k_extra);
+        let result = fem.step(&mut self.x, &mut self.v, &f_ext, dt, &params);
+        fem.clear_external_stiffness();
+        self.k_extra.clear();
+        let stats = match result {
             Ok(s) => s,
             Err(sim_fem::FemError::NonFinite) => {
                 self.x = x0;
@@ -475,6 +483,15 @@ impl Simulation {
     pub fn add_force(&mut self, node: NodeId, f: V3) {
         if let Some(slot) = self.f_extra.get_mut(node.0 as usize) {
             *slot += f;
+        }
+    }
+
+    /// Adds a stiffness block `K = −∂f/∂x` (N/m, symmetric positive semi-definite) on a
+    /// node for the next step only: the implicit step treats the matching force added with
+    /// [`Simulation::add_force`] as `f − K (x_{n+1} − x_n)` (stiff contact stays stable).
+    pub fn add_stiffness(&mut self, node: NodeId, k: nalgebra::Matrix3<f64>) {
+        if self.lattice.node_alive(node) {
+            self.k_extra.push((node.0 as usize, k));
         }
     }
 

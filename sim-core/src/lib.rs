@@ -16,11 +16,20 @@
 //!
 //! Units: SI throughout (m, s, kg, N, Pa).
 
+pub mod adapt;
+pub mod contact;
 mod engine;
 mod error;
 mod options;
 mod sharing;
+pub mod sync;
+pub mod tools;
 
+pub use adapt::{AdaptParams, AdaptReport, Adaptivity};
+pub use contact::{
+    ContactParams, ContactPipeline, ContactState, ContactStats, Interaction, InteractionReport,
+    LocalModel, ToolContact,
+};
 pub use engine::{Simulation, StepReport, Surface};
 pub use error::SimError;
 pub use options::SimOptions;
@@ -28,3 +37,4 @@ pub use sim_fem;
 pub use sim_lattice;
 pub use sim_lattice::{NodeId, TetId};
 pub use sim_scene;
+pub use tools::{Tool, ToolInput, ToolSet};

@@ -1,52 +1,72 @@
 //! Hierarchical rotation sharing (DESIGN §1(a), speed-up 1).
 //!
 //! Rotations of descendants are close to their ancestor's. Above the root cubes the
-//! lattice continues as a hierarchy of blocks of `2^k` cubes (a block of 8 half-size
-//! cubes is exactly what three bisection levels make of one cube, so this is the same
-//! diamond hierarchy, coarser). Each block's rotation is extracted from one Kuhn tet
-//! spanning the block: corners `c`, `c + s x̂`, `c + s(x̂ + ŷ)`, `c + s(x̂ + ŷ + ẑ)`, all of
-//! them lattice nodes.
+//! lattice continues as a hierarchy of blocks of `2^k` cubes per axis (a block of 8
+//! half-size cubes is exactly what three bisection levels make of one cube, so this is the
+//! same diamond hierarchy, coarser). A block exists only where all its `8^k` cubes exist
+//! (so its rotation describes material that is actually connected). Each block's rotation
+//! comes from one Kuhn tet spanning the block: corners `c`, `c + s x̂`, `c + s(x̂ + ŷ)`,
+//! `c + s(x̂ + ŷ + ẑ)`, all of them lattice nodes. The blocks are the FEM system's shared
+//! rotation sources ([`sim_fem::FemDesc::rotation_sources`]).
 //!
-//! Each step, starting at the coarsest blocks: a block whose rotation `R_m` agrees with
+//! Each step, top-down from the coarsest blocks: a block whose rotation `R_m` agrees with
 //! every existing face-neighbour block's `R_n` at the same level,
-//! `‖R_m − R_n‖²_F < 4(1 − cos θ_tol)`, gives its rotation to every leaf inside it;
-//! otherwise the test descends to its eight sub-blocks, down to single cubes. Leaves of a
-//! cube that fails the test extract their own rotation. θ_tol = 0 disables sharing.
+//! `‖R_m − R_n‖²_F < 4(1 − cos θ_tol)`, and has at least one such neighbour (an isolated
+//! block gives no evidence that the rotation field is smooth across it), gives its
+//! rotation to every leaf inside it; otherwise the test descends to its sub-blocks, down
+//! to single cubes. Leaves of a cube that fails the test extract their own rotation.
+//! θ_tol = 0 disables sharing.
+//!
+//! Block rotations are extracted lazily by the FEM system
+//! ([`FemSystem::shared_source_rotation`]) only for the blocks the test visits (and their
+//! neighbours); the FEM then extracts only the sources some element references
+//! ([`FemSystem::set_rotation_assignment`]), and a step's
+//! [`sim_fem::StepStats::rotations_extracted`] counts both.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 
 use nalgebra::{Matrix3, Vector3};
-use sim_fem::{ElementDesc, FemSystem, RotationExtractor, RotationSourceDesc, WarmStart};
+use sim_fem::{ElementDesc, FemError, FemSystem, RotationSourceDesc};
 use sim_lattice::{Lattice, NodeId};
 
 use crate::options::SimOptions;
 
 type V3 = Vector3<f64>;
 
-/// One block of `2^level` cubes per axis with its spanning tet.
+/// One block of `2^level` cubes per axis with its spanning tet (= shared source of the
+/// same index).
 #[derive(Clone, Debug)]
 struct Block {
-    /// Block coordinates at its level (cube index >> level).
-    coord: [i32; 3],
-    level: u8,
     nodes: [usize; 4],
     dm_inv: Matrix3<f64>,
-    rotation: Matrix3<f64>,
-    valid: bool,
+    /// Enclosing block one level up, if it exists.
+    parent: Option<usize>,
+    /// Face neighbours at the same level (−x, +x, −y, +y, −z, +z).
+    neighbours: [Option<usize>; 6],
 }
 
-/// The sharing state of one FEM system: blocks per level and which element sits in
+/// What one sharing update did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub(crate) struct SharingUpdate {
+    /// Elements using a block rotation.
+    pub shared_elements: usize,
+    /// Blocks whose neighbour test ran.
+    pub blocks_tested: usize,
+}
+
+/// The sharing state of one FEM system: the block hierarchy and which element sits in
 /// which cube.
 #[derive(Clone, Debug, Default)]
 pub(crate) struct RotationSharing {
     /// `‖R_m − R_n‖²_F` threshold; `None`: sharing off.
     threshold_sq: Option<f64>,
-    /// Blocks by (level, coord) → index into `blocks`.
-    index: HashMap<(u8, [i32; 3]), usize>,
+    /// Blocks, finest level first (so coarser blocks come later; the top-down pass walks
+    /// the array backwards).
     blocks: Vec<Block>,
-    /// Cube of each element (index into `FemDesc::elements` order).
-    element_cube: Vec<[i32; 3]>,
-    coarsest: u8,
+    /// Level-0 block (the cube) of each element, in `FemDesc::elements` order.
+    element_block: Vec<usize>,
+    /// Scratch: block → assigned source of the last update.
+    assigned: Vec<Option<usize>>,
     /// Per-element assignment of the last update (`None`: own rotation).
     assignment: Vec<Option<usize>>,
 }
@@ -61,6 +81,12 @@ impl RotationSharing {
         }
     }
 
+    /// Number of blocks (shared rotation sources).
+    #[cfg(test)]
+    pub(crate) fn num_blocks(&self) -> usize {
+        self.blocks.len()
+    }
+
     /// Builds the block hierarchy for the current leaves and returns the shared rotation
     /// sources (the blocks) for [`sim_fem::FemDesc::rotation_sources`]. Elements keep
     /// their own rotation until [`RotationSharing::update`] assigns them.
@@ -69,41 +95,50 @@ impl RotationSharing {
         lattice: &Lattice,
         elements: &mut [ElementDesc],
     ) -> Vec<RotationSourceDesc> {
-        self.index.clear();
         self.blocks.clear();
-        self.element_cube.clear();
+        self.element_block.clear();
+        self.assigned.clear();
         self.assignment.clear();
+        for e in elements.iter_mut() {
+            e.rotation_source = None;
+        }
         if self.threshold_sq.is_none() {
             return Vec::new();
         }
         let upc = lattice.units_per_cell();
         let by_grid: HashMap<[i64; 3], NodeId> =
             lattice.nodes().map(|n| (lattice.node_grid(n), n)).collect();
-        for &t in lattice.leaves() {
-            let nodes = lattice.tet_nodes(t);
-            let mut lo = [i64::MAX; 3];
-            for n in nodes {
-                let g = lattice.node_grid(n);
-                for k in 0..3 {
-                    lo[k] = lo[k].min(g[k]);
+        // Cube of every element: the min corner of its nodes (leaves lie inside their
+        // root cube).
+        let element_cube: Vec<[i32; 3]> = elements
+            .iter()
+            .map(|e| {
+                let mut lo = [i64::MAX; 3];
+                for &n in &e.nodes {
+                    let g = lattice.node_grid(NodeId(n as u32));
+                    for k in 0..3 {
+                        lo[k] = lo[k].min(g[k]);
+                    }
                 }
-            }
-            self.element_cube.push(lo.map(|v| v.div_euclid(upc) as i32));
-        }
+                lo.map(|v| v.div_euclid(upc) as i32)
+            })
+            .collect();
+        let cube_set: HashSet<[i32; 3]> = lattice.cells().iter().copied().collect();
         let cell = lattice.params().cell;
         let origin = lattice.params().origin;
+        // Full blocks per level: level 0 = the cubes; a block at level k+1 is full when
+        // its 8 sub-blocks at level k are.
+        let mut index: HashMap<(u8, [i32; 3]), usize> = HashMap::new();
+        let mut level_coords: Vec<[i32; 3]> = {
+            let mut c: Vec<[i32; 3]> = cube_set.iter().copied().collect();
+            c.sort_unstable();
+            c
+        };
         let mut level = 0u8;
-        loop {
-            let mut coords: Vec<[i32; 3]> = self
-                .element_cube
-                .iter()
-                .map(|c| c.map(|v| v >> level))
-                .collect();
-            coords.sort_unstable();
-            coords.dedup();
-            let mut made = 0;
-            for coord in coords {
-                let s = 1i64 << level;
+        while !level_coords.is_empty() {
+            let s = 1i64 << level;
+            let mut made = 0usize;
+            for &coord in &level_coords {
                 let c0 = coord.map(|v| i64::from(v) * s);
                 let corners = [
                     [c0[0], c0[1], c0[2]],
@@ -128,29 +163,53 @@ impl RotationSharing {
                 let Some(dm_inv) = dm.try_inverse() else {
                     continue;
                 };
-                self.index.insert((level, coord), self.blocks.len());
+                index.insert((level, coord), self.blocks.len());
                 self.blocks.push(Block {
-                    coord,
-                    level,
                     nodes: [ids[0], ids[1], ids[2], ids[3]].map(|n| n.0 as usize),
                     dm_inv,
-                    rotation: Matrix3::identity(),
-                    valid: false,
+                    parent: None,
+                    neighbours: [None; 6],
                 });
                 made += 1;
             }
-            // Stop when a level has at most a handful of blocks: coarser blocks would
-            // span the whole organ and never pass the neighbour test anyway.
-            if made <= 8 || level >= 10 {
-                self.coarsest = level;
+            // Coarser blocks would span the whole organ; a level with a handful of blocks
+            // is the top (their neighbour test still needs a neighbour).
+            if made <= 8 || level >= 12 {
                 break;
             }
+            // Candidate parents: coordinates all of whose 8 children exist at this level.
+            let mut parents: Vec<[i32; 3]> =
+                level_coords.iter().map(|c| c.map(|v| v >> 1)).collect();
+            parents.sort_unstable();
+            parents.dedup();
+            parents.retain(|p| {
+                (0..8).all(|k| {
+                    let child = [
+                        2 * p[0] + (k & 1),
+                        2 * p[1] + ((k >> 1) & 1),
+                        2 * p[2] + ((k >> 2) & 1),
+                    ];
+                    index.contains_key(&(level, child))
+                })
+            });
+            level_coords = parents;
             level += 1;
         }
-        self.assignment = vec![None; elements.len()];
-        for e in elements.iter_mut() {
-            e.rotation_source = None;
+        // Links: parents and neighbours.
+        let keys: Vec<((u8, [i32; 3]), usize)> = index.iter().map(|(k, v)| (*k, *v)).collect();
+        for ((lvl, coord), bi) in keys {
+            self.blocks[bi].parent = index.get(&(lvl + 1, coord.map(|v| v >> 1))).copied();
+            for axis in 0..3 {
+                for (side, d) in [-1, 1].into_iter().enumerate() {
+                    let mut c = coord;
+                    c[axis] += d;
+                    self.blocks[bi].neighbours[2 * axis + side] = index.get(&(lvl, c)).copied();
+                }
+            }
         }
+        self.element_block = element_cube.iter().map(|c| index[&(0, *c)]).collect();
+        self.assigned = vec![None; self.blocks.len()];
+        self.assignment = vec![None; elements.len()];
         self.blocks
             .iter()
             .map(|b| RotationSourceDesc {
@@ -160,67 +219,54 @@ impl RotationSharing {
             .collect()
     }
 
-    /// Extracts block rotations, runs the neighbour test from the coarsest level down and
-    /// hands the per-element assignment to the FEM system. Returns the number of
-    /// elements sharing a block rotation, or `None` when sharing is off.
+    /// Runs the neighbour test from the coarsest level down (extracting block rotations on
+    /// demand through the FEM system) and hands the per-element assignment to the FEM
+    /// system. `None` when sharing is off or the model has no rotations.
     pub(crate) fn update(
         &mut self,
-        _lattice: &Lattice,
         fem: &mut FemSystem,
         x: &[V3],
         options: &SimOptions,
-    ) -> Option<usize> {
-        let thr = self.threshold_sq?;
-        if self.blocks.is_empty() {
-            return Some(0);
+    ) -> Result<Option<SharingUpdate>, FemError> {
+        let Some(thr) = self.threshold_sq else {
+            return Ok(None);
+        };
+        if options.model != sim_fem::Model::Corotational || self.blocks.is_empty() {
+            return Ok(None);
         }
-        for b in &mut self.blocks {
-            let xs = b.nodes.map(|n| x[n]);
-            let f =
-                Matrix3::from_columns(&[xs[1] - xs[0], xs[2] - xs[0], xs[3] - xs[0]]) * b.dm_inv;
-            let warm = WarmStart {
-                rotation: b.valid.then_some(b.rotation),
-                sigma_bounds: None,
-            };
-            b.rotation = options.polar.extract(&f, Some(&warm)).rotation;
-            b.valid = true;
-        }
-        // Coherent blocks: those agreeing with all face neighbours at their level.
-        let coherent: Vec<bool> = self
-            .blocks
-            .iter()
-            .map(|b| {
-                let mut ok = true;
-                for axis in 0..3 {
-                    for d in [-1, 1] {
-                        let mut c = b.coord;
-                        c[axis] += d;
-                        if let Some(&j) = self.index.get(&(b.level, c)) {
-                            let diff = (b.rotation - self.blocks[j].rotation).norm_squared();
-                            ok &= diff < thr;
-                        }
+        let mut out = SharingUpdate::default();
+        let polar = options.polar;
+        let rest = options.rest_threshold;
+        // Blocks are stored finest level first: walk backwards = coarsest first, so a
+        // block's parent is decided before the block.
+        for bi in (0..self.blocks.len()).rev() {
+            let b = &self.blocks[bi];
+            if let Some(p) = b.parent
+                && let Some(src) = self.assigned[p]
+            {
+                self.assigned[bi] = Some(src);
+                continue;
+            }
+            out.blocks_tested += 1;
+            let neighbours = b.neighbours;
+            let mut coherent = neighbours.iter().any(Option::is_some);
+            if coherent {
+                let rm = fem.shared_source_rotation(bi, x, &polar, rest);
+                for n in neighbours.into_iter().flatten() {
+                    let rn = fem.shared_source_rotation(n, x, &polar, rest);
+                    if (rm - rn).norm_squared() >= thr {
+                        coherent = false;
+                        break;
                     }
                 }
-                ok
-            })
-            .collect();
-        let mut shared = 0;
-        for (e, cube) in self.element_cube.iter().enumerate() {
-            let mut chosen = None;
-            for level in (0..=self.coarsest).rev() {
-                let coord = cube.map(|v| v >> level);
-                if let Some(&j) = self.index.get(&(level, coord))
-                    && coherent[j]
-                {
-                    chosen = Some(j);
-                    break;
-                }
             }
-            shared += chosen.is_some() as usize;
-            self.assignment[e] = chosen;
+            self.assigned[bi] = coherent.then_some(bi);
         }
-        // TODO(lead): hand the assignment to the FEM system once it can switch sources.
-        let _ = fem;
-        Some(shared)
+        for (a, &b) in self.assignment.iter_mut().zip(&self.element_block) {
+            *a = self.assigned[b];
+        }
+        out.shared_elements = self.assignment.iter().filter(|a| a.is_some()).count();
+        fem.set_rotation_assignment(&self.assignment)?;
+        Ok(Some(out))
     }
 }

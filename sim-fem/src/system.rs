@@ -72,7 +72,9 @@ pub struct ElementDesc {
     pub material: usize,
     /// Shape key and scale for the template stiffness table (None: dense/gradient path).
     pub shape: Option<ShapeRef>,
-    /// Index of the rotation source whose R this element uses (None: its own).
+    /// Index of the rotation source whose R this element uses initially (None: its own).
+    /// Every element also gets a source of its own, so
+    /// [`FemSystem::set_rotation_assignment`] can switch between the two at any step.
     pub rotation_source: Option<usize>,
 }
 
@@ -200,9 +202,11 @@ pub struct StepStats {
     pub newton_iterations: usize,
     /// Final force residual of the Newton step (N); NaN for the linearised step.
     pub newton_residual: f64,
-    /// Rotation sources whose R was extracted.
+    /// Rotation extractions (polar decompositions) since the previous step, including
+    /// those of shared sources requested by [`FemSystem::shared_source_rotation`]
+    /// (the rotation-sharing test). Sources no element references are not extracted.
     pub rotations_extracted: usize,
-    /// Rotation sources whose R was reused (at rest).
+    /// Referenced rotation sources whose R was reused (at rest).
     pub rotations_reused: usize,
     /// Polar iterations summed over extractions.
     pub polar_iterations: usize,
@@ -290,7 +294,10 @@ struct Element {
     volume: f64,
     template: Option<(usize, f64)>,
     combo: usize,
+    /// The source whose rotation the element uses now.
     source: usize,
+    /// The element's own source (its own F).
+    own_source: usize,
 }
 
 #[derive(Clone, Debug)]
@@ -301,6 +308,19 @@ struct Source {
     x_last: [V3; 4],
     sigma: Option<(f64, f64)>,
     valid: bool,
+    /// Extracted at the current positions (since the last [`FemSystem::update_rotations`]).
+    fresh: bool,
+    /// Elements currently using this source.
+    users: u32,
+}
+
+/// Extraction counters `(extracted, reused, polar iterations, inverted)`.
+#[derive(Clone, Copy, Debug, Default)]
+struct ExtractCount {
+    extracted: usize,
+    reused: usize,
+    iterations: usize,
+    inverted: usize,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -328,6 +348,10 @@ pub struct FemSystem {
     mass: Vec<f64>,
     mass_damping: Vec<f64>,
     sources: Vec<Source>,
+    /// Caller's (shared) sources are `sources[..num_shared]`.
+    num_shared: usize,
+    /// Extractions of shared sources requested between steps.
+    pending: ExtractCount,
     templates: Vec<Template>,
     template_uses: Vec<usize>,
     combos: Vec<Mat12>,
@@ -401,6 +425,8 @@ impl FemSystem {
                 x_last: gather(&desc.rest, &s.nodes),
                 sigma: None,
                 valid: false,
+                fresh: false,
+                users: 0,
             });
         }
         let mut templates: Vec<Template> = Vec::new();
@@ -467,26 +493,27 @@ impl FemSystem {
                     combos.len() - 1
                 }),
             };
-            let source = match e.rotation_source {
-                Some(s) if s < desc.rotation_sources.len() => s,
-                Some(s) => {
-                    return Err(FemError::BadElement {
-                        element: ei,
-                        reason: format!("rotation source {s} out of range"),
-                    });
-                }
-                None => {
-                    sources.push(Source {
-                        nodes: e.nodes,
-                        dm_inv: geom.dm_inv,
-                        rotation: Matrix3::identity(),
-                        x_last: xr,
-                        sigma: None,
-                        valid: false,
-                    });
-                    sources.len() - 1
-                }
-            };
+            if let Some(s) = e.rotation_source
+                && s >= desc.rotation_sources.len()
+            {
+                return Err(FemError::BadElement {
+                    element: ei,
+                    reason: format!("rotation source {s} out of range"),
+                });
+            }
+            sources.push(Source {
+                nodes: e.nodes,
+                dm_inv: geom.dm_inv,
+                rotation: Matrix3::identity(),
+                x_last: xr,
+                sigma: None,
+                valid: false,
+                fresh: false,
+                users: 0,
+            });
+            let own_source = sources.len() - 1;
+            let source = e.rotation_source.unwrap_or(own_source);
+            sources[source].users += 1;
             let m4 = mat.density * geom.volume / 4.0;
             for &k in &e.nodes {
                 mass[k] += m4;
@@ -501,6 +528,7 @@ impl FemSystem {
                 template,
                 combo,
                 source,
+                own_source,
             });
         }
         let fixed = if desc.fixed.is_empty() {
@@ -523,6 +551,8 @@ impl FemSystem {
             mass,
             mass_damping,
             sources,
+            num_shared: desc.rotation_sources.len(),
+            pending: ExtractCount::default(),
             templates,
             template_uses,
             combos,
@@ -565,10 +595,81 @@ impl FemSystem {
         self.fixed = fixed;
         Ok(())
     }
-    /// Number of rotation sources (caller's first, then one per element without a shared
-    /// source).
+    /// Number of rotation sources: the caller's shared ones first, then one per element.
     pub fn num_rotation_sources(&self) -> usize {
         self.sources.len()
+    }
+    /// Number of the caller's (shared) rotation sources, `FemDesc::rotation_sources.len()`.
+    pub fn num_shared_sources(&self) -> usize {
+        self.num_shared
+    }
+    /// Rotation sources some element uses now (only these are extracted by a step).
+    pub fn num_referenced_sources(&self) -> usize {
+        self.sources.iter().filter(|s| s.users > 0).count()
+    }
+    /// The shared source element `ei` uses, or None when it uses its own rotation.
+    pub fn element_source(&self, ei: usize) -> Option<usize> {
+        let e = &self.elements[ei];
+        (e.source != e.own_source).then_some(e.source)
+    }
+
+    /// Switch the rotation source of every element: `Some(s)` uses shared source `s`
+    /// (`s < num_shared_sources()`), `None` the element's own F. Takes effect at the next
+    /// force evaluation / step; only sources that some element references are extracted.
+    /// Cost O(elements); an unchanged assignment changes nothing.
+    pub fn set_rotation_assignment(
+        &mut self,
+        assignment: &[Option<usize>],
+    ) -> Result<(), FemError> {
+        if assignment.len() != self.elements.len() {
+            return Err(FemError::Size {
+                what: "rotation assignment",
+                expected: self.elements.len(),
+                got: assignment.len(),
+            });
+        }
+        if let Some((ei, s)) = assignment
+            .iter()
+            .enumerate()
+            .find_map(|(ei, a)| a.filter(|s| *s >= self.num_shared).map(|s| (ei, s)))
+        {
+            return Err(FemError::BadElement {
+                element: ei,
+                reason: format!(
+                    "rotation source {s} out of range ({} shared sources)",
+                    self.num_shared
+                ),
+            });
+        }
+        for (e, a) in self.elements.iter_mut().zip(assignment) {
+            let new = a.unwrap_or(e.own_source);
+            if new != e.source {
+                self.sources[e.source].users -= 1;
+                self.sources[new].users += 1;
+                e.source = new;
+            }
+        }
+        Ok(())
+    }
+
+    /// Rotation of shared source `s` at positions `x`, extracted now unless it already was
+    /// at these positions (since the last step) or its nodes are at rest (`rest_threshold`,
+    /// m, as in [`StepParams::rest_threshold`]). The extraction counts towards the next
+    /// step's [`StepStats::rotations_extracted`], and the step does not extract it again.
+    /// For the caller's sharing test; `s < num_shared_sources()`.
+    pub fn shared_source_rotation(
+        &mut self,
+        s: usize,
+        x: &[V3],
+        polar: &PolarMethod,
+        rest_threshold: f64,
+    ) -> Matrix3<f64> {
+        assert!(s < self.num_shared, "shared source {s} out of range");
+        let src = &mut self.sources[s];
+        if !src.fresh {
+            extract_source(src, x, polar, rest_threshold, &mut self.pending);
+        }
+        src.rotation
     }
     /// Current rotation of a source (valid after a step / force evaluation).
     pub fn source_rotation(&self, source: usize) -> Matrix3<f64> {
@@ -686,11 +787,15 @@ impl FemSystem {
         }
     }
 
-    /// Extract rotations of all sources at `x` without touching stored state.
+    /// Extract rotations at `x` of all sources some element uses, without touching stored
+    /// state (unused sources keep their stored rotation).
     pub fn compute_rotations(&self, x: &[V3], polar: &PolarMethod) -> Vec<Matrix3<f64>> {
         self.sources
             .iter()
             .map(|s| {
+                if s.users == 0 {
+                    return s.rotation;
+                }
                 let f = edge_matrix(&gather(x, &s.nodes)) * s.dm_inv;
                 let warm = WarmStart {
                     rotation: s.valid.then_some(s.rotation),
@@ -701,44 +806,29 @@ impl FemSystem {
             .collect()
     }
 
-    /// Update stored source rotations at `x`, skipping sources whose nodes all moved less
-    /// than `rest_threshold` (m) since their last extraction. Returns
-    /// `(extracted, reused, polar iterations, inverted)`.
+    /// Update stored rotations at `x` of the sources some element uses, skipping sources
+    /// whose nodes all moved less than `rest_threshold` (m) since their last extraction
+    /// and those already extracted at `x` by [`FemSystem::shared_source_rotation`].
+    /// Returns `(extracted, reused, polar iterations, inverted)`, including the shared
+    /// extractions requested since the previous call.
     pub fn update_rotations(
         &mut self,
         x: &[V3],
         polar: &PolarMethod,
         rest_threshold: f64,
     ) -> (usize, usize, usize, usize) {
-        let (mut ext, mut reused, mut iters, mut inv) = (0, 0, 0, 0);
-        let thr2 = rest_threshold * rest_threshold;
+        let mut c = std::mem::take(&mut self.pending);
         for s in &mut self.sources {
-            let xs = gather(x, &s.nodes);
-            if s.valid
-                && rest_threshold > 0.0
-                && xs
-                    .iter()
-                    .zip(&s.x_last)
-                    .all(|(a, b)| (a - b).norm_squared() < thr2)
-            {
-                reused += 1;
+            if s.fresh {
+                s.fresh = false;
                 continue;
             }
-            let f = edge_matrix(&xs) * s.dm_inv;
-            let warm = WarmStart {
-                rotation: s.valid.then_some(s.rotation),
-                sigma_bounds: if s.valid { s.sigma } else { None },
-            };
-            let r = polar.extract(&f, Some(&warm));
-            s.rotation = r.rotation;
-            s.sigma = Some(r.sigma_bounds);
-            s.x_last = xs;
-            s.valid = true;
-            ext += 1;
-            iters += r.iterations as usize;
-            inv += r.inverted as usize;
+            if s.users > 0 {
+                extract_source(s, x, polar, rest_threshold, &mut c);
+                s.fresh = false;
+            }
         }
-        (ext, reused, iters, inv)
+        (c.extracted, c.reused, c.iterations, c.inverted)
     }
 
     /// Elastic energy (J) and, if `forces` is given, internal forces `f_int = −∂W/∂x` (N)
@@ -931,7 +1021,7 @@ impl FemSystem {
                 Model::Linear => self.apply_k0(ei, &pe, mode),
                 Model::Corotational => {
                     let src = &self.sources[e.source];
-                    let consistent = (src.nodes == e.nodes)
+                    let consistent = (e.source == e.own_source)
                         .then(|| self.corot_tangent_consistent(ei, x, &src.rotation))
                         .flatten();
                     match consistent {
@@ -1092,7 +1182,7 @@ impl FemSystem {
                 Model::Corotational => {
                     let e = &self.elements[ei];
                     let src = &self.sources[e.source];
-                    let own = src.nodes == e.nodes;
+                    let own = e.source == e.own_source;
                     own.then(|| self.corot_tangent_consistent(ei, x, &src.rotation))
                         .flatten()
                         .unwrap_or_else(|| self.rotated_k(ei, &src.rotation, mode))
@@ -1119,7 +1209,16 @@ impl FemSystem {
             tol: 0.0,
         });
         let mut stats = StepStats::default();
-        let (e, r, it, inv) = self.update_rotations(x, &p.polar, p.rest_threshold);
+        // Rotations enter the co-rotational model and the Rayleigh β damping; the StVK
+        // reference without β needs none (a polar decomposition per element and line-search
+        // trial would dominate its cost).
+        let corot = p.model == Model::Corotational;
+        let need_rotations = corot || self.materials.iter().any(|m| m.beta != 0.0);
+        let (e, r, it, inv) = if need_rotations {
+            self.update_rotations(x, &p.polar, p.rest_threshold)
+        } else {
+            (0, 0, 0, 0)
+        };
         stats.rotations_extracted = e;
         stats.rotations_reused = r;
         stats.polar_iterations = it;
@@ -1184,7 +1283,14 @@ impl FemSystem {
             }
             val
         };
-        let mut rots = self.compute_rotations(x, &p.polar);
+        let rotations = |s: &FemSystem, xt: &[V3]| {
+            if corot {
+                s.compute_rotations(xt, &p.polar)
+            } else {
+                Vec::new()
+            }
+        };
+        let mut rots = rotations(self, x);
         let mut grad = vec![V3::zeros(); n];
         let mut val = phi(self, x, &rots, Some(&mut grad));
         for _ in 0..np.max_iters.max(1) {
@@ -1216,7 +1322,7 @@ impl FemSystem {
             stats.cg_iterations += res.iterations;
             stats.cg_residual = res.relative_residual;
             let (nv, nr, ng) = line_search(self, x, &dx, &grad, val, |s, xt, g| {
-                let r = s.compute_rotations(xt, &p.polar);
+                let r = rotations(s, xt);
                 let v = phi(s, xt, &r, g);
                 (v, r)
             });
@@ -1367,6 +1473,42 @@ impl FemSystem {
         stats.converged = true;
         Ok(stats)
     }
+}
+
+/// Extract (or, at rest, reuse) one source's rotation at `x` and mark it fresh.
+fn extract_source(
+    s: &mut Source,
+    x: &[V3],
+    polar: &PolarMethod,
+    rest_threshold: f64,
+    c: &mut ExtractCount,
+) {
+    let xs = gather(x, &s.nodes);
+    s.fresh = true;
+    let thr2 = rest_threshold * rest_threshold;
+    if s.valid
+        && rest_threshold > 0.0
+        && xs
+            .iter()
+            .zip(&s.x_last)
+            .all(|(a, b)| (a - b).norm_squared() < thr2)
+    {
+        c.reused += 1;
+        return;
+    }
+    let f = edge_matrix(&xs) * s.dm_inv;
+    let warm = WarmStart {
+        rotation: s.valid.then_some(s.rotation),
+        sigma_bounds: if s.valid { s.sigma } else { None },
+    };
+    let r = polar.extract(&f, Some(&warm));
+    s.rotation = r.rotation;
+    s.sigma = Some(r.sigma_bounds);
+    s.x_last = xs;
+    s.valid = true;
+    c.extracted += 1;
+    c.iterations += r.iterations as usize;
+    c.inverted += r.inverted as usize;
 }
 
 /// Armijo backtracking along `dx` from `x` (updated in place). If `dx` is not a descent

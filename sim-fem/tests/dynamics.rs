@@ -245,7 +245,8 @@ fn rotation_sharing_and_rest_skip() {
         rotation_sources: sources,
     })
     .unwrap();
-    assert_eq!(sys.num_rotation_sources(), 16);
+    assert_eq!(sys.num_shared_sources(), 16);
+    assert_eq!(sys.num_referenced_sources(), 16);
     // Rigid motion: shared rotations are exact, forces vanish.
     let rot = Rotation3::from_euler_angles(0.4, 1.0, -0.3).into_inner();
     let x: Vec<V3> = mesh

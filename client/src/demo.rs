@@ -1,0 +1,391 @@
+//! `cosurg demo`: a coordinator and N sites on loopback, real QUIC with TLS between real
+//! processes, playing the built-in cholecystectomy script.
+//!
+//! Timeline (simulated seconds): the instructor's forceps grasps the gallbladder fundus
+//! and lifts it (from 0.5 s); trainee B works around the gallbladder neck with a probe
+//! (from 1.0 s); trainee A repeats the lift (from 7 s). Every site records its embedded
+//! surface every 50 ms of simulated time; afterwards the demo compares every site with
+//! the site that owned the region at that time, vertex by vertex.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
+use serde::Serialize;
+
+use crate::cli::out_dir;
+use crate::plot::{Chart, Series, write_chart};
+use crate::site::{SiteReport, Strategy};
+
+#[derive(Debug, Args, Clone)]
+pub struct DemoArgs {
+    /// Number of sites (instructor, trainee A, trainee B, then observers).
+    #[arg(long, default_value_t = 3)]
+    pub sites: usize,
+    /// Simulated seconds.
+    #[arg(long, default_value_t = 14.0)]
+    pub seconds: f64,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    pub json: bool,
+    /// Output folder (default out/demo-<timestamp>).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Sync strategy.
+    #[arg(long, value_enum, default_value = "keyframe")]
+    pub strategy: Strategy,
+    /// Network impairment preset applied to every site's link (netem presets: lan,
+    /// metro, good, average, poor, intercontinental).
+    #[arg(long)]
+    pub preset: Option<String>,
+    /// Slow trainee B's simulation by this factor.
+    #[arg(long, default_value_t = 1.0)]
+    pub slowdown: f64,
+    /// Simulated seconds between VTU frames per site.
+    #[arg(long, default_value_t = 0.5)]
+    pub vtu_interval: f64,
+    /// Seed of the impairment.
+    #[arg(long, default_value_t = 7)]
+    pub seed: u64,
+}
+
+/// One site of the demo.
+#[derive(Clone, Debug)]
+pub struct DemoSite {
+    pub name: String,
+    pub role: &'static str,
+    pub tool: Option<&'static str>,
+    pub script_start: f64,
+    pub slowdown: f64,
+}
+
+/// The demo's cast for `n` sites.
+pub fn cast(n: usize, slowdown: f64) -> Vec<DemoSite> {
+    (0..n.max(1))
+        .map(|i| match i {
+            0 => DemoSite {
+                name: "instructor".into(),
+                role: "instructor",
+                tool: Some("forceps"),
+                script_start: 0.5,
+                slowdown: 1.0,
+            },
+            1 => DemoSite {
+                name: "trainee-a".into(),
+                role: "trainee",
+                tool: Some("forceps"),
+                script_start: 7.0,
+                slowdown: 1.0,
+            },
+            2 => DemoSite {
+                name: "trainee-b".into(),
+                role: "trainee",
+                tool: Some("probe"),
+                script_start: 1.0,
+                slowdown,
+            },
+            k => DemoSite {
+                name: format!("observer-{}", k - 2),
+                role: "observer",
+                tool: None,
+                script_start: 0.0,
+                slowdown: 1.0,
+            },
+        })
+        .collect()
+}
+
+/// Per-site row of the summary.
+#[derive(Debug, Clone, Serialize)]
+pub struct SiteRow {
+    pub name: String,
+    pub role: String,
+    pub sim_rate_hz: f64,
+    pub step_ms_p50: f64,
+    pub step_ms_p99: f64,
+    pub keyframes_sent: u64,
+    pub keyframes_received: u64,
+    pub up_bytes_per_s: f64,
+    pub down_bytes_per_s: f64,
+    pub divergence_max_mm: f64,
+    pub divergence_rms_mm: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct DemoSummary {
+    pub scene_hash: String,
+    pub seconds: f64,
+    pub strategy: String,
+    pub preset: Option<String>,
+    pub out: PathBuf,
+    pub sites: Vec<SiteRow>,
+}
+
+/// Session options of a multi-site run (shared with `cosurg bench sync`).
+#[derive(Clone, Debug)]
+pub struct SessionRun {
+    pub cast: Vec<DemoSite>,
+    pub seconds: f64,
+    pub strategy: Strategy,
+    pub preset: Option<String>,
+    pub seed: u64,
+    pub out: PathBuf,
+    pub vtu_interval: f64,
+    pub progress: bool,
+}
+
+/// Runs a coordinator in-process and every site as a child process; returns the site
+/// reports (with divergence filled in) and the per-mark divergence series.
+pub fn run_session(run: &SessionRun) -> Result<(Vec<SiteReport>, Vec<Series>)> {
+    let exe = std::env::current_exe().context("locating the cosurg executable")?;
+    let scene = sim_core::sim_scene::builtin::cholecystectomy();
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()?;
+    let token = format!("demo-{}", std::process::id());
+    let mut session = proto::SessionConfig::new("demo", token.clone());
+    session.scene_hash = Some(scene.hash.clone());
+    let config = server::CoordinatorConfig::ephemeral(session)?;
+    let (handle, addr) = runtime.block_on(async { server::Coordinator::bind(config) })?;
+    let fingerprint = handle.fingerprint().to_string();
+    std::fs::create_dir_all(&run.out)?;
+
+    let multi = MultiProgress::new();
+    if !run.progress {
+        multi.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    let style = ProgressStyle::with_template("{prefix:>12} {bar:30} {msg}").expect("template");
+    let mut children = Vec::new();
+    for site in &run.cast {
+        let dir = run.out.join(&site.name);
+        let mut cmd = Command::new(&exe);
+        cmd.arg("join")
+            .args(["--server", &addr.to_string()])
+            .args(["--session", "demo"])
+            .args(["--token", &token])
+            .args(["--role", site.role])
+            .args(["--site", &site.name])
+            .args(["--pin", &fingerprint])
+            .args(["--seconds", &run.seconds.to_string()])
+            .args(["--strategy", run.strategy.name()])
+            .args(["--script-start", &site.script_start.to_string()])
+            .args(["--slowdown", &site.slowdown.to_string()])
+            .args(["--expect-sites", &run.cast.len().to_string()])
+            .args(["--vtu-interval", &run.vtu_interval.to_string()])
+            .args(["--seed", &run.seed.to_string()])
+            .arg("--out")
+            .arg(&dir)
+            .args(["--json", "--progress-lines"])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::from(std::fs::File::create(
+                run.out.join(format!("{}.log", site.name)),
+            )?))
+            .env("COSURG_LOG", "warn,cosurg=info");
+        if let Some(t) = site.tool {
+            cmd.args(["--tool", t]);
+        }
+        if let Some(p) = &run.preset {
+            cmd.args(["--preset", p]);
+        }
+        let mut child = cmd
+            .spawn()
+            .with_context(|| format!("starting site {}", site.name))?;
+        let bar = multi.add(ProgressBar::new((run.seconds * 1000.0) as u64));
+        bar.set_style(style.clone());
+        bar.set_prefix(site.name.clone());
+        let stdout = child.stdout.take().expect("piped");
+        let reader = std::thread::spawn(move || -> Option<SiteReport> {
+            let mut last = None;
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                if let Some(rest) = line.strip_prefix("PROGRESS ") {
+                    let mut it = rest.split_whitespace();
+                    let t: f64 = it.next().and_then(|v| v.parse().ok()).unwrap_or(0.0);
+                    bar.set_position((t * 1000.0) as u64);
+                    bar.set_message(format!(
+                        "t = {t:.2} s  {}",
+                        it.collect::<Vec<_>>().join(" ")
+                    ));
+                } else if let Ok(r) = serde_json::from_str::<SiteReport>(&line) {
+                    last = Some(r);
+                }
+            }
+            bar.finish();
+            last
+        });
+        children.push((site.clone(), child, reader));
+    }
+
+    let deadline = Instant::now() + Duration::from_secs_f64(run.seconds * 4.0 + 60.0);
+    let mut reports = Vec::new();
+    let mut failures = Vec::new();
+    for (site, mut child, reader) in children {
+        let status = loop {
+            if let Some(s) = child.try_wait()? {
+                break Some(s);
+            }
+            if Instant::now() > deadline {
+                let _ = child.kill();
+                break None;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        let report = reader.join().ok().flatten();
+        match (status, report) {
+            (Some(s), Some(r)) if s.success() => reports.push(r),
+            (s, _) => failures.push(format!(
+                "site {} ended with {:?}; see {}",
+                site.name,
+                s,
+                run.out.join(format!("{}.log", site.name)).display()
+            )),
+        }
+    }
+    runtime.block_on(handle.shutdown());
+    if !failures.is_empty() {
+        bail!("{}", failures.join("; "));
+    }
+    let series = crate::divergence::fill_divergence(&mut reports)?;
+    Ok((reports, series))
+}
+
+pub fn demo(args: DemoArgs) -> Result<()> {
+    let out = out_dir(&args.out, "demo");
+    let scene = sim_core::sim_scene::builtin::cholecystectomy();
+    let run = SessionRun {
+        cast: cast(args.sites, args.slowdown),
+        seconds: args.seconds,
+        strategy: args.strategy,
+        preset: args.preset.clone(),
+        seed: args.seed,
+        out: out.clone(),
+        vtu_interval: args.vtu_interval,
+        progress: !args.json,
+    };
+    if !args.json {
+        eprintln!(
+            "cosurg demo: coordinator + {} sites on 127.0.0.1 (QUIC/TLS), scene builtin:cholecystectomy {}, strategy {}, {} s simulated",
+            run.cast.len(),
+            &scene.hash[..12],
+            args.strategy.name(),
+            args.seconds
+        );
+    }
+    let (reports, series) = run_session(&run)?;
+    let rows: Vec<SiteRow> = reports
+        .iter()
+        .map(|r| SiteRow {
+            name: r.name.clone(),
+            role: r.role.clone(),
+            sim_rate_hz: r.sim_rate_hz,
+            step_ms_p50: r.step_ms_p50,
+            step_ms_p99: r.step_ms_p99,
+            keyframes_sent: r.keyframes_sent,
+            keyframes_received: r.keyframes_received,
+            up_bytes_per_s: r.up_bytes_per_s,
+            down_bytes_per_s: r.down_bytes_per_s,
+            divergence_max_mm: r.divergence_max_mm.unwrap_or(0.0),
+            divergence_rms_mm: r.divergence_rms_mm.unwrap_or(0.0),
+        })
+        .collect();
+    write_plots(&out, &series, &reports)?;
+    let summary = DemoSummary {
+        scene_hash: scene.hash.clone(),
+        seconds: args.seconds,
+        strategy: args.strategy.name().into(),
+        preset: args.preset.clone(),
+        out: out.clone(),
+        sites: rows,
+    };
+    std::fs::write(
+        out.join("summary.json"),
+        serde_json::to_string_pretty(&summary)?,
+    )?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+    } else {
+        print_table(&summary);
+        println!(
+            "\nwrote {}: per-site VTU/PVD series (<site>/vtu/series.pvd), surface recordings (<site>/surfaces.surf), divergence.png/svg, bandwidth.png/svg, summary.json",
+            out.display()
+        );
+    }
+    Ok(())
+}
+
+fn print_table(s: &DemoSummary) {
+    println!(
+        "\n{:<12} {:<10} {:>9} {:>9} {:>9} {:>7} {:>7} {:>10} {:>10} {:>9} {:>9}",
+        "site",
+        "role",
+        "rate Hz",
+        "p50 ms",
+        "p99 ms",
+        "kf out",
+        "kf in",
+        "up B/s",
+        "down B/s",
+        "div max",
+        "div rms"
+    );
+    for r in &s.sites {
+        println!(
+            "{:<12} {:<10} {:>9.0} {:>9.3} {:>9.3} {:>7} {:>7} {:>10.0} {:>10.0} {:>6.2} mm {:>6.2} mm",
+            r.name,
+            r.role,
+            r.sim_rate_hz,
+            r.step_ms_p50,
+            r.step_ms_p99,
+            r.keyframes_sent,
+            r.keyframes_received,
+            r.up_bytes_per_s,
+            r.down_bytes_per_s,
+            r.divergence_max_mm,
+            r.divergence_rms_mm
+        );
+    }
+}
+
+fn write_plots(out: &Path, series: &[Series], reports: &[SiteReport]) -> Result<()> {
+    write_chart(
+        out,
+        "divergence",
+        &Chart {
+            title: "divergence from the owning site (max over surface vertices)",
+            x_label: "simulated time (s)",
+            y_label: "divergence (mm)",
+            log_x: false,
+            log_y: false,
+            scatter: false,
+        },
+        series,
+    )?;
+    let bw: Vec<Series> = reports
+        .iter()
+        .map(|r| Series {
+            label: format!("{} (up, down)", r.name),
+            points: vec![
+                (0.0, r.up_bytes_per_s / 1e3),
+                (1.0, r.down_bytes_per_s / 1e3),
+            ],
+        })
+        .collect();
+    write_chart(
+        out,
+        "bandwidth",
+        &Chart {
+            title: "application bytes per second per site (x = 0 up, 1 down)",
+            x_label: "direction (0 = up, 1 = down)",
+            y_label: "kB/s",
+            log_x: false,
+            log_y: false,
+            scatter: true,
+        },
+        &bw,
+    )?;
+    Ok(())
+}

@@ -1,0 +1,226 @@
+//! `cosurg join`: run this machine as one site of a session.
+
+use std::net::{SocketAddr, ToSocketAddrs};
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, anyhow, bail};
+use clap::{Args, ValueEnum};
+use proto::Role;
+use sim_core::SimOptions;
+use sim_core::sim_scene::ToolScript;
+
+use crate::cli::SimKnobs;
+use crate::link::{LinkConfig, LinkImpairment, Trust};
+use crate::scene_arg::load_scene;
+use crate::site::{SiteConfig, SiteReport, Strategy, run_site};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum RoleArg {
+    Instructor,
+    Trainee,
+    Observer,
+}
+
+impl From<RoleArg> for Role {
+    fn from(r: RoleArg) -> Role {
+        match r {
+            RoleArg::Instructor => Role::Instructor,
+            RoleArg::Trainee => Role::Trainee,
+            RoleArg::Observer => Role::Observer,
+        }
+    }
+}
+
+#[derive(Debug, Args, Clone)]
+pub struct JoinArgs {
+    /// Coordinator address, HOST:PORT.
+    #[arg(long)]
+    pub server: String,
+    /// Session name.
+    #[arg(long)]
+    pub session: String,
+    /// Session token (or COSURG_TOKEN).
+    #[arg(long, env = "COSURG_TOKEN", hide_env_values = true)]
+    pub token: String,
+    /// This site's role.
+    #[arg(long, value_enum)]
+    pub role: RoleArg,
+    /// This site's name, unique in the session.
+    #[arg(long)]
+    pub site: String,
+    /// SHA-256 fingerprint of the coordinator's certificate (printed by cosurg-server).
+    #[arg(long, conflicts_with = "ca")]
+    pub pin: Option<String>,
+    /// CA certificate (PEM) that signed the coordinator's certificate.
+    #[arg(long)]
+    pub ca: Option<PathBuf>,
+    /// TLS server name to check with --ca.
+    #[arg(long, default_value = "localhost")]
+    pub server_name: String,
+    /// Scene file or builtin:NAME (must match the session's scene hash).
+    #[arg(long)]
+    pub scene: Option<String>,
+    /// Tool this site drives (scene tool name); default: the script's or the first tool.
+    #[arg(long)]
+    pub tool: Option<String>,
+    /// Tool trajectory script (sim-scene script format) for the local tool.
+    #[arg(long)]
+    pub script: Option<PathBuf>,
+    /// Simulated time at which the script starts (s).
+    #[arg(long, default_value_t = 0.0)]
+    pub script_start: f64,
+    /// Leave after this many simulated seconds.
+    #[arg(long, default_value_t = 10.0)]
+    pub seconds: f64,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    pub json: bool,
+    /// How sites share the interaction.
+    #[arg(long, value_enum, default_value = "keyframe")]
+    pub strategy: Strategy,
+    /// Slow this site's simulation by a factor (real extra CPU per step).
+    #[arg(long, default_value_t = 1.0)]
+    pub slowdown: f64,
+    /// Impair this site's own QUIC traffic in-process with a netem preset.
+    #[arg(long)]
+    pub preset: Option<String>,
+    /// Seed of the impairment.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Output folder (surface recordings, VTU/PVD, report.json).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Simulated seconds between VTU frames (0: none).
+    #[arg(long, default_value_t = 0.5)]
+    pub vtu_interval: f64,
+    /// Start simulating once this many sites have joined.
+    #[arg(long, default_value_t = 1)]
+    pub expect_sites: usize,
+    /// Do not pace to wall-clock time.
+    #[arg(long)]
+    pub no_realtime: bool,
+    /// Do not run the 1 kHz haptic loop.
+    #[arg(long)]
+    pub no_haptics: bool,
+    /// Print `PROGRESS <sim time> …` lines on stdout (used by `cosurg demo`).
+    #[arg(long, hide = true)]
+    pub progress_lines: bool,
+    #[command(flatten)]
+    pub knobs: SimKnobs,
+}
+
+pub fn resolve(server: &str) -> Result<SocketAddr> {
+    server
+        .to_socket_addrs()
+        .with_context(|| format!("resolving {server}"))?
+        .next()
+        .ok_or_else(|| anyhow!("{server} resolves to no address"))
+}
+
+pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
+    let scene = load_scene(args.scene.as_deref())?;
+    let mut options = SimOptions::from_scene(&scene.scene);
+    args.knobs.apply(&mut options);
+    let mut script = match &args.script {
+        Some(p) => Some(ToolScript::load(p).with_context(|| format!("script {}", p.display()))?),
+        None => None,
+    };
+    let tool = match (&args.tool, RoleArg::Observer == args.role) {
+        (_, true) => None,
+        (Some(t), _) => Some(t.clone()),
+        (None, _) => script
+            .as_ref()
+            .and_then(|s| s.tools().next().map(String::from))
+            .or_else(|| scene.scene.tools.first().map(|t| t.name.clone())),
+    };
+    if let Some(t) = &tool
+        && !scene.scene.tools.iter().any(|s| &s.name == t)
+    {
+        bail!(
+            "tool {t:?} is not in the scene (tools: {:?})",
+            scene
+                .scene
+                .tools
+                .iter()
+                .map(|t| &t.name)
+                .collect::<Vec<_>>()
+        );
+    }
+    // Without --script the tool follows the script its scene gives it, if any.
+    if script.is_none()
+        && let Some(t) = &tool
+    {
+        script = scene.scripts.get(t).cloned();
+    }
+    let trust = match (&args.pin, &args.ca) {
+        (Some(p), _) => Trust::Pinned(p.clone()),
+        (None, Some(ca)) => Trust::Ca(ca.clone()),
+        (None, None) => bail!("give --pin FINGERPRINT (printed by cosurg-server) or --ca PEM"),
+    };
+    let mut link = LinkConfig::new(
+        resolve(&args.server)?,
+        "",
+        &args.session,
+        &args.token,
+        args.role.into(),
+        &args.site,
+        &scene.hash,
+    );
+    link.trust = trust;
+    link.server_name = args.server_name.clone();
+    if let Some(p) = &args.preset {
+        link.impairment = Some(LinkImpairment::preset(p, args.seed)?);
+    }
+    Ok(SiteConfig {
+        name: args.site.clone(),
+        role: args.role.into(),
+        options,
+        tool,
+        script,
+        script_start: args.script_start,
+        seconds: args.seconds,
+        strategy: args.strategy,
+        slowdown: args.slowdown,
+        out: args.out.clone(),
+        vtu_interval: (args.vtu_interval > 0.0).then_some(args.vtu_interval),
+        link: Some(link),
+        expect_sites: args.expect_sites,
+        realtime: !args.no_realtime,
+        haptics: !args.no_haptics,
+        on_progress: None,
+        scene,
+    })
+}
+
+pub fn join(args: JoinArgs) -> Result<()> {
+    let mut cfg = site_config(&args)?;
+    if args.progress_lines {
+        cfg.on_progress = Some(Box::new(|t, msg| println!("PROGRESS {t:.3} {msg}")));
+    }
+    let report = run_site(cfg)?;
+    print_report(&report, args.json)
+}
+
+pub fn print_report(r: &SiteReport, json: bool) -> Result<()> {
+    if json {
+        println!("{}", serde_json::to_string(r)?);
+    } else {
+        println!(
+            "site {} ({}, {}): {:.2} s simulated in {:.2} s wall, {:.0} steps/s, step p50 {:.3} ms p99 {:.3} ms, keyframes sent {} received {} applied {}, up {:.0} B/s down {:.0} B/s",
+            r.name,
+            r.role,
+            r.strategy,
+            r.sim_seconds,
+            r.wall_seconds,
+            r.sim_rate_hz,
+            r.step_ms_p50,
+            r.step_ms_p99,
+            r.keyframes_sent,
+            r.keyframes_received,
+            r.keyframes_applied,
+            r.up_bytes_per_s,
+            r.down_bytes_per_s
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,479 @@
+//! The site's simulation loop.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use clap::ValueEnum;
+use serde::{Deserialize, Serialize};
+use tracing::{debug, info, warn};
+
+use proto::{Message, Role};
+use sim_core::sim_scene::{LoadedScene, ToolScript};
+use sim_core::{SimOptions, Simulation};
+
+use super::glue::{self, SyncState};
+use crate::cli::Refused;
+use crate::link::{Link, LinkConfig, LinkEvent};
+use crate::output::SeriesWriter;
+use crate::stats::percentile;
+
+/// How the sites share the interaction (`--strategy`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Strategy {
+    /// The report's method: keyframes of owned local regions, tree-state XOR and
+    /// second-order extrapolation between keyframes.
+    Keyframe,
+    /// Every node of the organ, every frame, from the owning site.
+    FullState,
+    /// Only tool poses; every site simulates every tool's contacts itself.
+    InputOnly,
+}
+
+impl Strategy {
+    pub fn name(self) -> &'static str {
+        match self {
+            Strategy::Keyframe => "keyframe",
+            Strategy::FullState => "full-state",
+            Strategy::InputOnly => "input-only",
+        }
+    }
+}
+
+/// Everything a site needs to run.
+pub struct SiteConfig {
+    pub name: String,
+    pub role: Role,
+    pub scene: LoadedScene,
+    pub options: SimOptions,
+    /// The scene tool this site drives (by name); `None`: no local tool (observer).
+    pub tool: Option<String>,
+    /// Trajectory of the local tool, played in simulation time from `script_start`.
+    pub script: Option<ToolScript>,
+    pub script_start: f64,
+    /// Simulated seconds to run.
+    pub seconds: f64,
+    pub strategy: Strategy,
+    /// Extra CPU cost per step as a factor of the step's own cost (1 = none, 3 = three
+    /// times slower), like a laptop beside a workstation.
+    pub slowdown: f64,
+    /// Output folder: surface recordings (`surfaces.surf`), VTU/PVD frames, report.
+    pub out: Option<PathBuf>,
+    /// Simulated time between VTU frames (s); `None`: no VTU.
+    pub vtu_interval: Option<f64>,
+    /// Coordinator link; `None`: a site on its own.
+    pub link: Option<LinkConfig>,
+    /// Start the simulation only when this many sites (including this one) have joined.
+    pub expect_sites: usize,
+    /// Pace steps to wall-clock time (true) or run as fast as possible (false).
+    pub realtime: bool,
+    /// Run the 1 kHz haptic loop beside the simulation.
+    pub haptics: bool,
+    /// Called about every 0.25 s of simulated time with (sim time s, a short status).
+    pub on_progress: Option<Box<dyn FnMut(f64, &str) + Send>>,
+}
+
+/// What a site did, printed by `cosurg join` and collected by `cosurg demo`.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct SiteReport {
+    pub name: String,
+    pub role: String,
+    pub strategy: String,
+    pub site_id: Option<u16>,
+    pub scene_hash: String,
+    /// Simulated seconds and the wall-clock seconds they took.
+    pub sim_seconds: f64,
+    pub wall_seconds: f64,
+    /// Simulation steps per wall-clock second.
+    pub sim_rate_hz: f64,
+    pub step_ms_p50: f64,
+    pub step_ms_p99: f64,
+    pub keyframes_sent: u64,
+    pub keyframes_received: u64,
+    pub keyframes_applied: u64,
+    /// CPU time per applied keyframe (µs): tree-state XOR, takeover, extrapolation setup.
+    pub apply_us_per_keyframe: f64,
+    /// Application bytes per second over the run (UDP bytes in `udp_*`).
+    pub up_bytes_per_s: f64,
+    pub down_bytes_per_s: f64,
+    pub udp_up_bytes_per_s: f64,
+    pub udp_down_bytes_per_s: f64,
+    /// Filled by the demo / sync bench from the recordings of all sites (mm).
+    pub divergence_max_mm: Option<f64>,
+    pub divergence_rms_mm: Option<f64>,
+    /// Clock estimate against the coordinator at the end (µs).
+    pub clock_offset_us: Option<f64>,
+    pub rtt_us: Option<u64>,
+    /// Region ownership this site held: (region, from sim time s, to sim time s).
+    pub owned: Vec<(u32, f64, f64)>,
+    /// Surface recordings (every 50 ms of simulated time).
+    pub surf_file: Option<PathBuf>,
+    pub reconnects: u64,
+    /// Haptic loop: ticks per second and p99 period jitter (µs).
+    pub haptic_rate_hz: Option<f64>,
+    pub haptic_jitter_p99_us: Option<f64>,
+    /// Contact force on the local tool, max magnitude over the run (N).
+    pub max_tool_force_n: f64,
+}
+
+/// Simulated time between surface recordings (s).
+pub const RECORD_INTERVAL: f64 = 0.05;
+/// A site releases a region this long after its tool last touched it (s).
+const RELEASE_AFTER: f64 = 0.4;
+
+/// Runs a site to completion.
+pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
+    let dt = cfg.options.dt;
+    let steps = (cfg.seconds / dt).round().max(1.0) as u64;
+    let scene_hash = cfg.scene.hash.clone();
+    let mut sim = Simulation::new(cfg.scene.clone(), cfg.options.clone())?;
+    let mut tools = glue::Tools::new(&sim, cfg.tool.as_deref(), cfg.strategy)?;
+    let mut sync = SyncState::new(&sim, cfg.strategy);
+    let mut recorder = glue::Recorder::new(&sim, RECORD_INTERVAL);
+    let mut writer = match (&cfg.out, cfg.vtu_interval) {
+        (Some(dir), Some(_)) => Some(SeriesWriter::new(&dir.join("vtu"))?),
+        _ => None,
+    };
+    let mut report = SiteReport {
+        name: cfg.name.clone(),
+        role: format!("{:?}", cfg.role).to_lowercase(),
+        strategy: cfg.strategy.name().into(),
+        scene_hash: scene_hash.clone(),
+        ..Default::default()
+    };
+
+    // The link lives on a small tokio runtime of its own; the simulation thread only
+    // polls it.
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .context("starting the network runtime")?;
+    let link = match cfg.link.clone() {
+        Some(lc) => Some(Link::start(lc, runtime.handle())?),
+        None => None,
+    };
+    let mut pending: Vec<Message> = Vec::new();
+    let mut me: Option<u16> = None;
+    let mut sites: BTreeMap<u16, (String, Role)> = BTreeMap::new();
+    if let Some(link) = &link {
+        let deadline = Instant::now() + Duration::from_secs(20);
+        // Join, then wait for the expected number of sites: all sites then start their
+        // simulation clocks within about one round trip of each other.
+        loop {
+            if Instant::now() > deadline {
+                bail!(
+                    "site {}: timed out waiting for the session ({} of {} sites)",
+                    cfg.name,
+                    sites.len(),
+                    cfg.expect_sites
+                );
+            }
+            match link.recv_timeout(Duration::from_millis(50)) {
+                Some(LinkEvent::Welcome(w)) => {
+                    me = Some(w.site);
+                    for s in w.sites {
+                        sites.insert(s.site, (s.name, s.role));
+                    }
+                }
+                Some(LinkEvent::Refused(r)) => {
+                    return Err(Refused(format!("{:?}: {}", r.reason, r.text)).into());
+                }
+                Some(LinkEvent::Stopped { reason }) => bail!("link stopped: {reason}"),
+                Some(LinkEvent::ConnectFailed { error, will_retry }) => {
+                    warn!(site = %cfg.name, %error, will_retry, "connect failed");
+                    if !will_retry {
+                        bail!("cannot connect: {error}");
+                    }
+                }
+                Some(LinkEvent::Message(Message::SiteJoined(s))) => {
+                    sites.insert(s.site, (s.name, s.role));
+                }
+                Some(LinkEvent::Message(m)) => pending.push(m),
+                Some(other) => debug!(?other, "link event before start"),
+                None => {}
+            }
+            if me.is_some() && sites.len() >= cfg.expect_sites {
+                break;
+            }
+        }
+        info!(site = %cfg.name, id = ?me, sites = sites.len(), "session complete, starting");
+    }
+    report.site_id = me;
+    let haptic = cfg.haptics.then(glue::HapticLoop::start);
+
+    let start = Instant::now();
+    let mut step_ms: Vec<f64> = Vec::with_capacity(steps as usize);
+    let mut apply_us: Vec<f64> = Vec::new();
+    let mut owned: BTreeMap<u32, f64> = BTreeMap::new();
+    let mut requested: BTreeSet<u32> = BTreeSet::new();
+    let mut last_touch: HashMap<u32, f64> = HashMap::new();
+    let mut next_simtime_stamp = 0.0;
+    let mut next_vtu = 0.0;
+    let mut next_progress = 0.0;
+    let vtu_interval = cfg.vtu_interval.unwrap_or(f64::INFINITY);
+
+    for k in 0..steps {
+        let t = sim.time();
+        // 1. Network input, without waiting.
+        let mut inbox = std::mem::take(&mut pending);
+        if let Some(link) = &link {
+            while let Some(ev) = link.try_recv() {
+                match ev {
+                    LinkEvent::Message(m) => inbox.push(m),
+                    LinkEvent::Refused(r) => {
+                        return Err(Refused(format!("{:?}: {}", r.reason, r.text)).into());
+                    }
+                    LinkEvent::Reconnected(w) => {
+                        info!(site = %cfg.name, id = w.site, "reconnected");
+                        me = Some(w.site);
+                        report.reconnects += 1;
+                        // Ownership does not survive a reconnect: the coordinator released
+                        // our regions when we dropped.
+                        owned.clear();
+                        requested.clear();
+                    }
+                    LinkEvent::Disconnected { reason, .. } => {
+                        warn!(site = %cfg.name, %reason, "disconnected");
+                    }
+                    other => debug!(?other, "link event"),
+                }
+            }
+        }
+        for m in inbox {
+            match m {
+                Message::ToolPose(p) if Some(p.site) != me => tools.remote_pose(&p),
+                Message::Keyframe(kf) if Some(kf.owner) != me => {
+                    let t0 = Instant::now();
+                    if sync.receive(&mut sim, &kf)? {
+                        apply_us.push(t0.elapsed().as_secs_f64() * 1e6);
+                        report.keyframes_applied += 1;
+                        if let Some(link) = &link {
+                            link.send_control(Message::KeyframeAck(proto::KeyframeAck {
+                                region: kf.region,
+                                keyframe: kf.keyframe,
+                                site: me.unwrap_or(0),
+                            }));
+                        }
+                    }
+                }
+                Message::Snapshot(s) => {
+                    for kf in s.keyframes {
+                        if Some(kf.owner) != me && sync.receive(&mut sim, &kf)? {
+                            report.keyframes_applied += 1;
+                        }
+                    }
+                    for o in s.owners {
+                        sync.set_owner(o.region, Some(o.site), me);
+                    }
+                }
+                Message::OwnershipGrant(g) => {
+                    requested.remove(&g.region);
+                    sync.set_owner(g.region, Some(g.site), me);
+                    if Some(g.site) == me {
+                        owned.insert(g.region, t);
+                    } else if let Some(since) = owned.remove(&g.region) {
+                        report.owned.push((g.region, since, t));
+                    }
+                }
+                Message::OwnershipRelease(r) => {
+                    sync.set_owner(r.region, None, me);
+                    if let Some(since) = owned.remove(&r.region) {
+                        report.owned.push((r.region, since, t));
+                    }
+                }
+                Message::OwnershipDeny(d) => {
+                    requested.remove(&d.region);
+                }
+                Message::SiteJoined(s) => {
+                    sites.insert(s.site, (s.name, s.role));
+                }
+                other => debug!(kind = other.kind(), "ignored message"),
+            }
+        }
+
+        // 2. Tools and contact.
+        let local = tools.local_input(cfg.script.as_ref(), t - cfg.script_start);
+        let touched = tools.before_step(&mut sim, local)?;
+        report.max_tool_force_n = report.max_tool_force_n.max(tools.local_force().norm());
+        if let Some(h) = &haptic {
+            h.publish(&tools);
+        }
+
+        // 3. Ownership of the regions our tool touches.
+        if link.is_some() && cfg.role != Role::Observer && cfg.strategy != Strategy::InputOnly {
+            for region in touched {
+                last_touch.insert(region, t);
+                if !owned.contains_key(&region) && requested.insert(region) {
+                    let claim = link.as_ref().map_or(0, |l| l.coordinator_time_us());
+                    send_control(
+                        &link,
+                        Message::OwnershipRequest(proto::OwnershipRequest {
+                            region,
+                            claim_time_us: claim,
+                        }),
+                    );
+                }
+            }
+            let stale: Vec<u32> = owned
+                .keys()
+                .copied()
+                .filter(|r| last_touch.get(r).is_none_or(|lt| t - lt > RELEASE_AFTER))
+                .collect();
+            for region in stale {
+                // A last keyframe first, so that the others end where we are.
+                if let Some(kf) = sync.keyframe(&sim, region, me.unwrap_or(0))
+                    && let Some(link) = &link
+                {
+                    link.send_keyframe(kf);
+                }
+                let since = owned.remove(&region).unwrap_or(t);
+                report.owned.push((region, since, t));
+                sync.set_owner(region, None, me);
+                send_control(
+                    &link,
+                    Message::OwnershipRelease(proto::OwnershipRelease {
+                        region,
+                        site: me.unwrap_or(0),
+                    }),
+                );
+            }
+        }
+
+        // 4. Remote regions follow their owners; then the step.
+        sync.drive(&mut sim);
+        let t0 = Instant::now();
+        sim.step()
+            .with_context(|| format!("site {} at t = {:.3} s", cfg.name, t))?;
+        let cost = t0.elapsed();
+        if cfg.slowdown > 1.0 {
+            burn(cost.mul_f64(cfg.slowdown - 1.0));
+        }
+        step_ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        let t = sim.time();
+
+        // 5. What we owe the others.
+        if let Some(link) = &link
+            && cfg.role != Role::Observer
+        {
+            if let Some(pose) = tools.local_pose_message(me.unwrap_or(0), t) {
+                link.send_datagram(Message::ToolPose(pose));
+            }
+            for kf in sync.outgoing(&sim, owned.keys().copied(), me.unwrap_or(0)) {
+                link.send_keyframe(kf);
+            }
+            if t >= next_simtime_stamp {
+                next_simtime_stamp = t + RECORD_INTERVAL;
+                link.send_datagram(Message::SimTime(proto::SimTimeStamp {
+                    site: me.unwrap_or(0),
+                    sim_time_s: t,
+                    step: sim.steps(),
+                    wall_send_us: link.coordinator_time_us(),
+                }));
+            }
+        }
+
+        // 6. Recordings.
+        recorder.record(&sim);
+        if let Some(w) = writer.as_mut()
+            && t + 1e-9 >= next_vtu
+        {
+            next_vtu += vtu_interval;
+            w.write_frame(&sim, &tools.frames(), Some(tools.node_forces()))?;
+        }
+
+        if let Some(cb) = cfg.on_progress.as_mut()
+            && t >= next_progress
+        {
+            next_progress = t + 0.25;
+            let (sent, received) = link.as_ref().map_or((0, 0), |l| {
+                let s = l.stats();
+                (s.keyframes_sent, s.keyframes_received)
+            });
+            cb(
+                t,
+                &format!(
+                    "kf out {sent} in {received} applied {}",
+                    report.keyframes_applied
+                ),
+            );
+        }
+
+        // 7. Real-time pacing: step k+1 is due at (k+1)·dt of wall time.
+        if cfg.realtime {
+            let due = start + Duration::from_secs_f64((k + 1) as f64 * dt);
+            let now = Instant::now();
+            if due > now {
+                std::thread::sleep(due - now);
+            }
+        }
+    }
+    let wall = start.elapsed().as_secs_f64();
+    for (region, since) in owned {
+        report.owned.push((region, since, sim.time()));
+    }
+
+    report.sim_seconds = sim.time();
+    report.wall_seconds = wall;
+    report.sim_rate_hz = steps as f64 / wall;
+    report.step_ms_p50 = percentile(&step_ms, 50.0);
+    report.step_ms_p99 = percentile(&step_ms, 99.0);
+    report.apply_us_per_keyframe = if apply_us.is_empty() {
+        0.0
+    } else {
+        apply_us.iter().sum::<f64>() / apply_us.len() as f64
+    };
+    if let Some(h) = haptic {
+        let s = h.stop();
+        report.haptic_rate_hz = Some(s.0);
+        report.haptic_jitter_p99_us = Some(s.1);
+    }
+    if let Some(link) = link {
+        let st = link.stats();
+        let clock = link.clock();
+        report.keyframes_sent = st.keyframes_sent;
+        report.keyframes_received = st.keyframes_received;
+        report.up_bytes_per_s = st.bytes_up as f64 / wall;
+        report.down_bytes_per_s = st.bytes_down as f64 / wall;
+        report.udp_up_bytes_per_s = st.udp_bytes_up as f64 / wall;
+        report.udp_down_bytes_per_s = st.udp_bytes_down as f64 / wall;
+        report.clock_offset_us = clock.offset_us;
+        report.rtt_us = clock.rtt_us;
+        link.close();
+    }
+    if let Some(dir) = &cfg.out {
+        std::fs::create_dir_all(dir)?;
+        let surf = dir.join("surfaces.surf");
+        recorder.write(&surf, &scene_hash)?;
+        report.surf_file = Some(surf);
+        if let Some(w) = &writer {
+            w.write_obj(&sim)?;
+        }
+        std::fs::write(
+            dir.join("report.json"),
+            serde_json::to_string_pretty(&report)?,
+        )?;
+    }
+    drop(runtime);
+    Ok(report)
+}
+
+fn send_control(link: &Option<Link>, m: Message) {
+    if let Some(l) = link {
+        l.send_control(m);
+    }
+}
+
+/// Spends `d` of real CPU time (the `--slowdown` cost, not a sleep).
+fn burn(d: Duration) {
+    let end = Instant::now() + d;
+    let mut x = 1.0f64;
+    while Instant::now() < end {
+        for _ in 0..256 {
+            x = std::hint::black_box(x * 1.000_000_1 + 1e-9);
+        }
+    }
+    std::hint::black_box(x);
+}

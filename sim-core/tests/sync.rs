@@ -1,0 +1,726 @@
+//! Sync state: regions, keyframe encode/apply, extrapolation and blending, dead reckoning,
+//! delayed keyframe tracking, `.surf` recordings.
+
+use std::collections::VecDeque;
+
+use cosurg_sim_core::sync::*;
+use cosurg_sim_core::{NodeId, SimOptions, Simulation};
+use nalgebra::Vector3;
+use proptest::prelude::*;
+
+type V3 = Vector3<f64>;
+
+/// The cantilever (0.4 × 0.1 × 0.1 m, clamped at x = 0) with 5 cm cells: 8 × 2 × 2 cells;
+/// with 2-cell blocks 4 regions along x, the tip region is 3. Stiffer than the shipped
+/// beam and mass-damped so that it settles within a second.
+fn beam() -> Simulation {
+    let mut scene = sim_scene::builtin::cantilever();
+    scene
+        .modify(|sc| {
+            for m in sc.materials.values_mut() {
+                m.young = 5e5;
+                m.rayleigh_mass = 10.0;
+            }
+            for b in &mut sc.bodies {
+                b.cell = 0.05;
+            }
+        })
+        .unwrap();
+    let opts = SimOptions::from_scene(&scene.scene);
+    Simulation::new(scene, opts).unwrap()
+}
+
+const TIP: RegionId = 3;
+
+fn beam_map(sim: &Simulation) -> RegionMap {
+    let map = RegionMap::new(sim.lattice(), 2);
+    assert_eq!(map.len(), 4);
+    assert_eq!(map.block_of(TIP), Some([3, 0, 0]));
+    map
+}
+
+fn snap() -> SyncConfig {
+    SyncConfig {
+        blend_window_s: 0.0,
+        ..SyncConfig::default()
+    }
+}
+
+/// Live nodes of the tip region with rest x above `x`.
+fn tip_nodes(sim: &Simulation, map: &RegionMap, x: f64) -> Vec<NodeId> {
+    map.canonical_nodes(sim.lattice(), TIP)
+        .into_iter()
+        .filter(|&n| sim.lattice().node_rest(n).x > x)
+        .collect()
+}
+
+/// Refines the tip-region leaves whose centroid lies beyond x (one pass).
+fn refine_tip(sim: &mut Simulation, map: &RegionMap, x: f64, count: usize) {
+    let leaves: Vec<_> = sim
+        .lattice()
+        .leaves()
+        .iter()
+        .copied()
+        .filter(|&t| {
+            map.region_of_tet(t) == Some(TIP) && {
+                let c: V3 = sim
+                    .lattice()
+                    .tet_nodes(t)
+                    .iter()
+                    .map(|&n| sim.lattice().node_rest(n))
+                    .sum::<V3>()
+                    / 4.0;
+                c.x > x
+            }
+        })
+        .take(count)
+        .collect();
+    for t in leaves {
+        if sim.lattice().is_leaf(t) {
+            sim.refine(t).unwrap();
+        }
+    }
+}
+
+#[test]
+fn default_scene_has_10_to_30_deterministic_regions() {
+    let a = Simulation::new(
+        sim_scene::builtin::cholecystectomy(),
+        SimOptions::from_scene(&sim_scene::builtin::cholecystectomy().scene),
+    )
+    .unwrap();
+    let m1 = RegionMap::for_simulation(&a);
+    let m2 = RegionMap::new(a.lattice(), DEFAULT_REGION_BLOCK);
+    eprintln!("{} regions", m1.len());
+    assert!((10..=30).contains(&m1.len()), "{} regions", m1.len());
+    let mut seen = vec![0u32; a.lattice().root_count() as usize];
+    for r in m1.regions() {
+        assert_eq!(m1.roots(r), m2.roots(r));
+        assert!(!m1.roots(r).is_empty());
+        for &root in m1.roots(r) {
+            assert_eq!(m1.region_of_root(root), Some(r));
+            seen[root as usize] += 1;
+        }
+    }
+    assert!(
+        seen.iter().all(|&c| c == 1),
+        "every root in exactly one region"
+    );
+    // A point inside the organ is near at least one region; a far point near none.
+    let (lo, hi) = m1.bounds(0).unwrap();
+    assert!(m1.regions_near(&(0.5 * (lo + hi)), 0.0).contains(&0));
+    assert!(m1.regions_near(&V3::new(10.0, 0.0, 0.0), 0.1).is_empty());
+    assert!(
+        !m1.regions_near_deformed(&a, &(0.5 * (lo + hi)), 0.0)
+            .is_empty()
+    );
+}
+
+#[test]
+fn split_set_encoder_matches_region_state() {
+    let mut a = beam();
+    let map = beam_map(&a);
+    refine_tip(&mut a, &map, 0.3, 6);
+    for r in map.regions() {
+        let s = map.state(a.lattice(), r);
+        assert_eq!(encode_split_set(s.roots(), s.split_tets()), s.to_bytes());
+    }
+    assert!(map.state(a.lattice(), TIP).split_count() > 0);
+}
+
+/// A is loaded laterally on its tip and refines there; its keyframe makes B's tree state
+/// bit-exact and B's region nodes equal at the keyframe time; tree deltas (split and merge)
+/// follow.
+#[test]
+fn keyframe_makes_tree_and_nodes_equal() {
+    let mut a = beam();
+    let mut b = beam();
+    let map = beam_map(&a);
+    refine_tip(&mut a, &map, 0.3, 6);
+    let loaded = tip_nodes(&a, &map, 0.37);
+    for _ in 0..20 {
+        for &n in &loaded {
+            a.add_force(n, V3::new(0.0, 5.0, 0.0) / loaded.len() as f64);
+        }
+        a.step().unwrap();
+        b.step().unwrap();
+    }
+    assert_eq!(a.time(), b.time());
+    let kf = encode_keyframe(&a, &map, TIP, 1).unwrap();
+    let mut remote = RemoteRegion::new(TIP, snap());
+    assert_eq!(
+        remote.apply_keyframe(&mut b, &map, &kf).unwrap(),
+        Applied::Applied
+    );
+    assert_eq!(map.state(b.lattice(), TIP), map.state(a.lattice(), TIP));
+    assert_eq!(map.state(b.lattice(), TIP).to_bytes(), kf.tree_bits);
+    // Conformity closures outside the region agree as well.
+    for r in map.regions() {
+        assert_eq!(
+            map.state(b.lattice(), r),
+            map.state(a.lattice(), r),
+            "region {r}"
+        );
+    }
+    let nodes_b = map.canonical_nodes(b.lattice(), TIP);
+    assert_eq!(nodes_b.len(), kf.positions.len());
+    let mut moved: f64 = 0.0;
+    for (i, &n) in nodes_b.iter().enumerate() {
+        if b.is_fixed(n) {
+            continue;
+        }
+        let d = (b.positions()[n.0 as usize] - V3::from(kf.positions[i])).norm();
+        assert!(d <= 1e-12, "node {i}: {d} m");
+        let dv = (b.velocities()[n.0 as usize] - V3::from(kf.velocities[i])).norm();
+        assert!(dv <= 1e-12, "node {i} velocity: {dv} m/s");
+        moved = moved
+            .max((V3::from(kf.positions[i]) - a.lattice().node_rest(nodes_to_a(&a, &b, n))).norm());
+    }
+    assert!(moved > 1e-3, "the load moved the tip ({moved} m)");
+    // A stale repeat is ignored.
+    assert_eq!(
+        remote.apply_keyframe(&mut b, &map, &kf).unwrap(),
+        Applied::Stale
+    );
+
+    // Tree delta: A refines further, then merges one diamond back.
+    let base = map.state(a.lattice(), TIP);
+    refine_tip(&mut a, &map, 0.2, 40);
+    let parent = a
+        .lattice()
+        .leaves()
+        .iter()
+        .filter(|t| map.region_of_tet(**t) == Some(TIP) && t.heap > 1)
+        .map(|t| a.lattice().parent(*t).unwrap())
+        .next_back()
+        .unwrap();
+    a.coarsen(parent).unwrap();
+    let cur = map.state(a.lattice(), TIP);
+    assert_ne!(cur, base);
+    let d = RegionTreeDelta {
+        region: TIP,
+        sim_time: a.time(),
+        base_keyframe: 1,
+        xor_bits: encode_tree_xor(&base, &cur),
+    };
+    assert_eq!(
+        remote.apply_tree_delta(&mut b, &map, &d).unwrap(),
+        Applied::Applied
+    );
+    assert_eq!(map.state(b.lattice(), TIP), cur);
+    let unknown = RegionTreeDelta {
+        base_keyframe: 99,
+        ..d.clone()
+    };
+    assert!(matches!(
+        remote.apply_tree_delta(&mut b, &map, &unknown),
+        Err(SyncError::UnknownBase { .. })
+    ));
+    // Malformed frames are errors, not panics.
+    let mut bad = kf.clone();
+    bad.keyframe_id = 5;
+    bad.tree_bits.truncate(3);
+    assert!(matches!(
+        remote.apply_keyframe(&mut b, &map, &bad),
+        Err(SyncError::TreeBits { .. })
+    ));
+    let mut bad = encode_keyframe(&a, &map, TIP, 6).unwrap();
+    bad.positions.pop();
+    assert!(remote.apply_keyframe(&mut b, &map, &bad).is_err());
+}
+
+/// B's node with the same grid coordinate on A (rest positions are equal).
+fn nodes_to_a(a: &Simulation, b: &Simulation, n: NodeId) -> NodeId {
+    let g = b.lattice().node_grid(n);
+    a.lattice()
+        .nodes()
+        .find(|&m| a.lattice().node_grid(m) == g)
+        .unwrap()
+}
+
+/// Keyframes of a constant-acceleration motion of the tip region's nodes.
+fn accel_keyframe(
+    sim: &Simulation,
+    map: &RegionMap,
+    id: u64,
+    t: f64,
+    v0: V3,
+    acc: V3,
+) -> RegionKeyframe {
+    let nodes = map.canonical_nodes(sim.lattice(), TIP);
+    RegionKeyframe {
+        region: TIP,
+        keyframe_id: id,
+        sim_time: t,
+        tree_bits: map.state(sim.lattice(), TIP).to_bytes(),
+        positions: nodes
+            .iter()
+            .map(|&n| (sim.lattice().node_rest(n) + v0 * t + 0.5 * acc * t * t).into())
+            .collect(),
+        velocities: nodes.iter().map(|_| (v0 + acc * t).into()).collect(),
+    }
+}
+
+#[test]
+fn second_order_extrapolation_is_exact_for_constant_acceleration() {
+    let mut b = beam();
+    let map = beam_map(&b);
+    let (v0, acc) = (V3::new(0.01, 0.02, -0.01), V3::new(0.3, -0.2, 0.5));
+    let mut remote = RemoteRegion::new(TIP, snap());
+    for (id, t) in [(1, 0.0), (2, 0.01)] {
+        let kf = accel_keyframe(&b, &map, id, t, v0, acc);
+        remote.apply_keyframe(&mut b, &map, &kf).unwrap();
+    }
+    let nodes = map.canonical_nodes(b.lattice(), TIP);
+    let rest: Vec<V3> = nodes.iter().map(|&n| b.lattice().node_rest(n)).collect();
+    let exact = |i: usize, t: f64| rest[i] + v0 * t + 0.5 * acc * t * t;
+    for k in 0..40 {
+        let t = 0.01 + 0.01 * k as f64;
+        for (i, &n) in nodes.iter().enumerate() {
+            let (x, v) = remote.extrapolated(&b.lattice().node_grid(n), t).unwrap();
+            assert!((x - exact(i, t)).norm() <= 1e-9);
+            assert!((v - (v0 + acc * t)).norm() <= 1e-9);
+        }
+    }
+    // Driving the simulation follows the same motion exactly.
+    for _ in 0..50 {
+        assert!(matches!(remote.drive(&mut b, &map), DriveStatus::Driven(_)));
+        b.step().unwrap();
+        let t = b.time();
+        for (i, &n) in nodes.iter().enumerate() {
+            let d = (b.positions()[n.0 as usize] - exact(i, t)).norm();
+            assert!(d <= 1e-9, "t = {t}: {d} m");
+        }
+    }
+}
+
+/// A keyframe whose state differs from the receiver's: the correction blends out linearly,
+/// never moving a node by more than |correction| · dt / window per step beyond the
+/// extrapolation, and is gone after the window.
+#[test]
+fn blending_is_bounded_per_step_and_completes() {
+    let mut b = beam();
+    let map = beam_map(&b);
+    let window = 0.1;
+    let cfg = SyncConfig {
+        blend_window_s: window,
+        ..SyncConfig::default()
+    };
+    let dt = b.options().dt;
+    let shift = V3::new(0.002, -0.003, 0.004);
+    let v0 = V3::new(0.0, 0.0, 0.05);
+    let mut kf = accel_keyframe(&b, &map, 1, 0.0, v0, V3::zeros());
+    for p in &mut kf.positions {
+        *p = (V3::from(*p) + shift).into();
+    }
+    let mut remote = RemoteRegion::new(TIP, cfg);
+    let before: Vec<V3> = b.positions().to_vec();
+    remote.apply_keyframe(&mut b, &map, &kf).unwrap();
+    assert_eq!(b.positions(), &before[..], "no jump at the keyframe");
+    let nodes = map.canonical_nodes(b.lattice(), TIP);
+    let err = |b: &Simulation, remote: &RemoteRegion, n: NodeId| {
+        b.positions()[n.0 as usize]
+            - remote
+                .extrapolated(&b.lattice().node_grid(n), b.time())
+                .unwrap()
+                .0
+    };
+    let mut prev: Vec<V3> = nodes.iter().map(|&n| err(&b, &remote, n)).collect();
+    for (i, &n) in nodes.iter().enumerate() {
+        let c = remote.correction(&b.lattice().node_grid(n)).unwrap();
+        assert!((prev[i] - c).norm() <= 1e-12);
+        assert!((c + shift).norm() <= 1e-12);
+    }
+    for _ in 0..70 {
+        remote.drive(&mut b, &map);
+        b.step().unwrap();
+        for (i, &n) in nodes.iter().enumerate() {
+            let c = remote.correction(&b.lattice().node_grid(n)).unwrap().norm();
+            let e = err(&b, &remote, n);
+            let step = (e - prev[i]).norm();
+            assert!(
+                step <= c * dt / window + 1e-12,
+                "blend step {step} m > {} m",
+                c * dt / window
+            );
+            if b.time() >= window - 1e-9 {
+                assert!(
+                    e.norm() <= 1e-12,
+                    "correction left after the window: {} m",
+                    e.norm()
+                );
+            }
+            prev[i] = e;
+        }
+    }
+    // The handed-over velocity is the extrapolated one; after the release nothing is
+    // prescribed any more and the nodes move on from that velocity.
+    for &n in &nodes {
+        assert!((b.velocities()[n.0 as usize] - v0).norm() <= 1e-9);
+    }
+    remote.release();
+    assert_eq!(remote.drive(&mut b, &map), DriveStatus::Local);
+    let x_before: Vec<V3> = nodes.iter().map(|n| b.positions()[n.0 as usize]).collect();
+    b.step().unwrap();
+    let free = nodes
+        .iter()
+        .enumerate()
+        .any(|(i, &n)| (b.positions()[n.0 as usize] - (x_before[i] + v0 * dt)).norm() > 1e-9);
+    assert!(free, "released nodes are simulated, not prescribed");
+}
+
+/// Oscillating lateral force on the tip.
+fn tip_force(sim: &mut Simulation, nodes: &[NodeId], amplitude: f64) {
+    let t = sim.time();
+    let f = V3::new(
+        0.0,
+        amplitude * (2.0 * std::f64::consts::PI * 3.0 * t).sin(),
+        0.0,
+    ) / nodes.len() as f64;
+    for &n in nodes {
+        sim.add_force(n, f);
+    }
+}
+
+#[test]
+fn dead_reckoning_keeps_estimate_below_threshold_and_sends_less_for_larger_threshold() {
+    let mut a = beam();
+    let map = beam_map(&a);
+    let loaded = tip_nodes(&a, &map, 0.37);
+    let deltas = [1e-4, 5e-4, 2e-3];
+    let mut policies: Vec<SendPolicy> = deltas
+        .iter()
+        .map(|&d| {
+            let mut p = SendPolicy::new(SyncConfig {
+                drift_threshold_m: d,
+                heartbeat_s: 1e9,
+                min_interval_s: 0.0,
+                ..SyncConfig::default()
+            });
+            p.acquire(TIP, 1);
+            p
+        })
+        .collect();
+    for _ in 0..250 {
+        tip_force(&mut a, &loaded, 20.0);
+        a.step().unwrap();
+        for (p, &d) in policies.iter_mut().zip(&deltas) {
+            let now = a.time();
+            if p.should_send(&a, &map, TIP, now) {
+                assert!(matches!(
+                    p.encode(&a, &map, TIP, now, None),
+                    Some(SyncFrame::Keyframe(_))
+                ));
+                assert_eq!(p.drift(TIP), Some(0.0));
+            } else {
+                assert!(p.drift(TIP).unwrap() <= d);
+            }
+        }
+    }
+    let counts: Vec<u64> = policies.iter().map(|p| p.counters().keyframes).collect();
+    for (p, &d) in policies.iter().zip(&deltas) {
+        let c = p.counters();
+        assert!(c.max_unsent_drift_m <= d, "{c:?}");
+        assert_eq!(c.rate_limited, 0);
+        assert_eq!(c.by_first, 1);
+        assert_eq!(c.keyframes, c.by_first + c.by_drift);
+    }
+    assert!(
+        counts[0] > counts[1] && counts[1] > counts[2],
+        "keyframes {counts:?}"
+    );
+    assert!(counts[2] >= 2, "keyframes {counts:?}");
+
+    // Rate cap and heartbeat.
+    let mut p = SendPolicy::new(SyncConfig {
+        drift_threshold_m: 1e-9,
+        heartbeat_s: 0.05,
+        min_interval_s: 0.02,
+        ..SyncConfig::default()
+    });
+    p.acquire(TIP, 1);
+    let mut q = SendPolicy::new(SyncConfig {
+        drift_threshold_m: 1.0,
+        heartbeat_s: 0.05,
+        ..SyncConfig::default()
+    });
+    q.acquire(TIP, 1);
+    for _ in 0..100 {
+        tip_force(&mut a, &loaded, 20.0);
+        a.step().unwrap();
+        for p in [&mut p, &mut q] {
+            if p.should_send(&a, &map, TIP, a.time()) {
+                p.encode(&a, &map, TIP, a.time(), None);
+            }
+        }
+    }
+    assert!(p.counters().rate_limited > 0);
+    assert!(p.counters().keyframes <= 1 + (100.0 * 0.002 / 0.02) as u64 + 1);
+    assert_eq!(q.counters().by_drift, 0);
+    // First keyframe at the first decision, then every 50 ms within the next 198 ms.
+    assert_eq!(q.counters().by_heartbeat, 3, "{:?}", q.counters());
+}
+
+#[test]
+fn topology_change_with_small_drift_sends_a_tree_delta() {
+    let mut a = beam();
+    let mut b = beam();
+    let map = beam_map(&a);
+    let cfg = SyncConfig {
+        min_interval_s: 0.0,
+        ..SyncConfig::default()
+    };
+    let mut owner = SiteSync::new(SyncStrategy::Keyframe, map.clone(), cfg);
+    let mut recv = SiteSync::new(SyncStrategy::Keyframe, map.clone(), cfg);
+    owner.on_grant(TIP);
+    let frames = owner.after_step(&a, |_| None);
+    assert_eq!(frames.len(), 1);
+    let ack = recv.on_frame(&mut b, &frames[0]).unwrap();
+    assert_eq!(ack, Some(1));
+    a.step().unwrap();
+    b.step().unwrap();
+    refine_tip(&mut a, &map, 0.3, 4);
+    let frames = owner.after_step(&a, |_| ack);
+    assert!(
+        matches!(frames[..], [SyncFrame::TreeDelta(_)]),
+        "{frames:?}"
+    );
+    recv.on_frame(&mut b, &frames[0]).unwrap();
+    assert_eq!(map.state(b.lattice(), TIP), map.state(a.lattice(), TIP));
+    assert_eq!(owner.policy.counters().tree_deltas, 1);
+    // Without an acknowledged baseline the same change goes as a keyframe.
+    refine_tip(&mut a, &map, 0.25, 4);
+    let frames = owner.after_step(&a, |_| None);
+    assert!(matches!(frames[..], [SyncFrame::Keyframe(_)]), "{frames:?}");
+}
+
+#[derive(Default)]
+struct Link {
+    queue: VecDeque<(u64, Msg)>,
+}
+
+enum Msg {
+    Frame(SyncFrame),
+    Release(RegionId),
+}
+
+/// The owner A pulls the tip sideways with a ramped force (sent with a delay of `DELAY`
+/// steps), holds, lets go, and releases ownership once the motion has died down; B is
+/// keyframe-driven (default config: 0.5 mm drift threshold, 100 ms blend, 10 ms rate cap).
+/// Divergence of the embedded surface during the motion stays within 4 mm (measured
+/// 3.3 mm; it is dominated by the 10 ms delay plus rate cap at the tip's initial
+/// ≈ 30 m/s² acceleration) and below 10 % of what B shows without sync (57 mm); after
+/// release both agree within 1 mm (measured 0.08 mm).
+#[test]
+fn delayed_keyframes_track_the_owner_and_agree_after_release() {
+    const DELAY: u64 = 5; // 10 ms
+    let mut a = beam();
+    let mut b = beam();
+    let mut c = beam(); // no sync at all
+    let map = beam_map(&a);
+    let loaded = tip_nodes(&a, &map, 0.37);
+    let cfg = SyncConfig::default();
+    let mut owner = SiteSync::new(SyncStrategy::Keyframe, map.clone(), cfg);
+    let mut recv = SiteSync::new(SyncStrategy::Keyframe, map.clone(), cfg);
+    owner.on_grant(TIP);
+    let mut link = Link::default();
+    let (mut max_sync, mut max_nosync): (f64, f64) = (0.0, 0.0);
+    let mut released = false;
+    let steps = 900; // 1.8 s
+    let mut last_div = (0.0, 0.0);
+    for k in 0..steps {
+        let t = a.time();
+        // Force: ramp 0 → 15 N over 0.2 s, hold to 0.4 s, then off.
+        let f = if t < 0.2 {
+            75.0 * t
+        } else if t < 0.4 {
+            15.0
+        } else {
+            0.0
+        };
+        for &n in &loaded {
+            a.add_force(n, V3::new(0.0, f, 0.0) / loaded.len() as f64);
+        }
+        owner.before_step(&mut a);
+        recv.before_step(&mut b);
+        a.step().unwrap();
+        b.step().unwrap();
+        c.step().unwrap();
+        for fr in owner.after_step(&a, |_| None) {
+            link.queue.push_back((k + DELAY, Msg::Frame(fr)));
+        }
+        if !released && t >= 1.0 {
+            released = true;
+            let fr = owner.release(&a, TIP).unwrap();
+            link.queue.push_back((k + DELAY, Msg::Frame(fr)));
+            link.queue.push_back((k + DELAY, Msg::Release(TIP)));
+        }
+        while link.queue.front().is_some_and(|(due, _)| *due <= k) {
+            match link.queue.pop_front().unwrap().1 {
+                Msg::Frame(fr) => {
+                    recv.on_frame(&mut b, &fr).unwrap();
+                }
+                Msg::Release(r) => recv.on_remote_release(r),
+            }
+        }
+        let sa = &a.surfaces()[0].deformed;
+        let (d_sync, _) = surface_divergence(sa, &b.surfaces()[0].deformed);
+        let (d_nosync, _) = surface_divergence(sa, &c.surfaces()[0].deformed);
+        if t < 1.0 {
+            max_sync = max_sync.max(d_sync);
+            max_nosync = max_nosync.max(d_nosync);
+        }
+        last_div = surface_divergence(sa, &b.surfaces()[0].deformed);
+    }
+    eprintln!(
+        "tracking: max divergence {max_sync:.2e} m with sync, {max_nosync:.2e} m without; \
+         final {:.2e} m max, {:.2e} m rms; owner {:?}",
+        last_div.0,
+        last_div.1,
+        owner.policy.counters()
+    );
+    assert!(
+        recv.remote(TIP).is_none(),
+        "region back to local simulation"
+    );
+    assert!(max_nosync > 0.02, "the load must matter ({max_nosync} m)");
+    assert!(max_sync < 4e-3, "tracking divergence {max_sync} m");
+    assert!(max_sync < 0.1 * max_nosync);
+    assert!(last_div.0 < 1e-3, "final divergence {} m", last_div.0);
+}
+
+#[test]
+fn full_state_takes_over_every_node() {
+    let mut a = beam();
+    let mut b = beam();
+    let map = beam_map(&a);
+    let loaded = tip_nodes(&a, &map, 0.37);
+    refine_tip(&mut a, &map, 0.3, 3);
+    let mut owner = SiteSync::new(
+        SyncStrategy::FullState { every_steps: 2 },
+        map.clone(),
+        SyncConfig::default(),
+    );
+    let mut recv = SiteSync::new(owner.strategy, map.clone(), SyncConfig::default());
+    owner.on_grant(TIP);
+    let mut sent = 0;
+    for _ in 0..10 {
+        tip_force(&mut a, &loaded, 20.0);
+        a.step().unwrap();
+        b.step().unwrap();
+        for fr in owner.after_step(&a, |_| None) {
+            sent += 1;
+            recv.on_frame(&mut b, &fr).unwrap();
+            for n in a.lattice().nodes() {
+                let m = nodes_to_a(&b, &a, n);
+                assert_eq!(a.positions()[n.0 as usize], b.positions()[m.0 as usize]);
+            }
+            let (d, _) = surface_divergence(&a.surfaces()[0].deformed, &b.surfaces()[0].deformed);
+            assert!(d <= 1e-12);
+        }
+    }
+    assert_eq!(sent, 5);
+    assert_eq!(
+        "full-state:2".parse::<SyncStrategy>().unwrap(),
+        owner.strategy
+    );
+    assert_eq!(
+        "keyframe".parse::<SyncStrategy>().unwrap(),
+        SyncStrategy::Keyframe
+    );
+    assert!("bogus".parse::<SyncStrategy>().is_err());
+    assert_eq!(SyncStrategy::InputOnly.to_string(), "input-only");
+}
+
+fn sample_recording() -> SurfaceRecording {
+    let mut a = beam();
+    let mut rec = SurfaceRecorder::new(&a, DEFAULT_MARK_INTERVAL_S);
+    rec.record(&a);
+    for _ in 0..60 {
+        a.step().unwrap();
+        rec.record(&a);
+    }
+    rec.into_recording()
+}
+
+#[test]
+fn surf_roundtrip_and_divergence() {
+    let r = sample_recording();
+    assert_eq!(r.records.len(), 3, "marks 0, 50, 100 ms");
+    for (k, rec) in r.records.iter().enumerate() {
+        assert!((rec.time_s - 0.05 * k as f64).abs() < 1e-12);
+        assert_eq!(rec.vertices.len(), r.vertex_count());
+    }
+    let bytes = r.to_bytes();
+    let mut file = Vec::new();
+    r.write_to(&mut file).unwrap();
+    assert_eq!(file, bytes);
+    let back = SurfaceRecording::from_bytes(&bytes).unwrap();
+    assert_eq!(back, r);
+    let div = r.divergence(&back).unwrap();
+    assert_eq!(div.len(), 3);
+    assert!(div.iter().all(|d| d.max_m == 0.0 && d.rms_m == 0.0));
+    // The beam sags under gravity between marks.
+    let moved = surface_divergence(&to64(&r.records[0].vertices), &to64(&r.records[2].vertices));
+    assert!(moved.0 > 1e-4 && moved.1 > 0.0 && moved.1 <= moved.0);
+    let mut other = r.clone();
+    other.scene_hash = "x".into();
+    assert!(r.divergence(&other).is_err());
+    // Specific malformations.
+    assert_eq!(
+        SurfaceRecording::from_bytes(b"nope"),
+        Err(SurfError::BadMagic)
+    );
+    assert!(matches!(
+        SurfaceRecording::from_bytes(&bytes[..bytes.len() - 1]),
+        Err(SurfError::PartialRecord { .. })
+    ));
+}
+
+fn to64(v: &[[f32; 3]]) -> Vec<V3> {
+    v.iter()
+        .map(|p| V3::new(p[0].into(), p[1].into(), p[2].into()))
+        .collect()
+}
+
+fn small_recording() -> SurfaceRecording {
+    SurfaceRecording {
+        scene_hash: "abc".into(),
+        interval_s: 0.05,
+        surface_sizes: vec![2, 1],
+        records: (0..3)
+            .map(|k| SurfaceRecord {
+                time_s: 0.05 * k as f64,
+                vertices: vec![[k as f32, 1.0, 2.0], [3.0, 4.0, 5.0], [6.0, 7.0, 8.0]],
+            })
+            .collect(),
+    }
+}
+
+proptest! {
+    #[test]
+    fn surf_reader_never_panics_on_garbage(bytes in proptest::collection::vec(any::<u8>(), 0..300)) {
+        let _ = SurfaceRecording::from_bytes(&bytes);
+        let mut with_magic = SURF_MAGIC.to_vec();
+        with_magic.extend_from_slice(&bytes);
+        let _ = SurfaceRecording::from_bytes(&with_magic);
+    }
+
+    #[test]
+    fn surf_reader_rejects_truncation_and_survives_corruption(cut in 0usize..200, flip in 0usize..200, bit in 0u8..8) {
+        let r = small_recording();
+        let bytes = r.to_bytes();
+        let header = bytes.len() - 3 * (8 + 12 * 3);
+        let cut = cut.min(bytes.len());
+        let res = SurfaceRecording::from_bytes(&bytes[..cut]);
+        let whole = cut >= header && (cut - header) % (8 + 12 * 3) == 0;
+        prop_assert_eq!(res.is_ok(), whole, "cut at {}: {:?}", cut, res);
+        if let Ok(t) = res {
+            prop_assert_eq!(&t.records[..], &r.records[..t.records.len()]);
+        }
+        let mut corrupt = bytes.clone();
+        let i = flip % corrupt.len();
+        corrupt[i] ^= 1 << bit;
+        let _ = SurfaceRecording::from_bytes(&corrupt);
+    }
+}
