@@ -1,11 +1,120 @@
-//! Divergence between sites, recomputed from their surface recordings.
-//! PROVISIONAL until the sim-core surface recorder lands.
+//! Divergence between sites, recomputed from their surface recordings (`.surf`, one
+//! record of every embedded-surface vertex every 50 ms of simulated time).
+//!
+//! The reference for a vertex at a mark is the site that owned the vertex's region at
+//! that simulated time (from the sites' ownership logs); where nobody owned it, the
+//! first site (the instructor) is the reference. A site is never compared with itself.
+//! Divergence = distance between the same vertex on the two sites at the same simulated
+//! time (mm).
 
-use anyhow::Result;
+use std::collections::HashMap;
+
+use anyhow::{Context, Result, bail};
+use sim_core::sync::{RegionMap, SurfaceRecording};
+use sim_core::{SimOptions, Simulation};
 
 use crate::plot::Series;
 use crate::site::SiteReport;
 
-pub fn fill_divergence(_reports: &mut [SiteReport]) -> Result<Vec<Series>> {
-    Ok(Vec::new())
+/// Region of every recorded surface vertex (in recording order), from the rest pose.
+fn vertex_regions(scene: sim_core::sim_scene::LoadedScene) -> Result<Vec<u32>> {
+    let options = SimOptions::from_scene(&scene.scene);
+    let sim = Simulation::new(scene, options)?;
+    let map = RegionMap::for_simulation(&sim);
+    let mut out = Vec::new();
+    for s in sim.surfaces() {
+        for i in 0..s.embedding.len() {
+            let (tet, _, _) = s.embedding.host(i);
+            out.push(map.region_of_root(tet.root).unwrap_or(u32::MAX));
+        }
+    }
+    Ok(out)
+}
+
+/// Fills `divergence_max_mm` / `divergence_rms_mm` of every site report and returns, per
+/// site, the max divergence (mm) at each mark.
+pub fn fill_divergence(reports: &mut [SiteReport]) -> Result<Vec<Series>> {
+    if reports.len() < 2 {
+        return Ok(Vec::new());
+    }
+    let scene = sim_core::sim_scene::builtin::by_name("cholecystectomy")
+        .filter(|s| s.hash == reports[0].scene_hash)
+        .context("divergence: the runs' scene is not the built-in cholecystectomy scene")?;
+    let regions = vertex_regions(scene)?;
+    let mut recs = Vec::new();
+    for r in reports.iter() {
+        let path = r
+            .surf_file
+            .as_ref()
+            .with_context(|| format!("site {} wrote no surface recording", r.name))?;
+        let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+        let rec = SurfaceRecording::from_bytes(&bytes)
+            .with_context(|| format!("parsing {}", path.display()))?;
+        if rec.vertex_count() != regions.len() {
+            bail!(
+                "{}: {} vertices, expected {}",
+                path.display(),
+                rec.vertex_count(),
+                regions.len()
+            );
+        }
+        recs.push(rec);
+    }
+    // Owner of a region at simulated time t (by index into `reports`).
+    let owner_at = |region: u32, t: f64| -> Option<usize> {
+        reports.iter().position(|r| {
+            r.owned
+                .iter()
+                .any(|&(reg, from, to)| reg == region && t >= from && t <= to)
+        })
+    };
+    let marks = recs.iter().map(|r| r.records.len()).min().unwrap_or(0);
+    let mut max = vec![0.0f64; reports.len()];
+    let mut sum_sq = vec![0.0f64; reports.len()];
+    let mut count = vec![0usize; reports.len()];
+    let mut series: Vec<Vec<(f64, f64)>> = vec![Vec::new(); reports.len()];
+    let mut owner_cache: HashMap<u32, Option<usize>> = HashMap::new();
+    for m in 0..marks {
+        let t = recs[0].records[m].time_s;
+        owner_cache.clear();
+        let mut mark_max = vec![0.0f64; reports.len()];
+        for (v, &region) in regions.iter().enumerate() {
+            let reference = owner_cache
+                .entry(region)
+                .or_insert_with(|| owner_at(region, t))
+                .unwrap_or(0);
+            let p = recs[reference].records[m].vertices[v];
+            for (s, rec) in recs.iter().enumerate() {
+                if s == reference {
+                    continue;
+                }
+                let q = rec.records[m].vertices[v];
+                let d2: f64 = (0..3)
+                    .map(|k| (f64::from(p[k]) - f64::from(q[k])).powi(2))
+                    .sum();
+                let d_mm = d2.sqrt() * 1e3;
+                mark_max[s] = mark_max[s].max(d_mm);
+                sum_sq[s] += d_mm * d_mm;
+                count[s] += 1;
+            }
+        }
+        for s in 0..reports.len() {
+            max[s] = max[s].max(mark_max[s]);
+            if count[s] > 0 {
+                series[s].push((t, mark_max[s]));
+            }
+        }
+    }
+    let mut out = Vec::new();
+    for (s, r) in reports.iter_mut().enumerate() {
+        if count[s] > 0 {
+            r.divergence_max_mm = Some(max[s]);
+            r.divergence_rms_mm = Some((sum_sq[s] / count[s] as f64).sqrt());
+            out.push(Series {
+                label: r.name.clone(),
+                points: std::mem::take(&mut series[s]),
+            });
+        }
+    }
+    Ok(out)
 }

@@ -102,6 +102,9 @@ pub struct JoinArgs {
     /// Do not run the 1 kHz haptic loop.
     #[arg(long)]
     pub no_haptics: bool,
+    /// Announce this protocol version instead of ours (to test refusals).
+    #[arg(long, hide = true)]
+    pub protocol_version: Option<u16>,
     /// Print `PROGRESS <sim time> …` lines on stdout (used by `cosurg demo`).
     #[arg(long, hide = true)]
     pub progress_lines: bool,
@@ -168,6 +171,9 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
     );
     link.trust = trust;
     link.server_name = args.server_name.clone();
+    if let Some(v) = args.protocol_version {
+        link.protocol_version = v;
+    }
     if let Some(p) = &args.preset {
         link.impairment = Some(LinkImpairment::preset(p, args.seed)?);
     }

@@ -455,16 +455,31 @@ fn measure_loop_reports_counts() {
 }
 
 /// The measurement reported in docs/haptics.md: `cargo test -p cosurg --release --test
-/// haptic -- --ignored --nocapture`. A busy thread per core stands in for the simulation.
+/// haptic -- --ignored --nocapture`. A busy thread stands in for the simulation thread;
+/// "fifo" gives the haptic thread SCHED_FIFO 80 through `chrt` (needs the permission).
 #[test]
 #[ignore]
 fn measure_rate_and_jitter_under_load() {
     use std::sync::Arc;
     use std::sync::atomic::{AtomicBool, Ordering};
+    fn fifo() {
+        let tid = std::fs::read_link("/proc/thread-self")
+            .ok()
+            .and_then(|p| p.file_name().map(|s| s.to_string_lossy().into_owned()));
+        if let Some(tid) = tid {
+            let ok = std::process::Command::new("chrt")
+                .args(["-f", "-p", "80", &tid])
+                .status()
+                .is_ok_and(|s| s.success());
+            if !ok {
+                println!("  (chrt failed: normal priority)");
+            }
+        }
+    }
     let secs: f64 = std::env::var("HAPTIC_MEASURE_SECONDS")
         .ok()
         .and_then(|s| s.parse().ok())
-        .unwrap_or(3.0);
+        .unwrap_or(2.0);
     for load in [0usize, 1] {
         let stop = Arc::new(AtomicBool::new(false));
         let busy: Vec<_> = (0..load)
@@ -481,23 +496,26 @@ fn measure_rate_and_jitter_under_load() {
                 })
             })
             .collect();
-        for spin_us in [0u64, 50, 100, 200] {
-            let cfg = HapticConfig {
-                spin: Duration::from_micros(spin_us),
-                ..HapticConfig::default()
-            };
-            let dev = ScriptedDevice::at(Vector3::new(0.0, 0.0, -0.002)).with_record_limit(0);
-            let (_, s) = measure_loop_with(dev, cfg, Duration::from_secs_f64(secs), None).unwrap();
-            println!("busy threads {load}, spin {spin_us:>3} µs: {}", s.summary());
+        for (prio, setup) in [("normal", None), ("fifo", Some(fifo as fn()))] {
+            for spin_us in [0u64, 50, 100] {
+                let cfg = HapticConfig {
+                    spin: Duration::from_micros(spin_us),
+                    thread_setup: setup,
+                    ..HapticConfig::default()
+                };
+                let dev = ScriptedDevice::at(Vector3::new(0.0, 0.0, -0.002)).with_record_limit(0);
+                let (_, s) =
+                    measure_loop_with(dev, cfg, Duration::from_secs_f64(secs), None).unwrap();
+                println!(
+                    "busy threads {load}, {prio:>6}, spin {spin_us:>3} µs: {}",
+                    s.summary()
+                );
+            }
         }
         let s = measure_loop(Duration::from_secs_f64(secs));
         println!(
             "busy threads {load}, measure_loop (defaults): {}",
             s.summary()
-        );
-        println!(
-            "  reanchors {}, clamped ticks {}",
-            s.reanchors, s.clamped_ticks
         );
         stop.store(true, Ordering::Relaxed);
         for b in busy {

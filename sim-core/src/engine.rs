@@ -674,8 +674,15 @@ impl Simulation {
         let g = self.options.gravity;
         let (x, v) = (self.x.clone(), self.v.clone());
         let rest = self.rest_positions();
+        let params = self.options.step_params();
         let fem = self.fem()?;
-        Ok(fem.kinetic_energy(&v) + fem.gravity_energy(&x, &g) - fem.gravity_energy(&rest, &g))
+        // Co-rotational elastic energy with the rotations of the last step (those of the
+        // previous positions): exact at rest, O(dt) off while moving.
+        let elastic = fem.elastic(&x, params.model, params.stiffness, None, None);
+        Ok(
+            elastic + fem.kinetic_energy(&v) + fem.gravity_energy(&x, &g)
+                - fem.gravity_energy(&rest, &g),
+        )
     }
 }
 

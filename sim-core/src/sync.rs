@@ -29,6 +29,36 @@
 //! position departs from the pure extrapolation by at most `|offset| · dt / window` more.
 //! A window of 0 snaps (position and velocity taken over at once).
 //!
+//! # Dead reckoning
+//! [`SendPolicy`] keeps, per owned region, the same extrapolation the receivers run from
+//! its last sent keyframe and sends when the largest node distance between it and the
+//! actual positions exceeds [`SyncConfig::drift_threshold_m`], when the region's tree
+//! state changed (a [`RegionTreeDelta`] if the drift is small and an acknowledged baseline
+//! exists, else a keyframe), or on the heartbeat; at most once per
+//! [`SyncConfig::min_interval_s`]. Its estimate excludes the receivers' still-decaying
+//! correction offsets and the wire quantisation (≤ 5 µm with proto's defaults).
+//!
+//! # Converting to `proto`
+//! * [`RegionKeyframe`] → `proto::Message::Keyframe(RegionKeyframe { region, keyframe:
+//!   keyframe_id, owner, sim_time_s: sim_time, epoch, tree_bits, nodes })` with `nodes =
+//!   QuantisedNodes::encode_default(&(0..n as u32).collect::<Vec<_>>(), &positions,
+//!   &velocities)`: the ids are canonical indices. Back: `positions`/`velocities` from
+//!   `nodes.iter()` in id order (reject frames whose ids are not `0..n`).
+//! * [`RegionTreeDelta`] ↔ `proto::Message::TreeDelta { region, site, epoch, sim_time_s:
+//!   sim_time, base_keyframe, xor_bits }`.
+//! * Acknowledge every keyframe [`SiteSync::on_frame`] returns an id for; pass the
+//!   baseline tracker's all-acknowledged keyframe as `acked_base` to
+//!   [`SiteSync::after_step`].
+//!
+//! # Limitations
+//! * A receiver must not run its own adaptivity inside (or, through conformity, next to)
+//!   a region it does not own: a forced split there makes the next keyframe merge it back,
+//!   or fail with [`SyncError::Residual`] when a finer split outside blocks the merge.
+//! * Nodes on the face between a remote region and a local one are prescribed by the
+//!   remote region.
+//! * Time is simulation time; a receiver whose clock lags the owner's extrapolates
+//!   backwards (clamped to [`SyncConfig::max_extrapolation_s`]).
+//!
 //! Units: SI (m, s, m/s, m/s²). Times are simulation times (s).
 
 use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
@@ -52,7 +82,7 @@ pub type KeyframeId = u64;
 pub const FULL_STATE_REGION: RegionId = u32::MAX;
 
 /// Default block edge (cells) of a region: the default scene (cholecystectomy, 10 × 8 × 4
-/// cells of 2 cm) gets REGIONS regions of at most 3 × 3 × 3 cells (6 cm).
+/// cells of 2 cm) gets 24 regions of at most 3 × 3 × 3 cells (6 cm).
 pub const DEFAULT_REGION_BLOCK: u32 = 3;
 
 /// Errors of the sync layer (malformed or inconsistent frames, lattice failures).
@@ -220,7 +250,9 @@ impl RegionMap {
         let cells = lattice.cells();
         // Blocks start at the lowest cell of the lattice on each axis (same scene, same
         // cells, same blocks).
-        let lo = cells.iter().fold([i32::MAX; 3], |m, c| [0, 1, 2].map(|k| m[k].min(c[k])));
+        let lo = cells
+            .iter()
+            .fold([i32::MAX; 3], |m, c| [0, 1, 2].map(|k| m[k].min(c[k])));
         let block_of = |c: &[i32; 3]| [0, 1, 2].map(|k| (c[k] - lo[k]).div_euclid(b));
         let mut blocks: Vec<[i32; 3]> = cells.iter().map(block_of).collect();
         blocks.sort_unstable();
@@ -702,7 +734,7 @@ impl MotionSet {
                 _ => V3::zeros(),
             };
             let n = a.norm();
-            if !(n <= max_accel) {
+            if n.is_nan() || n > max_accel {
                 a = if n.is_finite() {
                     a * (max_accel / n)
                 } else {
@@ -1383,7 +1415,7 @@ impl SiteSync {
             SyncStrategy::Keyframe => self.policy.poll(sim, &self.map, sim.time(), acked_base),
             SyncStrategy::FullState { every_steps } => {
                 if self.policy.regions.is_empty()
-                    || sim.steps() % u64::from(every_steps.max(1)) != 0
+                    || !sim.steps().is_multiple_of(u64::from(every_steps.max(1)))
                 {
                     return Vec::new();
                 }
@@ -1622,7 +1654,7 @@ impl SurfaceRecording {
         let mut pos = 0usize;
         let mut take = |n: usize, what: &'static str| -> Result<&[u8], SurfError> {
             let s = bytes
-                .get(pos..pos.checked_add(n).unwrap_or(usize::MAX))
+                .get(pos..pos.saturating_add(n))
                 .ok_or(SurfError::Truncated { what, offset: pos })?;
             pos += n;
             Ok(s)
@@ -1671,7 +1703,7 @@ impl SurfaceRecording {
         let n = total as usize;
         let record_size = 8 + 12 * n;
         let rest = &bytes[pos..];
-        if rest.len() % record_size != 0 {
+        if !rest.len().is_multiple_of(record_size) {
             return Err(SurfError::PartialRecord {
                 remaining: rest.len() % record_size,
                 record_size,

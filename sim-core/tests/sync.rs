@@ -401,22 +401,47 @@ fn dead_reckoning_keeps_estimate_below_threshold_and_sends_less_for_larger_thres
             p
         })
         .collect();
+    // A receiver of the middle policy's keyframes (no delay, no blending): the owner's
+    // drift estimate is exactly the receiver's error on the region's nodes.
+    let mut b = beam();
+    let mut remote = RemoteRegion::new(TIP, snap());
+    let region_nodes = map.canonical_nodes(a.lattice(), TIP);
+    let mut compared = 0;
     for _ in 0..250 {
         tip_force(&mut a, &loaded, 20.0);
+        remote.drive(&mut b, &map);
         a.step().unwrap();
-        for (p, &d) in policies.iter_mut().zip(&deltas) {
+        b.step().unwrap();
+        for (i, (p, &d)) in policies.iter_mut().zip(&deltas).enumerate() {
             let now = a.time();
-            if p.should_send(&a, &map, TIP, now) {
-                assert!(matches!(
-                    p.encode(&a, &map, TIP, now, None),
-                    Some(SyncFrame::Keyframe(_))
-                ));
+            let send = p.should_send(&a, &map, TIP, now);
+            if i == 1 && remote.last_keyframe().is_some() {
+                let err = region_nodes
+                    .iter()
+                    .filter(|&&n| !a.is_fixed(n))
+                    .map(|n| (a.positions()[n.0 as usize] - b.positions()[n.0 as usize]).norm())
+                    .fold(0.0, f64::max);
+                let est = p.drift(TIP).unwrap();
+                assert!(
+                    (err - est).abs() <= 1e-9,
+                    "receiver error {err} m, owner estimate {est} m"
+                );
+                compared += 1;
+            }
+            if send {
+                let Some(SyncFrame::Keyframe(kf)) = p.encode(&a, &map, TIP, now, None) else {
+                    panic!("expected a keyframe");
+                };
                 assert_eq!(p.drift(TIP), Some(0.0));
+                if i == 1 {
+                    remote.apply_keyframe(&mut b, &map, &kf).unwrap();
+                }
             } else {
                 assert!(p.drift(TIP).unwrap() <= d);
             }
         }
     }
+    assert!(compared > 200);
     let counts: Vec<u64> = policies.iter().map(|p| p.counters().keyframes).collect();
     for (p, &d) in policies.iter().zip(&deltas) {
         let c = p.counters();
@@ -492,6 +517,15 @@ fn topology_change_with_small_drift_sends_a_tree_delta() {
     refine_tip(&mut a, &map, 0.25, 4);
     let frames = owner.after_step(&a, |_| None);
     assert!(matches!(frames[..], [SyncFrame::Keyframe(_)]), "{frames:?}");
+    assert_eq!(recv.on_frame(&mut b, &frames[0]).unwrap(), Some(2));
+    assert_eq!(map.state(b.lattice(), TIP), map.state(a.lattice(), TIP));
+    // Handover: the receiver takes the region and numbers on from the newest keyframe.
+    assert!(recv.remote(TIP).is_some());
+    recv.on_grant(TIP);
+    assert!(recv.remote(TIP).is_none());
+    assert_eq!(recv.policy.next_keyframe_id(TIP), Some(3));
+    // Frames for an owned region are ignored.
+    assert_eq!(recv.on_frame(&mut b, &frames[0]).unwrap(), None);
 }
 
 #[derive(Default)]
@@ -698,6 +732,8 @@ fn small_recording() -> SurfaceRecording {
 }
 
 proptest! {
+    #![proptest_config(ProptestConfig { failure_persistence: None, ..ProptestConfig::default() })]
+
     #[test]
     fn surf_reader_never_panics_on_garbage(bytes in proptest::collection::vec(any::<u8>(), 0..300)) {
         let _ = SurfaceRecording::from_bytes(&bytes);
@@ -713,7 +749,7 @@ proptest! {
         let header = bytes.len() - 3 * (8 + 12 * 3);
         let cut = cut.min(bytes.len());
         let res = SurfaceRecording::from_bytes(&bytes[..cut]);
-        let whole = cut >= header && (cut - header) % (8 + 12 * 3) == 0;
+        let whole = cut >= header && (cut - header).is_multiple_of(8 + 12 * 3);
         prop_assert_eq!(res.is_ok(), whole, "cut at {}: {:?}", cut, res);
         if let Ok(t) = res {
             prop_assert_eq!(&t.records[..], &r.records[..t.records.len()]);

@@ -5,6 +5,9 @@ use clap::{Args, Subcommand};
 
 mod beam;
 pub mod cantilever;
+pub mod stress;
+pub mod sweep;
+pub mod sync;
 
 #[derive(Debug, Args)]
 pub struct BenchArgs {
@@ -16,10 +19,19 @@ pub struct BenchArgs {
 pub enum BenchCommand {
     /// Models and speed-ups on the cantilever beam: step time and deviation from StVK.
     Cantilever(cantilever::CantileverArgs),
+    /// Robustness: long runs, large dt, 1000× stiffness contrast, inversion, impulses.
+    Stress(stress::StressArgs),
+    /// Run time against error over the solver knobs; Pareto front.
+    Sweep(sweep::SweepArgs),
+    /// Multi-site sync quality: strategy × network preset, over real QUIC.
+    Sync(sync::SyncArgs),
 }
 
 pub fn run(args: BenchArgs) -> Result<()> {
     match args.which {
         BenchCommand::Cantilever(a) => cantilever::run(a),
+        BenchCommand::Stress(a) => stress::run(a),
+        BenchCommand::Sweep(a) => sweep::run(a),
+        BenchCommand::Sync(a) => sync::run(a),
     }
 }

@@ -36,7 +36,8 @@ pub fn measure_loop(duration: Duration) -> HapticStats {
 }
 
 /// Runs a haptic loop with `device` and `config` for `duration` (with `model` published
-/// before the first tick) and returns the device and the statistics.
+/// before the first tick and republished every 10 ms) and returns the device and the
+/// statistics.
 pub fn measure_loop_with<D: HapticDevice + 'static>(
     device: D,
     config: HapticConfig,
@@ -44,6 +45,16 @@ pub fn measure_loop_with<D: HapticDevice + 'static>(
     model: Option<&HapticModel>,
 ) -> Result<(D, HapticStats), HapticError> {
     let handle = spawn_with_model(device, config, model)?;
-    std::thread::sleep(duration);
+    let start = std::time::Instant::now();
+    // Republish the model every 10 ms like a simulation thread would (a model that is not
+    // renewed goes stale after `model_timeout` and its force fades out).
+    let mut model = model.cloned();
+    while start.elapsed() < duration {
+        std::thread::sleep((duration - start.elapsed()).min(Duration::from_millis(10)));
+        if let Some(m) = model.as_mut() {
+            m.sim_time += 0.01;
+            handle.publish_model(m);
+        }
+    }
     Ok(handle.stop())
 }

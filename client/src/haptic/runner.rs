@@ -14,7 +14,7 @@ use super::timing::{HapticStats, Pacer, PeriodHistogram};
 use super::{HapticDevice, HapticError, Latest, ToolInput};
 
 /// Configuration of a haptic loop.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy)]
 pub struct HapticConfig {
     /// Tick period (1 ms = 1 kHz).
     pub period: Duration,
@@ -27,16 +27,22 @@ pub struct HapticConfig {
     pub model_timeout: Option<Duration>,
     /// Cut-off of the low-pass filter on the device velocity (for the guide damping), Hz.
     pub velocity_cutoff_hz: f64,
+    /// Called once on the haptic thread before the first tick, e.g. to give it real-time
+    /// priority (`libc::sched_setscheduler(0, SCHED_FIFO, …)` or `chrt -f -p 80 TID`;
+    /// the thread id is in `/proc/thread-self`). Without it the thread runs at normal
+    /// priority and shares the cores with everything else.
+    pub thread_setup: Option<fn()>,
 }
 
 impl Default for HapticConfig {
     fn default() -> Self {
         HapticConfig {
             period: Duration::from_millis(1),
-            spin: Duration::from_micros(100),
+            spin: Duration::from_micros(50),
             render: RenderConfig::default(),
             model_timeout: Some(Duration::from_millis(500)),
             velocity_cutoff_hz: 50.0,
+            thread_setup: None,
         }
     }
 }
@@ -241,12 +247,16 @@ fn run<D: HapticDevice>(
     shared: &Shared,
     commands: mpsc::Receiver<Command>,
 ) -> (D, HapticStats) {
+    if let Some(setup) = cfg.thread_setup {
+        setup();
+    }
     if let Ok(p) = std::fs::read_link("/proc/thread-self") {
         tracing::debug!(device = device.name(), thread = %p.display(), "haptic loop started");
     }
     let period_s = cfg.period.as_secs_f64();
     let mut renderer = ForceRenderer::new(cfg.render, period_s);
     let mut hist = PeriodHistogram::new();
+    let mut lateness = PeriodHistogram::new();
     let mut stats = HapticStats {
         ticks: 0,
         rate_hz: f64::NAN,
@@ -254,6 +264,7 @@ fn run<D: HapticDevice>(
         period_p99_us: f64::NAN,
         period_max_us: f64::NAN,
         jitter_p99_us: f64::NAN,
+        lateness_p99_us: f64::NAN,
         overruns: 0,
         reanchors: 0,
         max_force: 0.0,
@@ -276,7 +287,8 @@ fn run<D: HapticDevice>(
     let mut first_tick: Option<Instant> = None;
     let mut last_tick = start;
     while !shared.stop.load(Ordering::Relaxed) {
-        let now = pacer.wait();
+        let (now, late) = pacer.wait();
+        lateness.record(late);
         if let Some(_f) = first_tick {
             hist.record(now - last_tick);
         } else {
@@ -367,6 +379,7 @@ fn run<D: HapticDevice>(
     stats.period_p99_us = hist.percentile_us(99.0);
     stats.period_max_us = hist.max_us();
     stats.jitter_p99_us = hist.jitter_percentile_us(cfg.period, 99.0);
+    stats.lateness_p99_us = lateness.percentile_us(99.0);
     tracing::debug!(
         device = device.name(),
         "haptic loop stopped: {}",

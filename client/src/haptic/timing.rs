@@ -103,8 +103,11 @@ pub struct HapticStats {
     pub period_p99_us: f64,
     /// Longest period, µs.
     pub period_max_us: f64,
-    /// 99th percentile of |period − nominal period|, µs.
+    /// 99th percentile of |period − nominal period|, µs. With absolute deadlines one late
+    /// tick gives two deviations (a long period, then a short one).
     pub jitter_p99_us: f64,
+    /// 99th percentile of the tick start's lateness after its deadline, µs.
+    pub lateness_p99_us: f64,
     /// Ticks that started more than half a period after their deadline.
     pub overruns: u64,
     /// Times the schedule fell a whole period behind and was re-anchored (ticks skipped).
@@ -128,13 +131,14 @@ impl HapticStats {
     pub fn summary(&self) -> String {
         format!(
             "{} ticks, {:.1} Hz, period p50 {:.0} µs p99 {:.0} µs max {:.0} µs, jitter p99 {:.0} µs, \
-             {} overruns, max force {:.3} N",
+             lateness p99 {:.0} µs, {} overruns, max force {:.3} N",
             self.ticks,
             self.rate_hz,
             self.period_p50_us,
             self.period_p99_us,
             self.period_max_us,
             self.jitter_p99_us,
+            self.lateness_p99_us,
             self.overruns,
             self.max_force
         )
@@ -163,8 +167,8 @@ impl Pacer {
         }
     }
 
-    /// Waits for the next deadline and returns the tick's start time.
-    pub(crate) fn wait(&mut self) -> Instant {
+    /// Waits for the next deadline and returns the tick's start time and its lateness.
+    pub(crate) fn wait(&mut self) -> (Instant, Duration) {
         self.next += self.period;
         let now = Instant::now();
         if now < self.next {
@@ -178,7 +182,7 @@ impl Pacer {
                 std::hint::spin_loop();
                 now = Instant::now();
             }
-            return now;
+            return (now, now - self.next);
         }
         let late = now - self.next;
         if late > self.period / 2 {
@@ -189,7 +193,7 @@ impl Pacer {
             self.reanchors += 1;
             self.next = now;
         }
-        now
+        (now, late)
     }
 }
 
@@ -224,12 +228,13 @@ mod tests {
     fn pacer_reanchors_instead_of_bursting() {
         let start = Instant::now();
         let mut p = Pacer::new(start, Duration::from_millis(1), Duration::ZERO);
-        let t1 = p.wait();
+        let (t1, _) = p.wait();
         assert!(t1 >= start + Duration::from_millis(1));
         std::thread::sleep(Duration::from_millis(5));
-        let t2 = p.wait();
+        let (t2, late) = p.wait();
+        assert!(late >= Duration::from_millis(4));
         assert_eq!((p.overruns, p.reanchors), (1, 1));
-        let t3 = p.wait();
+        let (t3, _) = p.wait();
         assert!(t3 >= t2 + Duration::from_millis(1), "no catch-up burst");
     }
 }

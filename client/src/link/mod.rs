@@ -141,6 +141,9 @@ pub struct LinkConfig {
     pub datagram_queue: usize,
     /// Maximum frame size accepted on streams (bytes).
     pub max_frame: usize,
+    /// Protocol version announced in Join (tests of version refusal only; normally
+    /// [`proto::PROTOCOL_VERSION`]).
+    pub protocol_version: u16,
 }
 
 impl LinkConfig {
@@ -173,12 +176,13 @@ impl LinkConfig {
             silence_factor: proto::liveness::DEFAULT_TIMEOUT_FACTOR,
             datagram_queue: DATAGRAM_QUEUE,
             max_frame: proto::DEFAULT_MAX_FRAME,
+            protocol_version: proto::PROTOCOL_VERSION,
         }
     }
 
     fn join_message(&self) -> proto::Join {
         proto::Join {
-            protocol_version: proto::PROTOCOL_VERSION,
+            protocol_version: self.protocol_version,
             scene_hash: self.scene_hash.clone(),
             role: self.role,
             site_name: self.site_name.clone(),

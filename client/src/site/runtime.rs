@@ -13,7 +13,7 @@ use proto::{Message, Role};
 use sim_core::sim_scene::{LoadedScene, ToolScript};
 use sim_core::{SimOptions, Simulation};
 
-use super::glue::{self, SyncState};
+use super::glue::{self, Outgoing, SyncState};
 use crate::cli::Refused;
 use crate::link::{Link, LinkConfig, LinkEvent};
 use crate::output::SeriesWriter;
@@ -202,6 +202,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         info!(site = %cfg.name, id = ?me, sites = sites.len(), "session complete, starting");
     }
     report.site_id = me;
+    sync.set_sites(me.unwrap_or(0), sites.keys().copied());
     let haptic = cfg.haptics.then(glue::HapticLoop::start);
 
     let start = Instant::now();
@@ -284,11 +285,20 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                         report.owned.push((r.region, since, t));
                     }
                 }
+                Message::TreeDelta(d) if Some(d.site) != me => {
+                    sync.receive_delta(&mut sim, &d);
+                }
+                Message::KeyframeAck(a) => sync.on_ack(&a),
                 Message::OwnershipDeny(d) => {
                     requested.remove(&d.region);
                 }
                 Message::SiteJoined(s) => {
                     sites.insert(s.site, (s.name, s.role));
+                    sync.set_sites(me.unwrap_or(0), sites.keys().copied());
+                }
+                Message::Leave(l) => {
+                    sites.remove(&l.site);
+                    sync.set_sites(me.unwrap_or(0), sites.keys().copied());
                 }
                 other => debug!(kind = other.kind(), "ignored message"),
             }
@@ -302,8 +312,9 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
             h.publish(&tools);
         }
 
-        // 3. Ownership of the regions our tool touches.
-        if link.is_some() && cfg.role != Role::Observer && cfg.strategy != Strategy::InputOnly {
+        // 3. Ownership of the regions our tool touches. Input-only sites claim too: the
+        // coordinator's ownership then says whose organ the others are compared with.
+        if link.is_some() && cfg.role != Role::Observer {
             for region in touched {
                 last_touch.insert(region, t);
                 if !owned.contains_key(&region) && requested.insert(region) {
@@ -324,14 +335,11 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                 .collect();
             for region in stale {
                 // A last keyframe first, so that the others end where we are.
-                if let Some(kf) = sync.keyframe(&sim, region, me.unwrap_or(0))
-                    && let Some(link) = &link
-                {
-                    link.send_keyframe(kf);
+                if let (Some(out), Some(link)) = (sync.release(&sim, region), &link) {
+                    send_outgoing(link, out);
                 }
                 let since = owned.remove(&region).unwrap_or(t);
                 report.owned.push((region, since, t));
-                sync.set_owner(region, None, me);
                 send_control(
                     &link,
                     Message::OwnershipRelease(proto::OwnershipRelease {
@@ -361,8 +369,8 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
             if let Some(pose) = tools.local_pose_message(me.unwrap_or(0), t) {
                 link.send_datagram(Message::ToolPose(pose));
             }
-            for kf in sync.outgoing(&sim, owned.keys().copied(), me.unwrap_or(0)) {
-                link.send_keyframe(kf);
+            for out in sync.outgoing(&sim) {
+                send_outgoing(link, out);
             }
             if t >= next_simtime_stamp {
                 next_simtime_stamp = t + RECORD_INTERVAL;
@@ -446,7 +454,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     if let Some(dir) = &cfg.out {
         std::fs::create_dir_all(dir)?;
         let surf = dir.join("surfaces.surf");
-        recorder.write(&surf, &scene_hash)?;
+        recorder.write(&surf)?;
         report.surf_file = Some(surf);
         if let Some(w) = &writer {
             w.write_obj(&sim)?;
@@ -458,6 +466,13 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     }
     drop(runtime);
     Ok(report)
+}
+
+fn send_outgoing(link: &Link, out: Outgoing) {
+    match out {
+        Outgoing::Keyframe(kf) => link.send_keyframe(kf),
+        Outgoing::Delta(d) => link.send_datagram(Message::TreeDelta(d)),
+    }
 }
 
 fn send_control(link: &Option<Link>, m: Message) {

@@ -1,0 +1,392 @@
+//! Tools, contact, grasping and tool-following adaptivity (sim-core `contact`, `tools`,
+//! `adapt`).
+
+use std::path::Path;
+
+use cosurg_sim_core::sim_fem::{Model, StiffnessMode};
+use cosurg_sim_core::sim_scene::{LoadedScene, Scene};
+use cosurg_sim_core::{
+    AdaptParams, ContactParams, Interaction, NodeId, SimOptions, Simulation, ToolInput,
+};
+use nalgebra::{UnitQuaternion, Vector3};
+
+type V3 = Vector3<f64>;
+
+/// An 8 × 8 × 4 cm block (E = 20 kPa) clamped at its bottom face, no gravity, with a
+/// probe of radius 5 mm above the centre of its top face (z = 0.04).
+fn block_scene(max_depth: u32, tool: bool, inclusion: bool, adaptivity: bool) -> LoadedScene {
+    let mut text = format!(
+        r#"
+version = 1
+gravity = [0.0, 0.0, 0.0]
+[material.tissue]
+young = 2.0e4
+poisson = 0.3
+density = 1000.0
+rayleigh_mass = 5.0
+rayleigh_stiffness = 0.01
+[material.hard]
+young = 1.0e5
+poisson = 0.3
+density = 1000.0
+[[body]]
+name = "block"
+box = {{ min = [0.0, 0.0, 0.0], max = [0.08, 0.08, 0.04] }}
+cell = 0.02
+max_depth = {max_depth}
+material = "tissue"
+{inc}
+[[fix]]
+box = {{ min = [-1.0, -1.0, -0.001], max = [1.0, 1.0, 0.001] }}
+[simulation]
+dt = 0.002
+cg_iterations = 200
+cg_tolerance = 1.0e-9
+contact_stiffness = 500.0
+[features]
+adaptivity = {adaptivity}
+contact = true
+"#,
+        inc = if inclusion {
+            r#"[[body.inclusion]]
+material = "hard"
+capsules = [{ a = [0.0, 0.0, 0.02], b = [0.0, 0.08, 0.02], radius = 0.006 }]
+refine_boundary = true"#
+        } else {
+            ""
+        }
+    );
+    if tool {
+        text.push_str(
+            r#"
+[[tool]]
+name = "probe"
+kind = "probe"
+position = [0.04, 0.04, 0.05]
+radius = 0.005
+length = 0.02
+"#,
+        );
+    }
+    Scene::from_str(&text, Path::new("."), "test:block").expect("valid block scene")
+}
+
+fn sim_of(scene: LoadedScene) -> Simulation {
+    let options = SimOptions::from_scene(&scene.scene);
+    Simulation::new(scene, options).expect("simulation")
+}
+
+fn probe_at(z: f64, x: f64) -> ToolInput {
+    ToolInput::new(V3::new(x, 0.04, z), UnitQuaternion::identity(), 0.0)
+}
+
+/// Tip height for a position-driven press: from 5 cm down to `bottom` over `t_down`.
+fn press(t: f64, bottom: f64, t_down: f64) -> f64 {
+    0.05 + (bottom - 0.05) * (t / t_down).min(1.0)
+}
+
+/// Checks that the tool's force and torque (about the tip) are minus the sum of the node
+/// forces (and their moments at the node positions the pass used), to 1e-9 relative.
+fn check_balance(ia: &Interaction, sim: &Simulation) -> f64 {
+    let st = ia.state();
+    let tip = ia.tools.tools[0].tip();
+    let x = sim.positions();
+    let mut f = V3::zeros();
+    let mut tau = V3::zeros();
+    let mut scale: f64 = 0.0;
+    for (i, fi) in st.node_force.iter().enumerate() {
+        f += fi;
+        tau += (x[i] - tip).cross(fi);
+        scale += fi.norm();
+    }
+    let t = &st.tools[0];
+    let ef = (t.force + f).norm();
+    let et = (t.torque + tau).norm();
+    let lever = t
+        .contacts
+        .iter()
+        .map(|c| (c.point - tip).norm())
+        .fold(0.0, f64::max)
+        + ia.tools.tools[0].length;
+    assert!(
+        ef <= 1e-9 * scale,
+        "force balance: {ef} N vs scale {scale} N"
+    );
+    assert!(
+        et <= 1e-9 * scale * lever,
+        "torque balance: {et} N m vs scale {} N m",
+        scale * lever
+    );
+    scale
+}
+
+/// Static check: a position-driven probe pressed 4 mm into the block comes to rest where
+/// the reaction on the tool balances the clamp's support reaction (the elastic forces on
+/// the fixed nodes), and the penetration is what the penalty stiffness allows.
+#[test]
+fn probe_press_reaches_force_equilibrium() {
+    let mut sim = sim_of(block_scene(0, true, false, false));
+    let mut ia = Interaction::new(&sim);
+    let k_c = ia.contact.params.stiffness;
+    let dt = sim.options().dt;
+    let steps = 600; // 1.2 s: 0.3 s down, 0.9 s hold
+    for _ in 0..steps {
+        let z = press(sim.time(), 0.036, 0.3);
+        ia.before_step(&mut sim, &[probe_at(z, 0.04)]).unwrap();
+        check_balance(&ia, &sim);
+        sim.step().unwrap();
+    }
+    // One more pass at rest to read the contact forces at the final state.
+    ia.before_step(&mut sim, &[probe_at(0.036, 0.04)]).unwrap();
+    let tool = ia.state().tools[0].clone();
+    let vmax = sim
+        .velocities()
+        .iter()
+        .map(|v| v.norm())
+        .fold(0.0, f64::max);
+    assert!(vmax < 1e-4, "not at rest: max node speed {vmax} m/s");
+    let x = sim.positions().to_vec();
+    let fint = sim
+        .fem()
+        .unwrap()
+        .internal_forces(&x, Model::Corotational, StiffnessMode::Template);
+    let support: V3 = (0..x.len())
+        .filter(|&i| sim.is_fixed(NodeId(i as u32)))
+        .map(|i| fint[i])
+        .sum();
+    // Tool pushed up by the tissue; the clamp holds the block down with the same force.
+    let f = tool.force;
+    assert!(f.z > 0.5, "probe should be pushed back, got {f:?} N");
+    let err = (f + support).norm();
+    assert!(
+        err <= 0.02 * f.norm(),
+        "tool reaction {f:?} N vs support reaction {:?} N (err {err} N)",
+        -support
+    );
+    let n = tool.contacts.len();
+    let bound = f.norm() / (k_c * n as f64);
+    let mean_depth = tool.contacts.iter().map(|c| c.depth).sum::<f64>() / n as f64;
+    // All contact forces push (k_c d_i ≥ 0), so the mean depth is |F_n|/(k_c n) and no
+    // sample can be deeper than |F|/k_c.
+    assert!(
+        (mean_depth - bound).abs() <= 0.05 * bound,
+        "mean penetration {mean_depth} m vs |F|/(k_c n) = {bound} m ({n} samples)"
+    );
+    assert!(
+        tool.max_depth <= f.norm() / k_c && tool.max_depth < 0.003,
+        "max penetration {} m vs |F|/k_c = {} m",
+        tool.max_depth,
+        f.norm() / k_c
+    );
+    let _ = dt;
+}
+
+/// Force and torque balance to 1e-9 relative while a tilted probe presses and slides
+/// (friction anchors slipping), and the local linear model predicts small displacements.
+#[test]
+fn tool_reaction_balances_node_forces() {
+    let mut sim = sim_of(block_scene(0, true, false, false));
+    let mut ia = Interaction::new(&sim);
+    let tilt = UnitQuaternion::from_axis_angle(&V3::y_axis(), 0.4);
+    let mut checked = 0;
+    for step in 0..300 {
+        let t = sim.time();
+        let z = press(t, 0.035, 0.2);
+        let x = 0.035 + 0.02 * ((t - 0.2).max(0.0) / 0.4).min(1.0);
+        let input = ToolInput::new(V3::new(x, 0.04, z), tilt, 0.0);
+        ia.before_step(&mut sim, &[input]).unwrap();
+        if !ia.state().tools[0].contacts.is_empty() {
+            let scale = check_balance(&ia, &sim);
+            assert!(scale > 0.0);
+            checked += 1;
+        }
+        if step == 150 {
+            let tool = &ia.state().tools[0];
+            assert!(
+                tool.contacts.iter().any(|c| !c.sticking),
+                "sliding should slip"
+            );
+            // Local model: top-left block is −Σ k n nᵀ (+ sticking friction): negative
+            // semi-definite and symmetric.
+            let k = tool.local.stiffness;
+            assert!((k - k.transpose()).norm() <= 1e-9 * k.norm());
+            assert!(k.symmetric_eigenvalues().max() <= 1e-9 * k.norm());
+            assert!(k[(2, 2)] < 0.0);
+        }
+        sim.step().unwrap();
+    }
+    assert!(
+        checked > 100,
+        "contact should last most of the run ({checked} steps)"
+    );
+}
+
+/// No tool: the pass is skipped; contact off: skipped; a far tool: the pass runs but no
+/// narrow-phase (point–triangle) test.
+#[test]
+fn contact_work_is_skipped_when_not_needed() {
+    let mut sim = sim_of(block_scene(0, false, false, false));
+    let mut ia = Interaction::new(&sim);
+    for _ in 0..5 {
+        let r = ia.before_step(&mut sim, &[]).unwrap();
+        assert!(!r.contact_ran);
+        sim.step().unwrap();
+    }
+    let st = ia.state().stats;
+    assert_eq!((st.passes_run, st.passes_skipped), (0, 5));
+    assert_eq!(st.root_tests + st.narrow_tests, 0);
+
+    // A tool 1 m above the block.
+    let mut sim = sim_of(block_scene(0, true, false, false));
+    let mut ia = Interaction::new(&sim);
+    for _ in 0..5 {
+        let r = ia.before_step(&mut sim, &[probe_at(1.0, 0.04)]).unwrap();
+        assert!(r.contact_ran);
+        assert_eq!(r.narrow_tests, 0);
+        sim.step().unwrap();
+    }
+    let st = ia.state().stats;
+    assert_eq!(st.passes_run, 5);
+    assert!(st.root_tests > 0);
+    assert_eq!(
+        (st.leaf_tests, st.candidate_triangles, st.narrow_tests),
+        (0, 0, 0)
+    );
+
+    // Contact switched off.
+    let mut opts = sim.options().clone();
+    opts.contact = false;
+    sim.set_options(opts);
+    let before = ia.state().stats;
+    ia.before_step(&mut sim, &[probe_at(0.03, 0.04)]).unwrap();
+    let st = ia.state().stats;
+    assert_eq!(st.passes_run, before.passes_run);
+    assert_eq!(st.passes_skipped, before.passes_skipped + 1);
+    assert!(ia.state().node_force.iter().all(|f| *f == V3::zeros()));
+}
+
+/// Adaptivity refines around the contact and, after the probe left, coarsens back to the
+/// initial leaf count — never below the static refinement along the inclusion.
+#[test]
+fn adaptivity_follows_the_tool_and_coarsens_back() {
+    let mut sim = sim_of(block_scene(3, true, true, true));
+    let initial = sim.lattice().leaf_count();
+    assert!(initial > 4 * 4 * 2 * 6, "the inclusion refines statically");
+    let adapt = AdaptParams {
+        every: 5,
+        distance: 0.01,
+        hold_time: 0.1,
+        max_level: 3,
+    };
+    let mut ia = Interaction::with_params(&sim, ContactParams::from_sim(&sim), adapt);
+    let mut peak = initial;
+    let mut max_level = 0;
+    for _ in 0..150 {
+        let z = press(sim.time(), 0.036, 0.1);
+        let r = ia.before_step(&mut sim, &[probe_at(z, 0.04)]).unwrap();
+        peak = peak.max(r.adapt.leaves);
+        sim.step().unwrap();
+    }
+    for &t in sim.lattice().leaves() {
+        let c = sim
+            .lattice()
+            .tet_nodes(t)
+            .iter()
+            .map(|&n| sim.lattice().node_rest(n))
+            .sum::<V3>()
+            / 4.0;
+        if (c - V3::new(0.04, 0.04, 0.04)).norm() < 0.01 {
+            max_level = max_level.max(t.level());
+        }
+    }
+    assert_eq!(max_level, 3, "leaves at the contact reach max_depth");
+    assert!(peak > initial + 20, "refined: {initial} -> {peak} leaves");
+    assert!(ia.adapt.created_diamonds() > 0);
+    // Lift the probe away and wait past the hold time.
+    for _ in 0..150 {
+        ia.before_step(&mut sim, &[probe_at(0.1, 0.04)]).unwrap();
+        sim.step().unwrap();
+    }
+    assert_eq!(ia.adapt.created_diamonds(), 0);
+    assert_eq!(sim.lattice().leaf_count(), initial, "coarsened back");
+    assert!(
+        sim.positions()
+            .iter()
+            .all(|p| p.iter().all(|c| c.is_finite()))
+    );
+}
+
+/// The default scene: the forceps follows its script — approaches the fundus with open
+/// jaws, closes them (grasp), lifts 3 cm, holds, opens them (release) — and the tissue
+/// comes back to rest afterwards. The probe is parked at its initial pose (3 cm below the
+/// neck, no contact).
+#[test]
+fn forceps_grasps_lifts_and_releases_the_gallbladder() {
+    let scene = cosurg_sim_core::sim_scene::builtin::cholecystectomy();
+    let mut sim = sim_of(scene);
+    let mut ia = Interaction::new(&sim);
+    let forceps = ia.tools.index("forceps").unwrap();
+    let probe = ia.tools.index("probe").unwrap();
+    let probe_rest = ToolInput {
+        pose: *ia.tools.tools[probe].pose(),
+        jaw: 0.0,
+    };
+    let mean_z = |pts: &[V3]| pts.iter().map(|p| p.z).sum::<f64>() / pts.len() as f64;
+    let mut grasp_z: Option<f64> = None;
+    let mut lifted_z: Option<f64> = None;
+    let mut grasped_max = 0;
+    let mut released_at = None;
+    let t_end = 7.0;
+    let mut peak_ke: f64 = 0.0;
+    let started = std::time::Instant::now();
+    while sim.time() < t_end {
+        let t = sim.time();
+        let mut inputs = ia.scripted_inputs(&sim, t);
+        inputs[probe] = probe_rest;
+        let r = ia.before_step(&mut sim, &inputs).unwrap();
+        let tool = &ia.state().tools[forceps];
+        if tool.grasped > 0 {
+            grasped_max = grasped_max.max(tool.grasped);
+            let z = mean_z(&tool.grasped_points);
+            grasp_z.get_or_insert(z);
+            if t >= 4.4 {
+                lifted_z = Some(z);
+            }
+            if tool.grasped > 0 && t < 1.8 {
+                panic!("grasped before the jaws closed (t = {t} s)");
+            }
+        } else if grasp_z.is_some() && released_at.is_none() {
+            released_at = Some(t);
+        }
+        let _ = r;
+        sim.step().unwrap();
+        let v = sim.velocities().to_vec();
+        let ke = sim.fem().unwrap().kinetic_energy(&v);
+        assert!(ke.is_finite());
+        peak_ke = peak_ke.max(ke);
+    }
+    let v = sim.velocities().to_vec();
+    let ke = sim.fem().unwrap().kinetic_energy(&v);
+    let (z0, z1) = (
+        grasp_z.expect("never grasped"),
+        lifted_z.expect("lost the grasp"),
+    );
+    eprintln!(
+        "grasp: {grasped_max} points, mean z {z0:.4} -> {z1:.4} m, released at {released_at:?} s, \
+         KE peak {peak_ke:.3e} J, final {ke:.3e} J, leaves {}, {:.1} s wall",
+        sim.lattice().leaf_count(),
+        started.elapsed().as_secs_f64()
+    );
+    assert!(z1 - z0 >= 0.025, "lifted only {} m", z1 - z0);
+    let released = released_at.expect("never released");
+    assert!((4.6..5.0).contains(&released), "released at {released} s");
+    assert!(
+        sim.positions()
+            .iter()
+            .all(|p| p.iter().all(|c| c.is_finite()))
+    );
+    assert!(
+        ke < 1e-3 * peak_ke,
+        "not at rest: KE {ke} J (peak {peak_ke} J)"
+    );
+}
