@@ -7,6 +7,12 @@ fn main() {
     let scene = inclusion_beam(0.05).unwrap();
     let mut o = SimOptions::from_scene(&scene.scene);
     o.model = Model::Corotational;
+    if let Ok(n) = std::env::var("CG") {
+        o.solver.max_iters = n.parse().unwrap();
+    }
+    if let Ok(a) = std::env::var("FB") {
+        o.fallback_angle_deg = a.parse().unwrap();
+    }
     o.dt = dt;
     o.sharing_angle_deg = (share > 0.0).then_some(share);
     let mut sim = Simulation::new(scene, o).unwrap();

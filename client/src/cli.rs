@@ -77,6 +77,9 @@ pub struct SimKnobs {
     /// Rotation-sharing angle tolerance θ_tol (degrees); 0 disables sharing.
     #[arg(long)]
     pub sharing_angle: Option<f64>,
+    /// Switch the scene's tool-following refinement on or off.
+    #[arg(long)]
+    pub adaptivity: Option<bool>,
 }
 
 impl SimKnobs {
@@ -89,6 +92,9 @@ impl SimKnobs {
         }
         if let Some(n) = self.cg_iterations {
             o.solver.max_iters = n;
+        }
+        if let Some(a) = self.adaptivity {
+            o.adaptivity = a;
         }
         if let Some(a) = self.sharing_angle {
             o.sharing_angle_deg = (a > 0.0).then_some(a);

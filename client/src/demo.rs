@@ -1,9 +1,10 @@
 //! `cosurg demo`: a coordinator and N sites on loopback, real QUIC with TLS between real
 //! processes, playing the built-in cholecystectomy script.
 //!
-//! Timeline (simulated seconds): the instructor's forceps grasps the gallbladder fundus
-//! and lifts it (from 0.5 s); trainee B works around the gallbladder neck with a probe
-//! (from 1.0 s); trainee A repeats the lift (from 7 s). Every site records its embedded
+//! Timeline (simulated seconds), one operator at a time as in a teaching session: the
+//! instructor's forceps grasps the gallbladder fundus and lifts it (0.5–6.5 s); trainee B
+//! works around the gallbladder neck with a probe (7–12 s); trainee A repeats the lift
+//! (12.5–18.5 s). Every site records its embedded
 //! surface every 50 ms of simulated time; afterwards the demo compares every site with
 //! the site that owned the region at that time, vertex by vertex.
 
@@ -27,7 +28,7 @@ pub struct DemoArgs {
     #[arg(long, default_value_t = 3)]
     pub sites: usize,
     /// Simulated seconds.
-    #[arg(long, default_value_t = 14.0)]
+    #[arg(long, default_value_t = 19.5)]
     pub seconds: f64,
     /// Print the summary as JSON.
     #[arg(long)]
@@ -51,6 +52,13 @@ pub struct DemoArgs {
     /// Seed of the impairment.
     #[arg(long, default_value_t = 7)]
     pub seed: u64,
+    /// Simulation time step of every site (s). 4 ms (250 Hz) lets three sites keep real
+    /// time on a 2-core machine; the haptic loop renders at 1 kHz between steps.
+    #[arg(long, default_value_t = 0.004)]
+    pub dt: f64,
+    /// Extra arguments passed to every site's `cosurg join` (after `--`).
+    #[arg(last = true)]
+    pub site_args: Vec<String>,
 }
 
 /// One site of the demo.
@@ -78,14 +86,14 @@ pub fn cast(n: usize, slowdown: f64) -> Vec<DemoSite> {
                 name: "trainee-a".into(),
                 role: "trainee",
                 tool: Some("forceps"),
-                script_start: 7.0,
+                script_start: 12.5,
                 slowdown: 1.0,
             },
             2 => DemoSite {
                 name: "trainee-b".into(),
                 role: "trainee",
                 tool: Some("probe"),
-                script_start: 1.0,
+                script_start: 7.0,
                 slowdown,
             },
             k => DemoSite {
@@ -136,6 +144,10 @@ pub struct SessionRun {
     pub out: PathBuf,
     pub vtu_interval: f64,
     pub progress: bool,
+    /// Time step override for every site (s).
+    pub dt: Option<f64>,
+    /// Extra arguments for every site's `cosurg join`.
+    pub extra: Vec<String>,
 }
 
 /// Runs a coordinator in-process and every site as a child process; returns the site
@@ -185,13 +197,20 @@ pub fn run_session(run: &SessionRun) -> Result<(Vec<SiteReport>, Vec<Series>)> {
             .stderr(Stdio::from(std::fs::File::create(
                 run.out.join(format!("{}.log", site.name)),
             )?))
-            .env("COSURG_LOG", "warn,cosurg=info");
+            .env(
+                "COSURG_LOG",
+                std::env::var("COSURG_SITE_LOG").unwrap_or_else(|_| "warn,cosurg::=info".into()),
+            );
         if let Some(t) = site.tool {
             cmd.args(["--tool", t]);
         }
         if let Some(p) = &run.preset {
             cmd.args(["--preset", p]);
         }
+        if let Some(dt) = run.dt {
+            cmd.args(["--dt", &dt.to_string()]);
+        }
+        cmd.args(&run.extra);
         let mut child = cmd
             .spawn()
             .with_context(|| format!("starting site {}", site.name))?;
@@ -265,6 +284,8 @@ pub fn demo(args: DemoArgs) -> Result<()> {
         out: out.clone(),
         vtu_interval: args.vtu_interval,
         progress: !args.json,
+        dt: Some(args.dt),
+        extra: args.site_args.clone(),
     };
     if !args.json {
         eprintln!(

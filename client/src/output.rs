@@ -23,6 +23,105 @@ pub struct ToolFrame {
     pub force: V3,
 }
 
+/// One embedded surface of a captured frame.
+#[derive(Clone, Debug)]
+pub struct SurfaceFrame {
+    pub name: String,
+    pub deformed: Vec<V3>,
+    pub displacement: Vec<V3>,
+    pub triangles: Vec<[u32; 3]>,
+}
+
+/// Everything one output frame shows, copied out of the simulation so that writing can
+/// happen off the simulation thread.
+#[derive(Clone, Debug)]
+pub struct Frame {
+    pub time: f64,
+    pub points: Vec<V3>,
+    pub displacement: Vec<V3>,
+    pub velocity: Vec<V3>,
+    pub contact_force: Vec<V3>,
+    pub fixed: Vec<i32>,
+    pub tets: Vec<[u32; 4]>,
+    pub level: Vec<i32>,
+    pub tet_type: Vec<i32>,
+    pub material: Vec<i32>,
+    pub root: Vec<u32>,
+    pub heap: Vec<u32>,
+    pub surfaces: Vec<SurfaceFrame>,
+    pub tools: Vec<ToolFrame>,
+}
+
+impl Frame {
+    /// Copies the lattice (live nodes renumbered compactly), surfaces and tools.
+    pub fn capture(sim: &Simulation, tools: &[ToolFrame], node_force: Option<&[V3]>) -> Frame {
+        let lattice = sim.lattice();
+        let n = lattice.node_count();
+        let mut compact = vec![u32::MAX; lattice.node_capacity()];
+        let (mut points, mut displacement, mut velocity, mut contact_force, mut fixed) = (
+            Vec::with_capacity(n),
+            Vec::with_capacity(n),
+            Vec::with_capacity(n),
+            Vec::with_capacity(n),
+            Vec::with_capacity(n),
+        );
+        let (x, v) = (sim.positions(), sim.velocities());
+        for node in lattice.nodes() {
+            let i = node.0 as usize;
+            compact[i] = points.len() as u32;
+            points.push(x[i]);
+            displacement.push(x[i] - lattice.node_rest(node));
+            velocity.push(v[i]);
+            contact_force.push(
+                node_force
+                    .and_then(|nf| nf.get(i).copied())
+                    .unwrap_or_default(),
+            );
+            fixed.push(sim.is_fixed(node) as i32);
+        }
+        let leaves = lattice.leaves();
+        Frame {
+            time: sim.time(),
+            tets: leaves
+                .iter()
+                .map(|&t| lattice.tet_nodes(t).map(|n| compact[n.0 as usize]))
+                .collect(),
+            level: leaves
+                .iter()
+                .map(|&t| i32::from(lattice.tet_level(t)))
+                .collect(),
+            tet_type: leaves.iter().map(|&t| lattice.tet_type(t) as i32).collect(),
+            material: leaves
+                .iter()
+                .map(|&t| sim.leaf_material(t).map_or(-1, |m| m as i32))
+                .collect(),
+            root: leaves.iter().map(|t| t.root).collect(),
+            heap: leaves.iter().map(|t| t.heap).collect(),
+            points,
+            displacement,
+            velocity,
+            contact_force,
+            fixed,
+            surfaces: sim
+                .surfaces()
+                .iter()
+                .map(|s| SurfaceFrame {
+                    name: s.name.clone(),
+                    displacement: s
+                        .deformed
+                        .iter()
+                        .zip(&s.rest.vertices)
+                        .map(|(a, b)| a - b)
+                        .collect(),
+                    deformed: s.deformed.clone(),
+                    triangles: s.rest.triangles.clone(),
+                })
+                .collect(),
+            tools: tools.to_vec(),
+        }
+    }
+}
+
 /// Writes a VTU/PVD time series into one folder.
 pub struct SeriesWriter {
     dir: PathBuf,
@@ -54,75 +153,37 @@ impl SeriesWriter {
         tools: &[ToolFrame],
         node_force: Option<&[V3]>,
     ) -> Result<()> {
-        let t = sim.time();
+        self.write(&Frame::capture(sim, tools, node_force))
+    }
+
+    /// Writes a captured frame (may run on another thread than the simulation).
+    pub fn write(&mut self, fr: &Frame) -> Result<()> {
         let f = self.frame;
-        let lattice = sim.lattice();
-        // Compact numbering of live nodes.
-        let mut compact = vec![u32::MAX; lattice.node_capacity()];
-        let mut points = Vec::with_capacity(lattice.node_count());
-        let mut disp = Vec::with_capacity(lattice.node_count());
-        let mut vel = Vec::with_capacity(lattice.node_count());
-        let mut force = Vec::with_capacity(lattice.node_count());
-        let mut fixed = Vec::with_capacity(lattice.node_count());
-        let (x, v) = (sim.positions(), sim.velocities());
-        for n in lattice.nodes() {
-            let i = n.0 as usize;
-            compact[i] = points.len() as u32;
-            points.push(x[i]);
-            disp.push(x[i] - lattice.node_rest(n));
-            vel.push(v[i]);
-            force.push(
-                node_force
-                    .and_then(|nf| nf.get(i).copied())
-                    .unwrap_or_default(),
-            );
-            fixed.push(sim.is_fixed(n) as i32);
-        }
-        let leaves = lattice.leaves();
-        let tets: Vec<[u32; 4]> = leaves
-            .iter()
-            .map(|&t| lattice.tet_nodes(t).map(|n| compact[n.0 as usize]))
-            .collect();
-        let level: Vec<i32> = leaves
-            .iter()
-            .map(|&t| i32::from(lattice.tet_level(t)))
-            .collect();
-        let ty: Vec<i32> = leaves.iter().map(|&t| lattice.tet_type(t) as i32).collect();
-        let material: Vec<i32> = leaves
-            .iter()
-            .map(|&t| sim.leaf_material(t).map_or(-1, |m| m as i32))
-            .collect();
-        let root: Vec<u32> = leaves.iter().map(|t| t.root).collect();
-        let heap: Vec<u32> = leaves.iter().map(|t| t.heap).collect();
-        let grid = UnstructuredGrid::new(&points, Cells::Tets(&tets))
-            .with_point_data(DataArray::vectors("displacement", &disp))
-            .with_point_data(DataArray::vectors("velocity", &vel))
-            .with_point_data(DataArray::vectors("contact_force", &force))
-            .with_point_data(DataArray::ints("fixed", &fixed))
-            .with_cell_data(DataArray::ints("level", &level))
-            .with_cell_data(DataArray::ints("type", &ty))
-            .with_cell_data(DataArray::ints("material", &material))
-            .with_cell_data(DataArray::uints("tree_root", &root))
-            .with_cell_data(DataArray::uints("tree_heap_index", &heap));
+        let t = fr.time;
+        let grid = UnstructuredGrid::new(&fr.points, Cells::Tets(&fr.tets))
+            .with_point_data(DataArray::vectors("displacement", &fr.displacement))
+            .with_point_data(DataArray::vectors("velocity", &fr.velocity))
+            .with_point_data(DataArray::vectors("contact_force", &fr.contact_force))
+            .with_point_data(DataArray::ints("fixed", &fr.fixed))
+            .with_cell_data(DataArray::ints("level", &fr.level))
+            .with_cell_data(DataArray::ints("type", &fr.tet_type))
+            .with_cell_data(DataArray::ints("material", &fr.material))
+            .with_cell_data(DataArray::uints("tree_root", &fr.root))
+            .with_cell_data(DataArray::uints("tree_heap_index", &fr.heap));
         let name = format!("lattice_{f:05}.vtu");
         vtk::write_vtu_file(self.dir.join(&name), &grid, Encoding::Binary)?;
         self.pvd.push(t, 0, name);
 
-        for (k, s) in sim.surfaces().iter().enumerate() {
-            let d: Vec<V3> = s
-                .deformed
-                .iter()
-                .zip(&s.rest.vertices)
-                .map(|(a, b)| a - b)
-                .collect();
-            let grid = UnstructuredGrid::new(&s.deformed, Cells::Triangles(&s.rest.triangles))
-                .with_point_data(DataArray::vectors("displacement", &d));
+        for (k, s) in fr.surfaces.iter().enumerate() {
+            let grid = UnstructuredGrid::new(&s.deformed, Cells::Triangles(&s.triangles))
+                .with_point_data(DataArray::vectors("displacement", &s.displacement));
             let name = format!("surface_{}_{f:05}.vtu", sanitize(&s.name));
             vtk::write_vtu_file(self.dir.join(&name), &grid, Encoding::Binary)?;
             self.pvd.push(t, 1 + k as u32, name);
         }
 
-        if !tools.is_empty() {
+        if !fr.tools.is_empty() {
+            let tools = &fr.tools;
             let poses: Vec<(V3, UnitQuaternion<f64>)> =
                 tools.iter().map(|t| (t.position, t.orientation)).collect();
             let jaw: Vec<f64> = tools.iter().map(|t| t.jaw).collect();
@@ -142,7 +203,7 @@ impl SeriesWriter {
                 Encoding::Ascii,
             )
             .with_context(|| format!("writing {}", path.display()))?;
-            self.pvd.push(t, 1 + sim.surfaces().len() as u32, name);
+            self.pvd.push(t, 1 + fr.surfaces.len() as u32, name);
         }
         self.pvd.write_file(self.dir.join("series.pvd"))?;
         self.frame += 1;

@@ -7,10 +7,10 @@ use std::time::Instant;
 use anyhow::Result;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use sim_core::{SimOptions, Simulation};
+use sim_core::{Interaction, SimOptions, Simulation};
 
 use crate::cli::{SimKnobs, out_dir};
-use crate::output::SeriesWriter;
+use crate::output::{SeriesWriter, ToolFrame};
 use crate::scene_arg::load_scene;
 use crate::stats::percentile;
 
@@ -27,6 +27,9 @@ pub struct RunArgs {
     /// Simulated time between written frames (s).
     #[arg(long, default_value_t = 0.05)]
     pub frame_interval: f64,
+    /// Do not drive the scene's tools by their scripts.
+    #[arg(long)]
+    pub no_tools: bool,
     #[command(flatten)]
     pub knobs: SimKnobs,
 }
@@ -52,14 +55,41 @@ pub fn run(args: RunArgs) -> Result<()> {
     let bar = ProgressBar::new(steps).with_style(
         ProgressStyle::with_template("{bar:40} {pos}/{len} steps  {msg}").expect("static template"),
     );
-    writer.write_frame(&sim, &[], None)?;
+    let mut interaction = Interaction::new(&sim);
+    let frames = |i: &Interaction| -> Vec<ToolFrame> {
+        i.tools
+            .tools
+            .iter()
+            .zip(&i.state().tools)
+            .map(|(t, c)| ToolFrame {
+                name: t.name.clone(),
+                position: t.pose().translation.vector,
+                orientation: t.pose().rotation,
+                jaw: t.jaw(),
+                force: -c.force,
+            })
+            .collect()
+    };
+    writer.write_frame(&sim, &frames(&interaction), None)?;
     let mut step_ms = Vec::with_capacity(steps as usize);
+    let mut max_force: f64 = 0.0;
     for k in 1..=steps {
         let t0 = Instant::now();
+        if !args.no_tools {
+            let inputs = interaction.scripted_inputs(&sim, sim.time());
+            interaction.before_step(&mut sim, &inputs)?;
+        }
         sim.step()?;
         step_ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        for c in &interaction.state().tools {
+            max_force = max_force.max(c.force.norm());
+        }
         if k % frame_every == 0 {
-            writer.write_frame(&sim, &[], None)?;
+            writer.write_frame(
+                &sim,
+                &frames(&interaction),
+                Some(&interaction.state().node_force),
+            )?;
         }
         if k % 50 == 0 {
             bar.set_position(k);
@@ -75,6 +105,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         percentile(&step_ms, 50.0),
         percentile(&step_ms, 99.0)
     );
+    println!("largest tool force {max_force:.3} N");
     for (name, p) in sim.probes() {
         println!("probe {name}: [{:.6}, {:.6}, {:.6}] m", p.x, p.y, p.z);
     }

@@ -396,6 +396,41 @@ impl ContactPipeline {
         out
     }
 
+    /// Keeps the per-tool memory in step with the tool set (tools added or replaced).
+    fn follow_tools(&mut self, tools: &ToolSet) {
+        let same = self.memory.len() == tools.len()
+            && self
+                .memory
+                .iter()
+                .zip(&tools.tools)
+                .all(|(m, t)| m.anchors.len() == t.sample_count())
+            && self
+                .state
+                .tools
+                .iter()
+                .zip(&tools.tools)
+                .all(|(s, t)| s.name == t.name);
+        if same {
+            return;
+        }
+        self.memory = tools
+            .tools
+            .iter()
+            .map(|t| ToolMemory {
+                anchors: vec![None; t.sample_count()],
+                ..ToolMemory::default()
+            })
+            .collect();
+        self.state.tools = tools
+            .tools
+            .iter()
+            .map(|t| ToolContact {
+                name: t.name.clone(),
+                ..ToolContact::default()
+            })
+            .collect();
+    }
+
     fn clear_output(&mut self) {
         for &n in &self.touched {
             self.state.node_force[n as usize] = V3::zeros();
@@ -418,8 +453,9 @@ impl ContactPipeline {
     /// positions, computes contact and grasp forces, and adds them with their stiffness to
     /// `sim` for the next step. Does nothing (counted as skipped) without tools or with
     /// contact off.
-    pub fn run(&mut self, sim: &mut Simulation, tools: &mut ToolSet) {
+    pub fn run(&mut self, sim: &mut Simulation, tools: &ToolSet) {
         self.clear_output();
+        self.follow_tools(tools);
         if tools.is_empty() || !sim.options().contact {
             self.state.stats.passes_skipped += 1;
             if !tools.is_empty() {
@@ -723,7 +759,7 @@ impl ContactPipeline {
         let tool = &tools.tools[ti];
         let samples = tool.world_samples();
         let mut hits = vec![None; samples.len()];
-        let (lo, hi) = tool.aabb(self.params.margin);
+        let (lo, hi) = tool.aabb(0.0);
         let cands = self.candidates(sim, lo, hi);
         if cands.is_empty() {
             return hits;
@@ -1159,7 +1195,7 @@ impl Interaction {
         let focus = self.contact.focus_points();
         let adapt = self.adapt.update(sim, &focus)?;
         let before = self.contact.state().stats;
-        self.contact.run(sim, &mut self.tools);
+        self.contact.run(sim, &self.tools);
         let st = self.contact.state();
         Ok(InteractionReport {
             contact_ran: st.stats.passes_run > before.passes_run,

@@ -10,6 +10,9 @@
 //!   whenever the lattice topology changes.
 //! * [`SimOptions`] — every knob of a step (model, polar method and tolerance, rotation
 //!   sharing angle, stiffness kernel, solver budget), defaulted from the scene.
+//! * [`Interaction`] — the scene's tools ([`tools`]), tool–tissue contact and grasping
+//!   ([`contact`]) and refinement following the tools ([`adapt`]): call
+//!   [`Interaction::before_step`] with the tool inputs before every [`Simulation::step`].
 //!
 //! No IO beyond what the scene already loaded, no threads, no async: for a given input
 //! sequence a simulation is deterministic.

@@ -81,12 +81,6 @@ impl RotationSharing {
         }
     }
 
-    /// Number of blocks (shared rotation sources).
-    #[cfg(test)]
-    pub(crate) fn num_blocks(&self) -> usize {
-        self.blocks.len()
-    }
-
     /// Builds the block hierarchy for the current leaves and returns the shared rotation
     /// sources (the blocks) for [`sim_fem::FemDesc::rotation_sources`]. Elements keep
     /// their own rotation until [`RotationSharing::update`] assigns them.

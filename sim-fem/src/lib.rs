@@ -22,7 +22,7 @@ pub use polar::{
 };
 pub use solver::{CgResult, SolverParams};
 pub use system::{
-    ElementDesc, FemDesc, FemSystem, Material, Model, NewtonParams, OperatorMode,
+    ElementDesc, FALLBACK_NEWTON, FemDesc, FemSystem, Material, Model, NewtonParams, OperatorMode,
     RotationSourceDesc, ShapeRef, StaticParams, StaticStats, StepParams, StepStats, StiffnessMode,
     TemplateInfo,
 };

@@ -174,7 +174,20 @@ pub struct StepParams {
     /// None: linearised backward Euler (Linear, Corotational). Some: backward Euler with
     /// Newton iterations (always used for StVK; default 1 iteration if None).
     pub newton: Option<NewtonParams>,
+    /// Robust fallback of the linearised co-rotational step (degrees; 0 = off): when a
+    /// rotation source turned by more than this angle since the previous step (fast spin,
+    /// or the flip of an inverted element's least-stretch direction), the linearisation
+    /// about `x_n` with R frozen is not to be trusted (it can pump energy), and the step is taken
+    /// as backward Euler with [`FALLBACK_NEWTON`] iterations (consistent tangent, line
+    /// search on the incremental potential) instead. See [`StepStats::fallback`].
+    pub fallback_angle_deg: f64,
 }
+
+/// Newton control of the robust fallback step ([`StepParams::fallback_angle_deg`]).
+pub const FALLBACK_NEWTON: NewtonParams = NewtonParams {
+    max_iters: 4,
+    tol: 1e-6,
+};
 
 impl Default for StepParams {
     fn default() -> Self {
@@ -187,6 +200,7 @@ impl Default for StepParams {
             polar: PolarMethod::default(),
             rest_threshold: 0.0,
             newton: None,
+            fallback_angle_deg: 0.0,
         }
     }
 }
@@ -212,6 +226,11 @@ pub struct StepStats {
     pub polar_iterations: usize,
     /// Sources found inverted (det F ≤ 0).
     pub inverted: usize,
+    /// The linearised step fell back to Newton ([`StepParams::fallback_angle_deg`]).
+    pub fallback: bool,
+    /// Largest rotation change of a source since the previous step, as
+    /// `‖R_new − R_old‖²_F = 4(1 − cos θ)` (0 when none was extracted).
+    pub max_rotation_change_sq: f64,
 }
 
 /// Parameters of [`FemSystem::solve_static`].
@@ -312,6 +331,8 @@ struct Source {
     fresh: bool,
     /// Elements currently using this source.
     users: u32,
+    /// Rotation pass ([`FemSystem::update_rotations`] count) of the last extraction.
+    pass: u64,
 }
 
 /// Extraction counters `(extracted, reused, polar iterations, inverted)`.
@@ -321,6 +342,8 @@ struct ExtractCount {
     reused: usize,
     iterations: usize,
     inverted: usize,
+    /// Max `‖R_new − R_old‖²_F` over sources extracted in consecutive passes.
+    max_change_sq: f64,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -352,6 +375,10 @@ pub struct FemSystem {
     num_shared: usize,
     /// Extractions of shared sources requested between steps.
     pending: ExtractCount,
+    /// Rotation passes done (1-based numbering of the current one).
+    pass: u64,
+    /// Statistics of the last rotation pass.
+    last_pass: ExtractCount,
     templates: Vec<Template>,
     template_uses: Vec<usize>,
     combos: Vec<Mat12>,
@@ -427,6 +454,7 @@ impl FemSystem {
                 valid: false,
                 fresh: false,
                 users: 0,
+                pass: 0,
             });
         }
         let mut templates: Vec<Template> = Vec::new();
@@ -510,6 +538,7 @@ impl FemSystem {
                 valid: false,
                 fresh: false,
                 users: 0,
+                pass: 0,
             });
             let own_source = sources.len() - 1;
             let source = e.rotation_source.unwrap_or(own_source);
@@ -553,6 +582,8 @@ impl FemSystem {
             sources,
             num_shared: desc.rotation_sources.len(),
             pending: ExtractCount::default(),
+            pass: 1,
+            last_pass: ExtractCount::default(),
             templates,
             template_uses,
             combos,
@@ -667,7 +698,7 @@ impl FemSystem {
         assert!(s < self.num_shared, "shared source {s} out of range");
         let src = &mut self.sources[s];
         if !src.fresh {
-            extract_source(src, x, polar, rest_threshold, &mut self.pending);
+            extract_source(src, x, polar, rest_threshold, self.pass, &mut self.pending);
         }
         src.rotation
     }
@@ -824,10 +855,12 @@ impl FemSystem {
                 continue;
             }
             if s.users > 0 {
-                extract_source(s, x, polar, rest_threshold, &mut c);
+                extract_source(s, x, polar, rest_threshold, self.pass, &mut c);
                 s.fresh = false;
             }
         }
+        self.pass += 1;
+        self.last_pass = c;
         (c.extracted, c.reused, c.iterations, c.inverted)
     }
 
@@ -1097,6 +1130,22 @@ impl FemSystem {
             stats.rotations_reused = r;
             stats.polar_iterations = it;
             stats.inverted = inv;
+            stats.max_rotation_change_sq = self.last_pass.max_change_sq;
+            if p.fallback_angle_deg > 0.0
+                && stats.max_rotation_change_sq
+                    > crate::polar::rotation_threshold_sq(p.fallback_angle_deg.to_radians())
+            {
+                let q = StepParams {
+                    newton: Some(FALLBACK_NEWTON),
+                    ..*p
+                };
+                let mut s = self.step_newton(x, v, f_ext, dt, &q)?;
+                s.rotations_extracted += stats.rotations_extracted;
+                s.polar_iterations += stats.polar_iterations;
+                s.fallback = true;
+                s.max_rotation_change_sq = stats.max_rotation_change_sq;
+                return Ok(s);
+            }
         }
         let mut fint = vec![V3::zeros(); n];
         self.elastic(x, p.model, p.stiffness, None, Some(&mut fint));
@@ -1481,6 +1530,7 @@ fn extract_source(
     x: &[V3],
     polar: &PolarMethod,
     rest_threshold: f64,
+    pass: u64,
     c: &mut ExtractCount,
 ) {
     let xs = gather(x, &s.nodes);
@@ -1502,6 +1552,14 @@ fn extract_source(
         sigma_bounds: if s.valid { s.sigma } else { None },
     };
     let r = polar.extract(&f, Some(&warm));
+    // Rotation change per step; a source not extracted in the previous pass (e.g. one
+    // that was shared) has no meaningful previous rotation.
+    if s.valid && s.pass + 1 >= pass {
+        c.max_change_sq = c
+            .max_change_sq
+            .max((r.rotation - s.rotation).norm_squared());
+    }
+    s.pass = pass;
     s.rotation = r.rotation;
     s.sigma = Some(r.sigma_bounds);
     s.x_last = xs;

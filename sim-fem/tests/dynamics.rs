@@ -373,3 +373,50 @@ fn stiffness_range_and_time_steps_stay_bounded() {
         }
     }
 }
+
+#[test]
+fn rotation_assignment_switches_sources_and_extracts_only_referenced() {
+    let mesh = cosurg_sim_fem::mesh::kuhn_box([4, 2, 2], [0.2, 0.1, 0.1], V3::zeros());
+    let sources: Vec<RotationSourceDesc> = mesh
+        .tets
+        .chunks(6)
+        .map(|c| RotationSourceDesc {
+            nodes: c[0],
+            rest_inverse_edges: None,
+        })
+        .collect();
+    let mut sys = FemSystem::new(&FemDesc {
+        rest: mesh.rest.clone(),
+        elements: mesh.elements(0),
+        materials: vec![soft()],
+        fixed: vec![],
+        rotation_sources: sources,
+    })
+    .unwrap();
+    let ne = sys.num_elements();
+    assert_eq!(sys.num_shared_sources(), 16);
+    assert_eq!(sys.num_rotation_sources(), 16 + ne);
+    assert_eq!(sys.num_referenced_sources(), ne);
+    let x = mesh.rest.clone();
+    let polar = Default::default();
+    // Own rotations: every element extracts.
+    assert_eq!(sys.update_rotations(&x, &polar, 0.0).0, ne);
+    // Cube-shared: 16 extractions; a shared rotation requested before the pass is not
+    // extracted twice, but counted.
+    let shared: Vec<Option<usize>> = (0..ne).map(|e| Some(e / 6)).collect();
+    sys.set_rotation_assignment(&shared).unwrap();
+    assert_eq!(sys.num_referenced_sources(), 16);
+    assert!((0..ne).all(|e| sys.element_source(e) == Some(e / 6)));
+    sys.shared_source_rotation(3, &x, &polar, 0.0);
+    assert_eq!(sys.update_rotations(&x, &polar, 0.0).0, 16);
+    // Half back to their own rotation.
+    let mixed: Vec<Option<usize>> = (0..ne).map(|e| (e < ne / 2).then_some(e / 6)).collect();
+    sys.set_rotation_assignment(&mixed).unwrap();
+    assert_eq!(sys.num_referenced_sources(), 8 + ne / 2);
+    assert_eq!(sys.update_rotations(&x, &polar, 0.0).0, 8 + ne / 2);
+    // Errors: wrong length, source out of range.
+    assert!(sys.set_rotation_assignment(&mixed[1..]).is_err());
+    let mut bad = mixed.clone();
+    bad[0] = Some(16);
+    assert!(sys.set_rotation_assignment(&bad).is_err());
+}

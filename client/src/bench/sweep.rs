@@ -192,7 +192,7 @@ pub fn run(args: SweepArgs) -> Result<()> {
             .iter()
             .map(|s| keep.iter().map(|&i| s[i]).collect())
             .collect();
-        let (max, rms, knob) = if t.non_finite {
+        let (max, rms, knob_dev) = if t.non_finite {
             (f64::NAN, f64::NAN, f64::NAN)
         } else {
             let (m, r, _) = deviation(&samples, &reference.samples)?;
@@ -209,7 +209,7 @@ pub fn run(args: SweepArgs) -> Result<()> {
             wall_per_sim_s: p50 * 1e-3 / dt,
             max_dev_m: max,
             rms_dev_m: rms,
-            knob_dev_m: knob,
+            knob_dev_m: knob_dev,
             pareto: false,
         });
     }

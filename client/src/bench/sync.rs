@@ -1,8 +1,8 @@
 //! `cosurg bench sync`: how far apart are the sites' organs, at what bandwidth, when the
 //! network is bad and the machines are unequal?
 //!
-//! Each row runs the demo scenario (instructor lifts the gallbladder, trainee B probes
-//! the neck, trainee A watches) over real QUIC through the in-process impairment of
+//! Each row runs the demo's first act (the instructor lifts the gallbladder, both trainees
+//! follow) over real QUIC through the in-process impairment of
 //! every site's link, for one strategy × preset, plus one case with trainee B slowed 3×.
 //! Divergence is measured against the owning site at the same simulated time over every
 //! embedded-surface vertex; "settled" is the part of the run after every tool stopped.
@@ -78,10 +78,12 @@ pub struct SyncBench {
     pub rows: Vec<SyncRow>,
 }
 
-/// The bench's cast: the instructor lifts, trainee A only receives, trainee B probes.
+/// The bench's cast: the instructor lifts the gallbladder; both trainees receive (trainee
+/// B on the slowed machine in the unequal-machines row).
 fn cast(slowdown: f64) -> Vec<DemoSite> {
     let mut c = crate::demo::cast(3, slowdown);
     c[1].tool = None;
+    c[2].tool = None;
     c
 }
 
@@ -115,6 +117,8 @@ pub fn run(args: SyncArgs) -> Result<()> {
             out: out.join(format!("{}-{preset}-x{slowdown}", strategy.name())),
             vtu_interval: 0.0,
             progress: false,
+            dt: Some(0.004),
+            extra: Vec::new(),
         };
         let (reports, series) = run_session(&run)?;
         let receivers: Vec<_> = reports

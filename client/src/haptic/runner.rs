@@ -289,7 +289,7 @@ fn run<D: HapticDevice>(
     while !shared.stop.load(Ordering::Relaxed) {
         let (now, late) = pacer.wait();
         lateness.record(late);
-        if let Some(_f) = first_tick {
+        if first_tick.is_some() {
             hist.record(now - last_tick);
         } else {
             first_tick = Some(now);

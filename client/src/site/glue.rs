@@ -5,12 +5,13 @@ use std::collections::{BTreeSet, HashMap};
 use std::path::Path;
 
 use anyhow::{Context, Result};
-use nalgebra::{UnitQuaternion, Vector3};
-use sim_core::Simulation;
+use nalgebra::Vector3;
+use sim_core::contact::LocalModel;
 use sim_core::sim_scene::ToolScript;
 use sim_core::sync::{
     self, RegionKeyframe, RegionMap, RegionTreeDelta, SiteSync, SyncConfig, SyncFrame, SyncStrategy,
 };
+use sim_core::{Interaction, Simulation, ToolInput};
 use tracing::warn;
 
 use super::Strategy;
@@ -18,113 +19,201 @@ use crate::output::ToolFrame;
 
 type V3 = Vector3<f64>;
 
-/// The local tool's input for one step.
-#[derive(Clone, Copy, Debug)]
-pub struct LocalToolInput {
-    pub position: V3,
-    pub orientation: UnitQuaternion<f64>,
-    pub jaw: f64,
-}
-
+/// The scene's tools and their contact with the organ (sim-core's [`Interaction`]).
+///
+/// The local tool follows this site's input. Remote tools follow their owners' pose
+/// datagrams; under the input-only strategy they touch the local organ too, otherwise
+/// they are only drawn (their effect arrives with the keyframes).
 pub struct Tools {
-    names: Vec<String>,
+    interaction: Interaction,
     local: Option<usize>,
-    poses: Vec<Option<LocalToolInput>>,
-    node_forces: Vec<V3>,
+    remote_contact: bool,
+    /// Latest pose of each tool from another site.
+    remote: Vec<Option<ToolInput>>,
+    /// Whether the local tool is being driven this step (its script is running).
+    local_active: bool,
+    /// Touch radius around contacts for region ownership (m).
+    touch_radius: f64,
 }
 
 impl Tools {
-    pub fn new(sim: &Simulation, local: Option<&str>, _strategy: Strategy) -> Result<Self> {
-        let names: Vec<String> = sim
-            .scene()
-            .scene
-            .tools
-            .iter()
-            .map(|t| t.name.clone())
-            .collect();
-        let local = local.and_then(|n| names.iter().position(|m| m == n));
+    pub fn new(sim: &Simulation, local: Option<&str>, strategy: Strategy) -> Result<Self> {
+        let interaction = Interaction::new(sim);
+        let local = match local {
+            Some(name) => Some(
+                interaction
+                    .tools
+                    .index(name)
+                    .with_context(|| format!("tool {name:?} is not in the scene"))?,
+            ),
+            None => None,
+        };
         Ok(Tools {
-            poses: vec![None; names.len()],
-            names,
+            remote: vec![None; interaction.tools.len()],
+            interaction,
             local,
-            node_forces: Vec::new(),
+            remote_contact: strategy == Strategy::InputOnly,
+            local_active: false,
+            touch_radius: 2.0 * sim.lattice().params().cell,
         })
     }
-    pub fn local_input(&self, script: Option<&ToolScript>, t: f64) -> Option<LocalToolInput> {
-        let name = &self.names[self.local?];
+
+    /// The local tool's input at script time `t` (s), while the script runs.
+    pub fn local_input(&self, script: Option<&ToolScript>, t: f64) -> Option<ToolInput> {
+        let tool = &self.interaction.tools.tools[self.local?];
         let s = script?;
         if t < 0.0 || t > s.duration() {
             return None;
         }
-        s.sample(name, t).map(|p| LocalToolInput {
-            position: p.position,
-            orientation: p.orientation,
-            jaw: p.jaw,
-        })
+        // A script with one track drives whichever tool it is given to.
+        s.sample(&tool.name, t)
+            .or_else(|| s.tools().next().and_then(|n| s.sample(n, t)))
+            .map(|p| ToolInput::from(&p))
     }
+
+    /// Sets every tool's input, runs contact (and tool-following adaptivity) before the
+    /// step, and returns the regions the local tool touches.
     pub fn before_step(
         &mut self,
-        _sim: &mut Simulation,
-        local: Option<LocalToolInput>,
+        sim: &mut Simulation,
+        local: Option<ToolInput>,
+        sync: &SyncState,
     ) -> Result<Vec<u32>> {
-        if let (Some(i), Some(p)) = (self.local, local) {
-            self.poses[i] = Some(p);
+        self.local_active = local.is_some();
+        let inputs: Vec<ToolInput> = self
+            .interaction
+            .tools
+            .tools
+            .iter()
+            .enumerate()
+            .map(|(i, tool)| {
+                let keep = ToolInput {
+                    pose: *tool.pose(),
+                    jaw: tool.jaw(),
+                };
+                if Some(i) == self.local {
+                    local.unwrap_or(keep)
+                } else if self.remote_contact {
+                    self.remote[i].unwrap_or(keep)
+                } else {
+                    keep
+                }
+            })
+            .collect();
+        self.interaction.before_step(sim, &inputs)?;
+        let Some(i) = self.local else {
+            return Ok(Vec::new());
+        };
+        let st = &self.interaction.state().tools[i];
+        if st.contacts.is_empty() && st.grasped == 0 {
+            return Ok(Vec::new());
         }
-        Ok(Vec::new())
+        // Every region within reach of what the tool touches or holds: contact points,
+        // grasped points and the tip, inflated by one lattice cell.
+        let tip = self.interaction.tools.tools[i].tip();
+        let (mut lo, mut hi) = (tip, tip);
+        for p in st
+            .contacts
+            .iter()
+            .map(|c| &c.point)
+            .chain(&st.grasped_points)
+        {
+            lo = lo.inf(p);
+            hi = hi.sup(p);
+        }
+        let centre = 0.5 * (lo + hi);
+        let radius = 0.5 * (hi - lo).norm() + self.touch_radius;
+        Ok(sync.regions_near(sim, &centre, radius))
     }
+
     pub fn remote_pose(&mut self, p: &proto::ToolPose) {
-        if let Some(slot) = self.poses.get_mut(p.tool as usize) {
+        if let Some(slot) = self.remote.get_mut(p.tool as usize) {
             let q = p.orientation.map(f64::from);
-            *slot = Some(LocalToolInput {
-                position: V3::new(
+            *slot = Some(ToolInput::new(
+                V3::new(
                     p.position[0].into(),
                     p.position[1].into(),
                     p.position[2].into(),
                 ),
-                orientation: sim_core::sim_scene::script::quat_wxyz(q),
-                jaw: p.jaw_rad.into(),
-            });
+                sim_core::sim_scene::script::quat_wxyz(q),
+                p.jaw_rad.into(),
+            ));
         }
     }
+
+    /// Force of the tissue on the local tool (N).
     pub fn local_force(&self) -> V3 {
-        V3::zeros()
+        self.local
+            .and_then(|i| self.interaction.state().tools.get(i))
+            .map_or(V3::zeros(), |t| t.force)
     }
-    pub fn local_pose_message(&self, site: u16, t: f64) -> Option<proto::ToolPose> {
+
+    /// The local tool's pose and its contact's local linear model (haptics).
+    pub fn local_haptic(&self) -> Option<(ToolInput, LocalModel)> {
         let i = self.local?;
-        let p = self.poses[i]?;
-        let q = sim_core::sim_scene::script::wxyz(&p.orientation);
+        let tool = &self.interaction.tools.tools[i];
+        let model = self.interaction.state().tools.get(i)?.local;
+        Some((
+            ToolInput {
+                pose: *tool.pose(),
+                jaw: tool.jaw(),
+            },
+            model,
+        ))
+    }
+
+    /// The local tool's pose for the others, while it is being driven.
+    pub fn local_pose_message(&self, site: u16, t: f64) -> Option<proto::ToolPose> {
+        if !self.local_active {
+            return None;
+        }
+        let i = self.local?;
+        let tool = &self.interaction.tools.tools[i];
+        let pose = tool.pose();
+        let p = pose.translation.vector;
+        let q = sim_core::sim_scene::script::wxyz(&pose.rotation);
+        let v = tool.velocity();
+        let w = tool.angular_velocity();
         Some(proto::ToolPose {
             site,
             tool: i as u8,
             sim_time_s: t,
-            position: [
-                p.position.x as f32,
-                p.position.y as f32,
-                p.position.z as f32,
-            ],
+            position: [p.x as f32, p.y as f32, p.z as f32],
             orientation: q.map(|v| v as f32),
-            jaw_rad: p.jaw as f32,
-            velocity: [0.0; 3],
-            angular_velocity: [0.0; 3],
+            jaw_rad: tool.jaw() as f32,
+            velocity: [v.x as f32, v.y as f32, v.z as f32],
+            angular_velocity: [w.x as f32, w.y as f32, w.z as f32],
         })
     }
+
+    /// Every tool as drawn: local and contacting tools at their simulated pose, remote
+    /// tools at their owners' last pose.
     pub fn frames(&self) -> Vec<ToolFrame> {
-        self.names
+        let st = self.interaction.state();
+        self.interaction
+            .tools
+            .tools
             .iter()
-            .zip(&self.poses)
-            .filter_map(|(n, p)| {
-                p.map(|p| ToolFrame {
-                    name: n.clone(),
-                    position: p.position,
-                    orientation: p.orientation,
-                    jaw: p.jaw,
-                    force: V3::zeros(),
-                })
+            .enumerate()
+            .map(|(i, tool)| {
+                let (pose, jaw) = match self.remote[i] {
+                    Some(r) if Some(i) != self.local && !self.remote_contact => (r.pose, r.jaw),
+                    _ => (*tool.pose(), tool.jaw()),
+                };
+                ToolFrame {
+                    name: tool.name.clone(),
+                    position: pose.translation.vector,
+                    orientation: pose.rotation,
+                    jaw,
+                    force: st.tools.get(i).map_or(V3::zeros(), |t| t.force),
+                }
             })
             .collect()
     }
+
+    /// Contact forces on the lattice nodes (N, by node id).
     pub fn node_forces(&self) -> &[V3] {
-        &self.node_forces
+        &self.interaction.state().node_force
     }
 }
 
@@ -137,6 +226,8 @@ pub struct SyncState {
     /// Sites that receive our frames (all others in the session).
     receivers: BTreeSet<u16>,
     me: u16,
+    /// Keyframes from sites ahead of us in simulated time, waiting for our clock.
+    pending: Vec<SyncFrame>,
 }
 
 impl SyncState {
@@ -147,12 +238,16 @@ impl SyncState {
             Strategy::FullState => SyncStrategy::FullState { every_steps: 1 },
             Strategy::InputOnly => SyncStrategy::InputOnly,
         };
+        // Extrapolation stays gentle: tissue under a surgeon's hand does not accelerate
+        // at tens of m/s², and a receiver never extrapolates far (see `receive`).
+        let config = SyncConfig {
+            max_accel_m_s2: 5.0,
+            max_extrapolation_s: 0.25,
+            ..SyncConfig::default()
+        };
         SyncState {
-            sync: SiteSync::new(
-                strategy,
-                RegionMap::for_simulation(sim),
-                SyncConfig::default(),
-            ),
+            sync: SiteSync::new(strategy, RegionMap::for_simulation(sim), config),
+            pending: Vec::new(),
             acked: HashMap::new(),
             receivers: BTreeSet::new(),
             me: 0,
@@ -170,45 +265,70 @@ impl SyncState {
         self.sync.map.regions_near_deformed(sim, p, radius)
     }
 
-    /// Applies a keyframe from another site. Returns whether it was applied (and should
-    /// be acknowledged).
-    pub fn receive(&mut self, sim: &mut Simulation, kf: &proto::RegionKeyframe) -> Result<bool> {
+    /// Takes a keyframe from another site. Frames from a site whose simulation is ahead of
+    /// ours wait until our simulated time reaches them (the simulation-time difference
+    /// between sites paces their application), so a receiver never extrapolates
+    /// backwards. Returns the keyframes applied now, to acknowledge.
+    pub fn receive(&mut self, sim: &mut Simulation, kf: proto::RegionKeyframe) -> Vec<(u32, u64)> {
         if self.sync.strategy == SyncStrategy::InputOnly {
-            return Ok(false);
+            return Vec::new();
         }
         let n = kf.nodes.len();
-        let frame = SyncFrame::Keyframe(RegionKeyframe {
+        self.pending.push(SyncFrame::Keyframe(RegionKeyframe {
             region: kf.region,
             keyframe_id: kf.keyframe,
             sim_time: kf.sim_time_s,
-            tree_bits: kf.tree_bits.clone(),
+            tree_bits: kf.tree_bits,
             positions: (0..n).map(|i| kf.nodes.position(i)).collect(),
             velocities: (0..n).map(|i| kf.nodes.velocity(i)).collect(),
-        });
-        match self.sync.on_frame(sim, &frame) {
-            Ok(ack) => Ok(ack.is_some() || kf.region == sync::FULL_STATE_REGION),
-            Err(e) => {
-                warn!(region = kf.region, keyframe = kf.keyframe, error = %e, "keyframe not applied");
-                Ok(false)
-            }
-        }
+        }));
+        self.apply_due(sim)
     }
 
-    /// Applies a tree-state delta from another site; returns whether it was applied.
-    pub fn receive_delta(&mut self, sim: &mut Simulation, d: &proto::TreeDelta) -> bool {
-        let frame = SyncFrame::TreeDelta(RegionTreeDelta {
+    /// Takes a tree-state delta from another site (paced like keyframes).
+    pub fn receive_delta(&mut self, sim: &mut Simulation, d: proto::TreeDelta) -> Vec<(u32, u64)> {
+        if self.sync.strategy == SyncStrategy::InputOnly {
+            return Vec::new();
+        }
+        self.pending.push(SyncFrame::TreeDelta(RegionTreeDelta {
             region: d.region,
             sim_time: d.sim_time_s,
             base_keyframe: d.base_keyframe,
-            xor_bits: d.xor_bits.clone(),
-        });
-        match self.sync.on_frame(sim, &frame) {
-            Ok(_) => true,
-            Err(e) => {
-                warn!(region = d.region, error = %e, "tree delta not applied");
-                false
+            xor_bits: d.xor_bits,
+        }));
+        self.apply_due(sim)
+    }
+
+    /// Applies the pending frames that our simulated time has reached, oldest first.
+    pub fn apply_due(&mut self, sim: &mut Simulation) -> Vec<(u32, u64)> {
+        if self.pending.is_empty() {
+            return Vec::new();
+        }
+        let now = sim.time() + 0.5 * sim.options().dt;
+        let time = |f: &SyncFrame| match f {
+            SyncFrame::Keyframe(k) => k.sim_time,
+            SyncFrame::TreeDelta(d) => d.sim_time,
+        };
+        let (mut due, later): (Vec<SyncFrame>, Vec<SyncFrame>) = std::mem::take(&mut self.pending)
+            .into_iter()
+            .partition(|f| time(f) <= now);
+        self.pending = later;
+        due.sort_by(|a, b| time(a).total_cmp(&time(b)));
+        let mut applied = Vec::new();
+        for frame in due {
+            tracing::debug!(
+                region = frame.region(),
+                t = time(&frame),
+                now = sim.time(),
+                "apply frame"
+            );
+            match self.sync.on_frame(sim, &frame) {
+                Ok(Some(id)) => applied.push((frame.region(), id)),
+                Ok(None) => {}
+                Err(e) => warn!(region = frame.region(), error = %e, "sync frame not applied"),
             }
         }
+        applied
     }
 
     /// A receiver acknowledged one of our keyframes.
@@ -224,6 +344,7 @@ impl SyncState {
 
     /// Ownership of `region` changed to `owner`.
     pub fn set_owner(&mut self, region: u32, owner: Option<u16>, me: Option<u16>) {
+        tracing::debug!(region, ?owner, ?me, "ownership");
         match owner {
             Some(o) if Some(o) == me => self.sync.on_grant(region),
             Some(_) => self.sync.on_remote_grant(region),

@@ -2,7 +2,7 @@
 //! the sync strategy. The network never blocks a step: the link is polled without
 //! waiting, and a site with no link at all still simulates.
 
-mod glue;
+pub mod glue;
 mod runtime;
 
 pub use runtime::{SiteConfig, SiteReport, Strategy, run_site};

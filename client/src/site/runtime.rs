@@ -16,7 +16,7 @@ use sim_core::{SimOptions, Simulation};
 use super::glue::{self, Outgoing, SyncState};
 use crate::cli::Refused;
 use crate::link::{Link, LinkConfig, LinkEvent};
-use crate::output::SeriesWriter;
+use crate::output::{Frame, SeriesWriter};
 use crate::stats::percentile;
 
 /// How the sites share the interaction (`--strategy`).
@@ -132,8 +132,20 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     let mut tools = glue::Tools::new(&sim, cfg.tool.as_deref(), cfg.strategy)?;
     let mut sync = SyncState::new(&sim, cfg.strategy);
     let mut recorder = glue::Recorder::new(&sim, RECORD_INTERVAL);
-    let mut writer = match (&cfg.out, cfg.vtu_interval) {
-        (Some(dir), Some(_)) => Some(SeriesWriter::new(&dir.join("vtu"))?),
+    // VTU frames are captured on the simulation thread and written on another, so that
+    // file output never stretches a step.
+    let writer = match (&cfg.out, cfg.vtu_interval) {
+        (Some(dir), Some(_)) => {
+            let mut w = SeriesWriter::new(&dir.join("vtu"))?;
+            let (tx, rx) = std::sync::mpsc::channel::<Frame>();
+            let handle = std::thread::spawn(move || -> Result<SeriesWriter> {
+                for frame in rx {
+                    w.write(&frame)?;
+                }
+                Ok(w)
+            });
+            Some((tx, handle))
+        }
         _ => None,
     };
     let mut report = SiteReport {
@@ -248,22 +260,15 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                 Message::ToolPose(p) if Some(p.site) != me => tools.remote_pose(&p),
                 Message::Keyframe(kf) if Some(kf.owner) != me => {
                     let t0 = Instant::now();
-                    if sync.receive(&mut sim, &kf)? {
-                        apply_us.push(t0.elapsed().as_secs_f64() * 1e6);
-                        report.keyframes_applied += 1;
-                        if let Some(link) = &link {
-                            link.send_control(Message::KeyframeAck(proto::KeyframeAck {
-                                region: kf.region,
-                                keyframe: kf.keyframe,
-                                site: me.unwrap_or(0),
-                            }));
-                        }
-                    }
+                    let applied = sync.receive(&mut sim, kf);
+                    acknowledge(&link, &applied, me, &mut report, &mut apply_us, t0);
                 }
                 Message::Snapshot(s) => {
                     for kf in s.keyframes {
-                        if Some(kf.owner) != me && sync.receive(&mut sim, &kf)? {
-                            report.keyframes_applied += 1;
+                        if Some(kf.owner) != me {
+                            let t0 = Instant::now();
+                            let applied = sync.receive(&mut sim, kf);
+                            acknowledge(&link, &applied, me, &mut report, &mut apply_us, t0);
                         }
                     }
                     for o in s.owners {
@@ -286,7 +291,9 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                     }
                 }
                 Message::TreeDelta(d) if Some(d.site) != me => {
-                    sync.receive_delta(&mut sim, &d);
+                    let t0 = Instant::now();
+                    let applied = sync.receive_delta(&mut sim, d);
+                    acknowledge(&link, &applied, me, &mut report, &mut apply_us, t0);
                 }
                 Message::KeyframeAck(a) => sync.on_ack(&a),
                 Message::OwnershipDeny(d) => {
@@ -304,9 +311,13 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
             }
         }
 
+        let t0 = Instant::now();
+        let applied = sync.apply_due(&mut sim);
+        acknowledge(&link, &applied, me, &mut report, &mut apply_us, t0);
+
         // 2. Tools and contact.
         let local = tools.local_input(cfg.script.as_ref(), t - cfg.script_start);
-        let touched = tools.before_step(&mut sim, local)?;
+        let touched = tools.before_step(&mut sim, local, &sync)?;
         report.max_tool_force_n = report.max_tool_force_n.max(tools.local_force().norm());
         if let Some(h) = &haptic {
             h.publish(&tools);
@@ -385,11 +396,15 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
 
         // 6. Recordings.
         recorder.record(&sim);
-        if let Some(w) = writer.as_mut()
+        if let Some((tx, _)) = &writer
             && t + 1e-9 >= next_vtu
         {
             next_vtu += vtu_interval;
-            w.write_frame(&sim, &tools.frames(), Some(tools.node_forces()))?;
+            let _ = tx.send(Frame::capture(
+                &sim,
+                &tools.frames(),
+                Some(tools.node_forces()),
+            ));
         }
 
         if let Some(cb) = cfg.on_progress.as_mut()
@@ -456,7 +471,11 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         let surf = dir.join("surfaces.surf");
         recorder.write(&surf)?;
         report.surf_file = Some(surf);
-        if let Some(w) = &writer {
+        if let Some((tx, handle)) = writer {
+            drop(tx);
+            let w = handle
+                .join()
+                .map_err(|_| anyhow::anyhow!("VTU writer thread panicked"))??;
             w.write_obj(&sim)?;
         }
         std::fs::write(
@@ -466,6 +485,33 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     }
     drop(runtime);
     Ok(report)
+}
+
+/// Counts applied keyframes (and their CPU time) and acknowledges them to their owner.
+fn acknowledge(
+    link: &Option<Link>,
+    applied: &[(u32, u64)],
+    me: Option<u16>,
+    report: &mut SiteReport,
+    apply_us: &mut Vec<f64>,
+    started: Instant,
+) {
+    if applied.is_empty() {
+        return;
+    }
+    let per = started.elapsed().as_secs_f64() * 1e6 / applied.len() as f64;
+    for &(region, keyframe) in applied {
+        apply_us.push(per);
+        report.keyframes_applied += 1;
+        send_control(
+            link,
+            Message::KeyframeAck(proto::KeyframeAck {
+                region,
+                keyframe,
+                site: me.unwrap_or(0),
+            }),
+        );
+    }
 }
 
 fn send_outgoing(link: &Link, out: Outgoing) {

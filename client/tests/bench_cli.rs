@@ -1,0 +1,115 @@
+//! Smoke test of `cosurg bench cantilever --quick --json` and `cosurg bench stress --quick
+//! --json`: the JSON schema and the invariants (no NaN, finite non-negative deviations,
+//! co-rotational closer to the non-linear reference than linear on the soft beam).
+
+use std::process::Command;
+
+use serde_json::Value;
+
+fn bench(args: &[&str]) -> Value {
+    let dir = tempfile::tempdir().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_cosurg"))
+        .arg("bench")
+        .args(args)
+        .arg("--out")
+        .arg(dir.path())
+        .output()
+        .expect("run cosurg");
+    assert!(
+        out.status.success(),
+        "cosurg bench {args:?} failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+        panic!(
+            "stdout is not JSON ({e}): {}",
+            String::from_utf8_lossy(&out.stdout)
+        )
+    })
+}
+
+fn num(v: &Value, key: &str) -> f64 {
+    v[key]
+        .as_f64()
+        .unwrap_or_else(|| panic!("{key} missing or not a number in {v}"))
+}
+
+#[test]
+fn cantilever_quick_json() {
+    let r = bench(&["cantilever", "--quick", "--json"]);
+    assert!(r["scene_hash"].as_str().is_some_and(|h| h.len() >= 16));
+    let runs = r["runs"].as_array().expect("runs");
+    assert!(!runs.is_empty());
+    for run in runs {
+        for key in ["model", "material"] {
+            assert!(run[key].is_string(), "{key} in {run}");
+        }
+        assert!(run["options"].is_object());
+        for key in [
+            "young",
+            "cell",
+            "dt",
+            "step_ms_p50",
+            "step_ms_p99",
+            "us_per_element",
+            "max_dev_m",
+            "rms_dev_m",
+        ] {
+            let v = num(run, key);
+            assert!(v.is_finite() && v >= 0.0, "{key} = {v} in {run}");
+        }
+        for key in ["tets", "nodes"] {
+            assert!(run[key].as_u64().is_some_and(|n| n > 0), "{key} in {run}");
+        }
+        assert!(num(run, "rms_dev_m") <= num(run, "max_dev_m") + 1e-15);
+        assert_eq!(run["non_finite"], Value::Bool(false));
+        let o = &run["options"];
+        for key in [
+            "polar",
+            "sharing_angle_deg",
+            "template_stiffness",
+            "skip_rest",
+        ] {
+            assert!(!o[key].is_null(), "options.{key} in {run}");
+        }
+    }
+    let models: Vec<&str> = runs.iter().filter_map(|r| r["model"].as_str()).collect();
+    for m in ["nonlinear", "linear", "corotational"] {
+        assert!(models.contains(&m), "no {m} run");
+    }
+    let dev = |model: &str, variant: &str| {
+        runs.iter()
+            .find(|r| {
+                r["material"] == "soft" && r["model"] == model && r["options"]["variant"] == variant
+            })
+            .map(|r| num(r, "max_dev_m"))
+            .unwrap_or_else(|| panic!("no soft {model} {variant} run"))
+    };
+    let lin = dev("linear", "default");
+    let corot = dev("corotational", "all-on");
+    assert!(
+        corot < lin,
+        "soft beam: co-rotational deviation {corot} m not below linear {lin} m"
+    );
+    assert_eq!(dev("nonlinear", "reference"), 0.0);
+}
+
+#[test]
+fn stress_quick_json() {
+    let r = bench(&["stress", "--quick", "--json"]);
+    assert!(r["scene_hash"].is_string());
+    let cases = r["cases"].as_array().expect("cases");
+    assert!(cases.len() >= 3);
+    for c in cases {
+        assert_eq!(c["nan"], Value::Bool(false), "NaN in {c}");
+        assert!(c["steps"].as_u64().is_some_and(|s| s >= 2000), "{c}");
+        let e = num(c, "max_energy_rel");
+        assert!(e.is_finite() && e >= 0.0, "{c}");
+        assert!(num(c, "max_speed").is_finite());
+        assert!(c["steps_to_rest"].is_null() || c["steps_to_rest"].is_u64());
+    }
+    assert!(
+        cases.iter().any(|c| c["max_inverted"].as_u64() > Some(0)),
+        "the pull inverts elements"
+    );
+}
