@@ -1,1 +1,446 @@
-//! End-to-end tests: real processes on loopback.
+//! End-to-end tests: the real `cosurg-server` and `cosurg` binaries as separate processes,
+//! speaking QUIC with TLS on 127.0.0.1. Every child is killed when its test ends; every
+//! wait is bounded.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use cosurg::divergence::fill_divergence;
+use cosurg::site::SiteReport;
+
+const TOKEN: &str = "e2e-secret";
+const SESSION: &str = "e2e";
+
+fn cosurg() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_cosurg"));
+    c.env("COSURG_LOG", "warn");
+    c
+}
+
+/// A coordinator process; killed on drop.
+struct Server {
+    child: Child,
+    addr: String,
+    fingerprint: String,
+    _state: tempfile::TempDir,
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn start_server() -> Server {
+    let state = tempfile::tempdir().unwrap();
+    let scene = sim_core::sim_scene::builtin::cholecystectomy();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_cosurg-server"))
+        .args([
+            "--listen",
+            "127.0.0.1:0",
+            "--session",
+            SESSION,
+            "--token",
+            TOKEN,
+        ])
+        .args(["--scene-hash", &scene.hash, "--seconds", "300"])
+        .arg("--state-dir")
+        .arg(state.path())
+        .env("COSURG_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("start cosurg-server");
+    let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
+    let (mut addr, mut fingerprint) = (None, None);
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while (addr.is_none() || fingerprint.is_none()) && Instant::now() < deadline {
+        let Some(Ok(line)) = lines.next() else { break };
+        if let Some(a) = line.strip_prefix("listening: ") {
+            addr = Some(a.trim().to_string());
+        } else if let Some(f) = line.strip_prefix("fingerprint: ") {
+            fingerprint = Some(f.trim().to_string());
+        }
+    }
+    // Keep draining stdout so the server never blocks on a full pipe.
+    std::thread::spawn(move || for _ in lines {});
+    Server {
+        child,
+        addr: addr.expect("server printed its address"),
+        fingerprint: fingerprint.expect("server printed its fingerprint"),
+        _state: state,
+    }
+}
+
+/// `cosurg join` for `server` with the common flags.
+fn join(server: &Server, site: &str, role: &str) -> Command {
+    join_with_token(server, site, role, TOKEN)
+}
+
+fn join_with_token(server: &Server, site: &str, role: &str, token: &str) -> Command {
+    let mut c = cosurg();
+    c.arg("join")
+        .args([
+            "--server",
+            &server.addr,
+            "--session",
+            SESSION,
+            "--token",
+            token,
+        ])
+        .args(["--role", role, "--site", site, "--pin", &server.fingerprint])
+        .args(["--dt", "0.004", "--no-haptics", "--vtu-interval", "0"]);
+    c
+}
+
+fn run_bounded(mut cmd: Command, limit: Duration) -> Output {
+    let mut child = cmd
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn");
+    let deadline = Instant::now() + limit;
+    loop {
+        if child.try_wait().unwrap().is_some() || Instant::now() > deadline {
+            let _ = child.kill();
+            return child.wait_with_output().unwrap();
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn report_of(out: &Output) -> SiteReport {
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let line = stdout
+        .lines()
+        .rev()
+        .find(|l| l.starts_with('{'))
+        .unwrap_or_else(|| {
+            panic!(
+                "no JSON report; status {:?}\nstdout: {stdout}\nstderr: {}",
+                out.status,
+                String::from_utf8_lossy(&out.stderr)
+            )
+        });
+    serde_json::from_str(line).expect("site report JSON")
+}
+
+fn refused(mut cmd: Command, expect: &str) {
+    cmd.args(["--seconds", "1", "--no-tool"]);
+    let out = run_bounded(cmd, Duration::from_secs(60));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(
+        out.status.code(),
+        Some(3),
+        "exit code 3 = refused; stderr: {stderr}"
+    );
+    assert!(
+        stderr.contains("refused by the coordinator") && stderr.contains(expect),
+        "stderr names the reason {expect}: {stderr}"
+    );
+}
+
+#[test]
+fn wrong_token_version_and_scene_are_refused_with_reasons() {
+    let server = start_server();
+    refused(
+        join_with_token(&server, "intruder", "trainee", "not-the-token"),
+        "WrongToken",
+    );
+
+    let mut wrong_version = join(&server, "old-client", "trainee");
+    wrong_version.args(["--protocol-version", "99"]);
+    refused(wrong_version, "WrongVersion");
+
+    let mut wrong_scene = join(&server, "other-scene", "trainee");
+    wrong_scene.args(["--scene", "builtin:cantilever"]);
+    refused(wrong_scene, "WrongScene");
+}
+
+#[test]
+fn wrong_alpn_is_refused_by_tls() {
+    let server = start_server();
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let fp = server::tls::parse_fingerprint(&server.fingerprint).unwrap();
+        let mut tls = rustls::ClientConfig::builder_with_provider(server::tls::provider())
+            .with_protocol_versions(&[&rustls::version::TLS13])
+            .unwrap()
+            .dangerous()
+            .with_custom_certificate_verifier(Arc::new(server::tls::PinnedCertVerifier::new(fp)))
+            .with_no_client_auth();
+        tls.alpn_protocols = vec![b"h3".to_vec()];
+        let quic = quinn::crypto::rustls::QuicClientConfig::try_from(tls).unwrap();
+        let mut endpoint = quinn::Endpoint::client("127.0.0.1:0".parse().unwrap()).unwrap();
+        endpoint.set_default_client_config(quinn::ClientConfig::new(Arc::new(quic)));
+        let addr = server.addr.parse().unwrap();
+        let result = tokio::time::timeout(
+            Duration::from_secs(10),
+            endpoint.connect(addr, "localhost").unwrap(),
+        )
+        .await
+        .expect("handshake ends within 10 s");
+        let err = result.expect_err("a foreign ALPN must not connect");
+        let text = err.to_string();
+        // rustls: "peer doesn't support any known protocol" (TLS alert 120).
+        assert!(
+            text.contains("120") || text.to_lowercase().contains("protocol"),
+            "TLS refusal names the protocol: {text}"
+        );
+    });
+}
+
+fn session_dir() -> tempfile::TempDir {
+    tempfile::tempdir().unwrap()
+}
+
+fn spawn_site(server: &Server, dir: &Path, name: &str, role: &str, extra: &[&str]) -> Child {
+    let mut c = join(server, name, role);
+    c.args(extra)
+        .arg("--out")
+        .arg(dir.join(name))
+        .arg("--json")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::from(
+            std::fs::File::create(dir.join(format!("{name}.log"))).unwrap(),
+        ));
+    c.spawn().expect("spawn site")
+}
+
+fn wait_report(mut child: Child, limit: Duration, log: PathBuf) -> SiteReport {
+    let deadline = Instant::now() + limit;
+    loop {
+        if child.try_wait().unwrap().is_some() {
+            break;
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let out = child.wait_with_output().unwrap();
+    assert!(
+        out.status.success(),
+        "site failed: {:?}\n{}",
+        out.status,
+        std::fs::read_to_string(log).unwrap_or_default()
+    );
+    report_of(&out)
+}
+
+/// Divergence bounds of the grasp-and-lift session (mm): during the motion a receiver
+/// extrapolates between keyframes (and the takeover of a region blends in over 100 ms);
+/// once the tools stop and the tissue has settled the sites must agree.
+const MOTION_BOUND_MM: f64 = 40.0;
+const SETTLED_BOUND_MM: f64 = 1.0;
+
+fn settled_max(series: &[cosurg::plot::Series], from: f64) -> f64 {
+    series
+        .iter()
+        .flat_map(|s| s.points.iter().filter(|p| p.0 >= from).map(|p| p.1))
+        .fold(0.0, f64::max)
+}
+
+#[test]
+fn three_sites_follow_the_owners_grasp_and_lift() {
+    let server = start_server();
+    let dir = session_dir();
+    let seconds = "8.0";
+    let common = ["--expect-sites", "3", "--seconds", seconds];
+    let mut kids = Vec::new();
+    let mut args = common.to_vec();
+    args.extend(["--tool", "forceps", "--script-start", "0.2"]);
+    kids.push((
+        "instructor",
+        spawn_site(&server, dir.path(), "instructor", "instructor", &args),
+    ));
+    let mut args = common.to_vec();
+    args.push("--no-tool");
+    kids.push((
+        "trainee-a",
+        spawn_site(&server, dir.path(), "trainee-a", "trainee", &args),
+    ));
+    kids.push((
+        "trainee-b",
+        spawn_site(&server, dir.path(), "trainee-b", "trainee", &args),
+    ));
+    let mut reports: Vec<SiteReport> = kids
+        .into_iter()
+        .map(|(name, c)| {
+            wait_report(
+                c,
+                Duration::from_secs(120),
+                dir.path().join(format!("{name}.log")),
+            )
+        })
+        .collect();
+    let series = fill_divergence(&mut reports).unwrap();
+    let instructor = &reports[0];
+    assert!(instructor.keyframes_sent > 0, "the owner sent keyframes");
+    assert!(
+        !instructor.owned.is_empty(),
+        "the instructor owned regions while grasping"
+    );
+    for r in &reports[1..] {
+        assert!(r.keyframes_applied > 0, "{} applied keyframes", r.name);
+        let max = r.divergence_max_mm.unwrap();
+        assert!(
+            max < MOTION_BOUND_MM,
+            "{}: divergence {max} mm during motion",
+            r.name
+        );
+    }
+    // The script releases at 5.2 s and withdraws by 6.2 s; compare the last second.
+    let settled = settled_max(&series, 7.0);
+    assert!(
+        settled < SETTLED_BOUND_MM,
+        "settled divergence {settled} mm"
+    );
+}
+
+#[test]
+fn killed_site_rejoins_and_resynchronises() {
+    let server = start_server();
+    let dir = session_dir();
+    let seconds = "8.0";
+    let mut args = vec![
+        "--expect-sites",
+        "2",
+        "--seconds",
+        seconds,
+        "--tool",
+        "forceps",
+    ];
+    args.extend(["--script-start", "0.2"]);
+    let instructor = spawn_site(&server, dir.path(), "instructor", "instructor", &args);
+    let trainee_args = ["--expect-sites", "2", "--seconds", seconds, "--no-tool"];
+    let mut trainee = spawn_site(&server, dir.path(), "trainee", "trainee", &trainee_args);
+    // Kill the trainee in the middle of the lift, then start it again under its name.
+    std::thread::sleep(Duration::from_millis(3500));
+    trainee.kill().unwrap();
+    trainee.wait().unwrap();
+    std::thread::sleep(Duration::from_millis(1500));
+    let rejoin_args = ["--expect-sites", "1", "--seconds", seconds, "--no-tool"];
+    let again = spawn_site(&server, dir.path(), "trainee", "trainee", &rejoin_args);
+    let r_instructor = wait_report(
+        instructor,
+        Duration::from_secs(120),
+        dir.path().join("instructor.log"),
+    );
+    let r_trainee = wait_report(
+        again,
+        Duration::from_secs(120),
+        dir.path().join("trainee.log"),
+    );
+    assert!(
+        r_trainee.sim_seconds > 0.0 && r_trainee.keyframes_applied > 0,
+        "the rejoined site applied the snapshot and later keyframes"
+    );
+    let mut reports = vec![r_instructor, r_trainee];
+    // The rejoined site started at the session's time: compare where both recorded.
+    let series = fill_divergence(&mut reports).unwrap();
+    let settled = settled_max(&series, 7.0);
+    assert!(
+        settled < SETTLED_BOUND_MM,
+        "after rejoining, settled divergence {settled} mm"
+    );
+}
+
+#[test]
+fn garbage_from_one_site_does_not_disturb_the_others() {
+    let server = start_server();
+    let dir = session_dir();
+    let seconds = "8.0";
+    let mut args = vec![
+        "--expect-sites",
+        "3",
+        "--seconds",
+        seconds,
+        "--tool",
+        "forceps",
+    ];
+    args.extend(["--script-start", "0.2"]);
+    let instructor = spawn_site(&server, dir.path(), "instructor", "instructor", &args);
+    let trainee_args = ["--expect-sites", "3", "--seconds", seconds, "--no-tool"];
+    let trainee = spawn_site(&server, dir.path(), "trainee", "trainee", &trainee_args);
+
+    // A misbehaving third site: joins properly, then sends garbage datagrams, a truncated
+    // keyframe stream, a stream of random bytes and a malformed control frame.
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let scene = sim_core::sim_scene::builtin::cholecystectomy();
+        let cfg = server::tls::client_config_pinned(&server.fingerprint).unwrap();
+        let endpoint = server::link::client_endpoint(cfg).unwrap();
+        let join =
+            server::link::join_message("rogue", proto::Role::Trainee, SESSION, TOKEN, &scene.hash);
+        let addr = server.addr.parse().unwrap();
+        let mut site = tokio::time::timeout(
+            Duration::from_secs(10),
+            server::link::connect_and_join(&endpoint, addr, "localhost", &join),
+        )
+        .await
+        .unwrap()
+        .unwrap();
+        let end = tokio::time::Instant::now() + Duration::from_secs(6);
+        let mut i: u32 = 0;
+        while tokio::time::Instant::now() < end {
+            let junk: Vec<u8> = (0..64u32).map(|k| (k.wrapping_mul(31) ^ i) as u8).collect();
+            let _ = site.conn.send_datagram(junk.into());
+            if i % 10 == 0 {
+                // A keyframe frame header promising 1000 bytes, then only 10.
+                if let Ok(mut s) = site.conn.open_uni().await {
+                    let _ = s.write_all(&1000u32.to_be_bytes()).await;
+                    let _ = s.write_all(&[0u8; 10]).await;
+                    let _ = s.finish();
+                }
+                if let Ok(mut s) = site.conn.open_uni().await {
+                    let _ = s.write_all(&[0xff; 40]).await;
+                    let _ = s.finish();
+                }
+            }
+            i += 1;
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        // Finally a malformed control frame: the coordinator closes this site only.
+        let _ = site
+            .control_send
+            .write_all(&[0, 0, 0, 3, 0xde, 0xad, 0xbe])
+            .await;
+        tokio::time::sleep(Duration::from_millis(300)).await;
+    });
+
+    let r_i = wait_report(
+        instructor,
+        Duration::from_secs(120),
+        dir.path().join("instructor.log"),
+    );
+    let r_t = wait_report(
+        trainee,
+        Duration::from_secs(120),
+        dir.path().join("trainee.log"),
+    );
+    assert!(r_t.keyframes_applied > 0 && r_i.keyframes_sent > 0);
+    let mut reports = vec![r_i, r_t];
+    let series = fill_divergence(&mut reports).unwrap();
+    let max = reports[1].divergence_max_mm.unwrap();
+    assert!(
+        max < MOTION_BOUND_MM,
+        "divergence {max} mm with a rogue site"
+    );
+    let settled = settled_max(&series, 7.0);
+    assert!(
+        settled < SETTLED_BOUND_MM,
+        "settled divergence {settled} mm with a rogue site"
+    );
+}

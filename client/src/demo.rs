@@ -121,6 +121,15 @@ pub struct SiteRow {
     pub down_bytes_per_s: f64,
     pub divergence_max_mm: f64,
     pub divergence_rms_mm: f64,
+    /// Haptic loop: rate (Hz) and p99 period jitter (µs).
+    pub haptic_rate_hz: Option<f64>,
+    pub haptic_jitter_p99_us: Option<f64>,
+    /// Teaching: trajectories the instructor sent; on a guided trainee, the guide force
+    /// (max/mean N) and the mean distance to the instructor's recorded tip (mm).
+    pub teaching_sent: Option<u64>,
+    pub guide_force_max_n: Option<f64>,
+    pub guide_force_mean_n: Option<f64>,
+    pub playback_distance_mm: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -311,6 +320,12 @@ pub fn demo(args: DemoArgs) -> Result<()> {
             down_bytes_per_s: r.down_bytes_per_s,
             divergence_max_mm: r.divergence_max_mm.unwrap_or(0.0),
             divergence_rms_mm: r.divergence_rms_mm.unwrap_or(0.0),
+            haptic_rate_hz: r.haptic_rate_hz,
+            haptic_jitter_p99_us: r.haptic_jitter_p99_us,
+            teaching_sent: r.teaching_sent,
+            guide_force_max_n: r.guide_force_max_n,
+            guide_force_mean_n: r.guide_force_mean_n,
+            playback_distance_mm: r.playback_distance_mm,
         })
         .collect();
     write_plots(&out, &series, &reports)?;
@@ -367,6 +382,29 @@ fn print_table(s: &DemoSummary) {
             r.down_bytes_per_s,
             r.divergence_max_mm,
             r.divergence_rms_mm
+        );
+    }
+    let opt = |v: Option<f64>, prec: usize| v.map_or("-".to_string(), |v| format!("{v:.prec$}"));
+    println!(
+        "\n{:<12} {:>10} {:>13} {:>8} {:>13} {:>14} {:>15}",
+        "site",
+        "haptic Hz",
+        "jitter p99 µs",
+        "taught",
+        "guide max N",
+        "guide mean N",
+        "guide dist mm"
+    );
+    for r in &s.sites {
+        println!(
+            "{:<12} {:>10} {:>13} {:>8} {:>13} {:>14} {:>15}",
+            r.name,
+            opt(r.haptic_rate_hz, 1),
+            opt(r.haptic_jitter_p99_us, 0),
+            r.teaching_sent.map_or("-".to_string(), |n| n.to_string()),
+            opt(r.guide_force_max_n, 3),
+            opt(r.guide_force_mean_n, 3),
+            opt(r.playback_distance_mm, 2)
         );
     }
 }

@@ -68,14 +68,31 @@ pub fn fill_divergence(reports: &mut [SiteReport]) -> Result<Vec<Series>> {
                 .any(|&(reg, from, to)| reg == region && t >= from && t <= to)
         })
     };
-    let marks = recs.iter().map(|r| r.records.len()).min().unwrap_or(0);
+    // Align records by their simulated-time mark (a late joiner starts recording later).
+    let mark_of =
+        |rec: &SurfaceRecording, i: usize| (rec.records[i].time_s / rec.interval_s).round() as i64;
+    let index: Vec<HashMap<i64, usize>> = recs
+        .iter()
+        .map(|rec| {
+            (0..rec.records.len())
+                .map(|i| (mark_of(rec, i), i))
+                .collect()
+        })
+        .collect();
+    let mut marks: Vec<i64> = index[0]
+        .keys()
+        .copied()
+        .filter(|m| index.iter().all(|ix| ix.contains_key(m)))
+        .collect();
+    marks.sort_unstable();
     let mut max = vec![0.0f64; reports.len()];
     let mut sum_sq = vec![0.0f64; reports.len()];
     let mut count = vec![0usize; reports.len()];
     let mut series: Vec<Vec<(f64, f64)>> = vec![Vec::new(); reports.len()];
     let mut owner_cache: HashMap<u32, Option<usize>> = HashMap::new();
-    for m in 0..marks {
-        let t = recs[0].records[m].time_s;
+    for m in marks {
+        let at: Vec<usize> = index.iter().map(|ix| ix[&m]).collect();
+        let t = recs[0].records[at[0]].time_s;
         owner_cache.clear();
         let mut mark_max = vec![0.0f64; reports.len()];
         for (v, &region) in regions.iter().enumerate() {
@@ -83,12 +100,12 @@ pub fn fill_divergence(reports: &mut [SiteReport]) -> Result<Vec<Series>> {
                 .entry(region)
                 .or_insert_with(|| owner_at(region, t))
                 .unwrap_or(0);
-            let p = recs[reference].records[m].vertices[v];
+            let p = recs[reference].records[at[reference]].vertices[v];
             for (s, rec) in recs.iter().enumerate() {
                 if s == reference {
                     continue;
                 }
-                let q = rec.records[m].vertices[v];
+                let q = rec.records[at[s]].vertices[v];
                 let d2: f64 = (0..3)
                     .map(|k| (f64::from(p[k]) - f64::from(q[k])).powi(2))
                     .sum();

@@ -63,6 +63,9 @@ pub struct JoinArgs {
     /// Tool this site drives (scene tool name); default: the script's or the first tool.
     #[arg(long)]
     pub tool: Option<String>,
+    /// Drive no tool (a trainee who only watches and feels).
+    #[arg(long, conflicts_with = "tool")]
+    pub no_tool: bool,
     /// Tool trajectory script (sim-scene script format) for the local tool.
     #[arg(long)]
     pub script: Option<PathBuf>,
@@ -102,6 +105,15 @@ pub struct JoinArgs {
     /// Do not run the 1 kHz haptic loop.
     #[arg(long)]
     pub no_haptics: bool,
+    /// Haptic device for the local tool: `script` (the tool follows its script) or
+    /// `udp:HOST:PORT` (the tool follows a device driver's pose datagrams on that address
+    /// and the haptic loop sends it forces; see docs/haptics.md).
+    #[arg(long, default_value = "script", conflicts_with = "no_haptics")]
+    pub device: String,
+    /// Run the haptic thread at this SCHED_FIFO priority (1–99; warns and runs at normal
+    /// priority if not permitted).
+    #[arg(long, value_parser = clap::value_parser!(i32).range(1..=99))]
+    pub rt_priority: Option<i32>,
     /// Announce this protocol version instead of ours (to test refusals).
     #[arg(long, hide = true)]
     pub protocol_version: Option<u16>,
@@ -128,7 +140,7 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
         Some(p) => Some(ToolScript::load(p).with_context(|| format!("script {}", p.display()))?),
         None => None,
     };
-    let tool = match (&args.tool, RoleArg::Observer == args.role) {
+    let tool = match (&args.tool, RoleArg::Observer == args.role || args.no_tool) {
         (_, true) => None,
         (Some(t), _) => Some(t.clone()),
         (None, _) => script
@@ -193,6 +205,8 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
         expect_sites: args.expect_sites,
         realtime: !args.no_realtime,
         haptics: !args.no_haptics,
+        device: crate::site::glue::DeviceSpec::parse(&args.device)?,
+        rt_priority: args.rt_priority,
         on_progress: None,
         scene,
     })

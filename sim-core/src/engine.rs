@@ -615,6 +615,10 @@ impl Simulation {
     pub fn time(&self) -> f64 {
         self.time
     }
+    /// Moves the simulation clock (s), e.g. a late joiner taking the session's time.
+    pub fn set_time(&mut self, t: f64) {
+        self.time = t;
+    }
     /// Steps taken.
     pub fn steps(&self) -> u64 {
         self.steps

@@ -213,6 +213,8 @@ pub struct Trace {
     pub cg_iterations: usize,
     pub newton_iterations: usize,
     pub shared_elements: usize,
+    /// Steps the co-rotational step fell back to Newton (fast rotations).
+    pub fallback_steps: usize,
     pub non_finite: bool,
 }
 
@@ -278,6 +280,7 @@ pub fn simulate(
         cg_iterations: 0,
         newton_iterations: 0,
         shared_elements: 0,
+        fallback_steps: 0,
         non_finite: false,
     };
     // Build the FEM system (and its CSR pattern on the first step) outside the clock as
@@ -298,6 +301,7 @@ pub fn simulate(
         t.cg_iterations += r.fem.cg_iterations;
         t.newton_iterations += r.fem.newton_iterations;
         t.shared_elements += r.shared_rotations;
+        t.fallback_steps += r.fem.fallback as usize;
         if k % sample_every.max(1) == 0 {
             let x = sim.positions();
             let s: Vec<V3> = nodes.iter().map(|n| x[n.0 as usize]).collect();

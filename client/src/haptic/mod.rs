@@ -45,7 +45,9 @@ pub use device::{HapticDevice, ToolInput};
 pub use latest::{Latest, Words};
 pub use measure::{measure_loop, measure_loop_with};
 pub use render::{HapticModel, RenderConfig, Rendered};
-pub use runner::{HapticConfig, HapticHandle, InputReader, ModelWriter, spawn, spawn_with_model};
+pub use runner::{
+    GuideClock, HapticConfig, HapticHandle, InputReader, ModelWriter, spawn, spawn_with_model,
+};
 pub use scripted::{AppliedForce, ScriptedDevice};
 pub use teaching::{GuideSpring, TeachingPlayback, TeachingRecorder};
 pub use timing::{HapticStats, PeriodHistogram};

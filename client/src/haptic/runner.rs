@@ -86,10 +86,16 @@ struct Shared {
     input: Latest<ToolInput>,
     stop: AtomicBool,
     ticks: AtomicU64,
+    /// The device's input was stale at the newest tick.
+    input_stale: AtomicBool,
 }
 
+/// The playback time of a teaching guide, s, read once per tick on the haptic thread (it
+/// must not block). Without one, playback time is loop time since the guide started.
+pub type GuideClock = Arc<dyn Fn() -> f64 + Send + Sync>;
+
 enum Command {
-    Guide(Option<Box<TeachingPlayback>>),
+    Guide(Option<(Box<TeachingPlayback>, Option<GuideClock>)>),
     StartRecording(TeachingRecorder),
     StopRecording(mpsc::Sender<Option<TeachingRecorder>>),
 }
@@ -114,6 +120,12 @@ impl InputReader {
     /// tick.
     pub fn latest(&self) -> Option<(u64, ToolInput)> {
         self.0.input.load()
+    }
+
+    /// Whether the device reported stale input at the newest tick (e.g. no datagram from
+    /// a UDP driver yet, or for longer than its stale timeout).
+    pub fn stale(&self) -> bool {
+        self.0.input_stale.load(Ordering::Relaxed)
     }
 }
 
@@ -147,6 +159,7 @@ pub fn spawn_with_model<D: HapticDevice + 'static>(
         input: Latest::new(),
         stop: AtomicBool::new(false),
         ticks: AtomicU64::new(0),
+        input_stale: AtomicBool::new(true),
     });
     if let Some(m) = model {
         shared.model.store(m);
@@ -205,7 +218,18 @@ impl<D: HapticDevice + 'static> HapticHandle<D> {
     /// Starts (or replaces, `None`: ends) teaching playback; its time starts at the tick
     /// that receives it.
     pub fn set_guide(&self, guide: Option<TeachingPlayback>) {
-        let _ = self.commands.send(Command::Guide(guide.map(Box::new)));
+        let _ = self
+            .commands
+            .send(Command::Guide(guide.map(|g| (Box::new(g), None))));
+    }
+
+    /// Starts (or replaces) teaching playback with its time taken from `clock` (s) each
+    /// tick instead of loop time, e.g. the simulation's time since the trainee's act began,
+    /// so that the guide stays in step with a simulation that runs slower than real time.
+    pub fn set_guide_with_clock(&self, guide: TeachingPlayback, clock: GuideClock) {
+        let _ = self
+            .commands
+            .send(Command::Guide(Some((Box::new(guide), Some(clock)))));
     }
 
     /// Starts recording the device's trajectory into `recorder` (replaces a running one).
@@ -273,11 +297,15 @@ fn run<D: HapticDevice>(
         stale_model_ticks: 0,
         model_read_misses: 0,
         models_seen: 0,
+        guide_ticks: 0,
+        guide_force_max: 0.0,
+        guide_force_mean: 0.0,
     };
+    let mut guide_force_sum = 0.0;
     let mut model: Option<HapticModel> = None;
     let mut model_version = 0u64;
     let mut model_seen_at = Duration::ZERO;
-    let mut guide: Option<(Box<TeachingPlayback>, Duration)> = None;
+    let mut guide: Option<(Box<TeachingPlayback>, Option<GuideClock>, Duration)> = None;
     let mut recorder: Option<TeachingRecorder> = None;
     let mut prev_x: Option<(Duration, Vector3<f64>)> = None;
     let mut velocity = Vector3::zeros();
@@ -300,7 +328,7 @@ fn run<D: HapticDevice>(
         // Commands (non-blocking).
         while let Ok(c) = commands.try_recv() {
             match c {
-                Command::Guide(g) => guide = g.map(|g| (g, t)),
+                Command::Guide(g) => guide = g.map(|(g, clock)| (g, clock, t)),
                 Command::StartRecording(r) => recorder = Some(r),
                 Command::StopRecording(reply) => {
                     let _ = reply.send(recorder.take());
@@ -312,6 +340,7 @@ fn run<D: HapticDevice>(
         let input = device.read(t);
         let stale_input = device.input_stale();
         shared.input.store(&input);
+        shared.input_stale.store(stale_input, Ordering::Relaxed);
         if let Some(r) = recorder.as_mut() {
             r.push(&input);
         }
@@ -345,7 +374,19 @@ fn run<D: HapticDevice>(
 
         // Guide spring.
         let extra = match &guide {
-            Some((g, t0)) => g.guide_force((t - *t0).as_secs_f64(), &x, &velocity),
+            Some((g, clock, t0)) => {
+                let tp = clock
+                    .as_ref()
+                    .map_or_else(|| (t - *t0).as_secs_f64(), |c| c());
+                let f = g.guide_force(tp.max(0.0), &x, &velocity);
+                let n = f.norm();
+                if n.is_finite() {
+                    stats.guide_ticks += 1;
+                    stats.guide_force_max = stats.guide_force_max.max(n);
+                    guide_force_sum += n;
+                }
+                f
+            }
             None => Vector3::zeros(),
         };
 
@@ -365,6 +406,9 @@ fn run<D: HapticDevice>(
     // Leave the device without force.
     device.apply(Vector3::zeros(), Vector3::zeros());
 
+    if stats.guide_ticks > 0 {
+        stats.guide_force_mean = guide_force_sum / stats.guide_ticks as f64;
+    }
     stats.overruns = pacer.overruns;
     stats.reanchors = pacer.reanchors;
     if let Some(first) = first_tick

@@ -124,6 +124,12 @@ pub struct HapticStats {
     pub model_read_misses: u64,
     /// Distinct model versions the loop rendered.
     pub models_seen: u64,
+    /// Ticks with a teaching guide active.
+    pub guide_ticks: u64,
+    /// Largest and mean teaching guide force over those ticks, N (before the device
+    /// limit and the safety fade; 0 without a guide).
+    pub guide_force_max: f64,
+    pub guide_force_mean: f64,
 }
 
 impl HapticStats {

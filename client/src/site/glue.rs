@@ -148,6 +148,24 @@ impl Tools {
             .map_or(V3::zeros(), |t| t.force)
     }
 
+    /// Index of the local tool in the scene's tools.
+    pub fn local_index(&self) -> Option<usize> {
+        self.local
+    }
+
+    /// Name of the local tool.
+    pub fn local_name(&self) -> Option<&str> {
+        let i = self.local?;
+        Some(self.interaction.tools.tools[i].name.as_str())
+    }
+
+    /// Whether the local tool holds tissue (its haptic model is then bilateral).
+    pub fn local_grasped(&self) -> bool {
+        self.local
+            .and_then(|i| self.interaction.state().tools.get(i))
+            .is_some_and(|t| t.grasped > 0)
+    }
+
     /// The local tool's pose and its contact's local linear model (haptics).
     pub fn local_haptic(&self) -> Option<(ToolInput, LocalModel)> {
         let i = self.local?;
@@ -444,14 +462,5 @@ impl Recorder {
     }
 }
 
-pub struct HapticLoop;
-
-impl HapticLoop {
-    pub fn start() -> Self {
-        HapticLoop
-    }
-    pub fn publish(&self, _tools: &Tools) {}
-    pub fn stop(self) -> (f64, f64) {
-        (0.0, 0.0)
-    }
-}
+/// The site's 1 kHz haptic loop, its device and teaching mode (`site/haptics.rs`).
+pub use super::haptics::{DeviceSpec, HapticLoop, HapticSummary, Teaching};

@@ -3,6 +3,7 @@
 //! waiting, and a site with no link at all still simulates.
 
 pub mod glue;
+mod haptics;
 mod runtime;
 
 pub use runtime::{SiteConfig, SiteReport, Strategy, run_site};

@@ -71,6 +71,12 @@ pub struct SiteConfig {
     pub realtime: bool,
     /// Run the 1 kHz haptic loop beside the simulation.
     pub haptics: bool,
+    /// Where the local tool's input comes from: the script, or a real device over UDP
+    /// (the tool then follows the device and the haptic loop renders forces back to it;
+    /// needs `haptics`).
+    pub device: glue::DeviceSpec,
+    /// SCHED_FIFO priority of the haptic thread (`None`: normal priority; fails soft).
+    pub rt_priority: Option<i32>,
     /// Called about every 0.25 s of simulated time with (sim time s, a short status).
     pub on_progress: Option<Box<dyn FnMut(f64, &str) + Send>>,
 }
@@ -114,6 +120,26 @@ pub struct SiteReport {
     /// Haptic loop: ticks per second and p99 period jitter (µs).
     pub haptic_rate_hz: Option<f64>,
     pub haptic_jitter_p99_us: Option<f64>,
+    /// Haptic tick period p50 / p99 (µs), ticks more than half a period late, largest
+    /// force sent to the device (N), and the device's name.
+    pub haptic_period_p50_us: Option<f64>,
+    pub haptic_period_p99_us: Option<f64>,
+    pub haptic_overruns: Option<u64>,
+    pub haptic_max_force_n: Option<f64>,
+    pub haptic_device: Option<String>,
+    /// UDP device (`--device udp:…`): pose datagrams accepted, force datagrams sent.
+    pub device_poses_received: Option<u64>,
+    pub device_forces_sent: Option<u64>,
+    /// Teaching, instructor: trajectories sent to the session, and the newest one saved
+    /// as a tool script (`<out>/teaching.toml`).
+    pub teaching_sent: Option<u64>,
+    pub teaching_file: Option<PathBuf>,
+    /// Teaching, trainee: the guide force felt on the haptic device during playback (N),
+    /// and the distance between the local tool tip and the recorded tip (mm).
+    pub guide_force_max_n: Option<f64>,
+    pub guide_force_mean_n: Option<f64>,
+    pub playback_distance_mm: Option<f64>,
+    pub playback_distance_max_mm: Option<f64>,
     /// Contact force on the local tool, max magnitude over the run (N).
     pub max_tool_force_n: f64,
 }
@@ -172,6 +198,8 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     let mut sites: BTreeMap<u16, (String, Role)> = BTreeMap::new();
     if let Some(link) = &link {
         let deadline = Instant::now() + Duration::from_secs(20);
+        let mut got_snapshot = false;
+        let mut welcomed_at: Option<Instant> = None;
         // Join, then wait for the expected number of sites: all sites then start their
         // simulation clocks within about one round trip of each other.
         loop {
@@ -185,6 +213,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
             }
             match link.recv_timeout(Duration::from_millis(50)) {
                 Some(LinkEvent::Welcome(w)) => {
+                    welcomed_at = Some(Instant::now());
                     me = Some(w.site);
                     for s in w.sites {
                         sites.insert(s.site, (s.name, s.role));
@@ -203,11 +232,28 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                 Some(LinkEvent::Message(Message::SiteJoined(s))) => {
                     sites.insert(s.site, (s.name, s.role));
                 }
+                Some(LinkEvent::Message(Message::Snapshot(s))) => {
+                    // A late joiner takes the session's simulated time, so that the
+                    // snapshot's keyframes (and everything after) are current for it.
+                    if s.sim_time_s > sim.time() {
+                        info!(site = %cfg.name, t = s.sim_time_s, "joining a running session");
+                        sim.set_time(s.sim_time_s);
+                    }
+                    got_snapshot = true;
+                    pending.push(Message::Snapshot(s));
+                }
                 Some(LinkEvent::Message(m)) => pending.push(m),
                 Some(other) => debug!(?other, "link event before start"),
                 None => {}
             }
-            if me.is_some() && sites.len() >= cfg.expect_sites {
+            // The coordinator follows every Welcome with a snapshot (possibly empty); a
+            // late joiner must see it before its clock starts.
+            let snapshot_wait_over =
+                welcomed_at.is_some_and(|w: Instant| w.elapsed() > Duration::from_secs(3));
+            if me.is_some()
+                && sites.len() >= cfg.expect_sites
+                && (got_snapshot || snapshot_wait_over)
+            {
                 break;
             }
         }
@@ -215,7 +261,28 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     }
     report.site_id = me;
     sync.set_sites(me.unwrap_or(0), sites.keys().copied());
-    let haptic = cfg.haptics.then(glue::HapticLoop::start);
+    let follows_device = cfg.device.is_device();
+    if follows_device && !cfg.haptics {
+        bail!("a haptic device needs the haptic loop (drop --no-haptics)");
+    }
+    let mut haptic = if cfg.haptics {
+        Some(glue::HapticLoop::start(
+            std::mem::take(&mut cfg.device),
+            cfg.script.as_ref(),
+            cfg.script_start,
+            &tools,
+            cfg.rt_priority,
+        )?)
+    } else {
+        None
+    };
+    // Acts follow the script unless the tool follows a device (then: the whole run).
+    let mut teaching = glue::Teaching::new(
+        cfg.role,
+        &tools,
+        cfg.script.as_ref().filter(|_| !follows_device),
+        cfg.script_start,
+    );
 
     let start = Instant::now();
     let mut step_ms: Vec<f64> = Vec::with_capacity(steps as usize);
@@ -228,7 +295,11 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     let mut next_progress = 0.0;
     let vtu_interval = cfg.vtu_interval.unwrap_or(f64::INFINITY);
 
-    for k in 0..steps {
+    // Run until the session's simulated time reaches `seconds` (a late joiner starts
+    // from the session's time, not from zero).
+    let mut k: u64 = 0;
+    while sim.time() + 0.5 * dt < cfg.seconds {
+        k += 1;
         let t = sim.time();
         // 1. Network input, without waiting.
         let mut inbox = std::mem::take(&mut pending);
@@ -307,6 +378,8 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                     sites.remove(&l.site);
                     sync.set_sites(me.unwrap_or(0), sites.keys().copied());
                 }
+                Message::Teaching(tr) => teaching.on_trajectory(tr),
+                Message::Command(c) => teaching.on_command(c, haptic.as_ref()),
                 other => debug!(kind = other.kind(), "ignored message"),
             }
         }
@@ -316,12 +389,23 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         acknowledge(&link, &applied, me, &mut report, &mut apply_us, t0);
 
         // 2. Tools and contact.
-        let local = tools.local_input(cfg.script.as_ref(), t - cfg.script_start);
+        let local = if follows_device {
+            haptic.as_mut().and_then(|h| h.device_input())
+        } else {
+            tools.local_input(cfg.script.as_ref(), t - cfg.script_start)
+        };
+        if let Some(m) = teaching.record(t, local.as_ref()) {
+            send_control(&link, m);
+        }
         let touched = tools.before_step(&mut sim, local, &sync)?;
         report.max_tool_force_n = report.max_tool_force_n.max(tools.local_force().norm());
         if let Some(h) = &haptic {
-            h.publish(&tools);
+            h.publish(&tools, t);
         }
+        let tip = tools
+            .local_haptic()
+            .map(|(input, _)| input.pose.translation.vector);
+        teaching.playback_step(t, tip, haptic.as_ref());
 
         // 3. Ownership of the regions our tool touches. Input-only sites claim too: the
         // coordinator's ownership then says whose organ the others are compared with.
@@ -426,7 +510,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
 
         // 7. Real-time pacing: step k+1 is due at (k+1)·dt of wall time.
         if cfg.realtime {
-            let due = start + Duration::from_secs_f64((k + 1) as f64 * dt);
+            let due = start + Duration::from_secs_f64(k as f64 * dt);
             let now = Instant::now();
             if due > now {
                 std::thread::sleep(due - now);
@@ -440,7 +524,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
 
     report.sim_seconds = sim.time();
     report.wall_seconds = wall;
-    report.sim_rate_hz = steps as f64 / wall;
+    report.sim_rate_hz = k as f64 / wall;
     report.step_ms_p50 = percentile(&step_ms, 50.0);
     report.step_ms_p99 = percentile(&step_ms, 99.0);
     report.apply_us_per_keyframe = if apply_us.is_empty() {
@@ -448,10 +532,14 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     } else {
         apply_us.iter().sum::<f64>() / apply_us.len() as f64
     };
+    // An act still running at the end (e.g. a device-driven instructor) is sent now.
+    if let Some(m) = teaching.finish() {
+        send_control(&link, m);
+    }
+    report.teaching_file = teaching.save(cfg.out.as_deref(), haptic.as_ref())?;
+    teaching.report(&mut report);
     if let Some(h) = haptic {
-        let s = h.stop();
-        report.haptic_rate_hz = Some(s.0);
-        report.haptic_jitter_p99_us = Some(s.1);
+        h.stop().report(&mut report);
     }
     if let Some(link) = link {
         let st = link.stats();
