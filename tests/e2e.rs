@@ -12,6 +12,13 @@ use cosurg::divergence::fill_divergence;
 use cosurg::site::SiteReport;
 
 const TOKEN: &str = "e2e-secret";
+
+/// The tests run one at a time: each starts several real-time simulations, and a 2-core
+/// machine running them all at once would measure its own overload, not the protocol.
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    LOCK.lock().unwrap_or_else(|e| e.into_inner())
+}
 const SESSION: &str = "e2e";
 
 fn cosurg() -> Command {
@@ -146,6 +153,7 @@ fn refused(mut cmd: Command, expect: &str) {
 
 #[test]
 fn wrong_token_version_and_scene_are_refused_with_reasons() {
+    let _serial = serial();
     let server = start_server();
     refused(
         join_with_token(&server, "intruder", "trainee", "not-the-token"),
@@ -163,6 +171,7 @@ fn wrong_token_version_and_scene_are_refused_with_reasons() {
 
 #[test]
 fn wrong_alpn_is_refused_by_tls() {
+    let _serial = serial();
     let server = start_server();
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -251,6 +260,7 @@ fn settled_max(series: &[cosurg::plot::Series], from: f64) -> f64 {
 
 #[test]
 fn three_sites_follow_the_owners_grasp_and_lift() {
+    let _serial = serial();
     let server = start_server();
     let dir = session_dir();
     let seconds = "8.0";
@@ -308,6 +318,7 @@ fn three_sites_follow_the_owners_grasp_and_lift() {
 
 #[test]
 fn killed_site_rejoins_and_resynchronises() {
+    let _serial = serial();
     let server = start_server();
     let dir = session_dir();
     let seconds = "8.0";
@@ -356,6 +367,7 @@ fn killed_site_rejoins_and_resynchronises() {
 
 #[test]
 fn garbage_from_one_site_does_not_disturb_the_others() {
+    let _serial = serial();
     let server = start_server();
     let dir = session_dir();
     let seconds = "8.0";

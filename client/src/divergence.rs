@@ -115,6 +115,24 @@ pub fn fill_divergence(reports: &mut [SiteReport]) -> Result<Vec<Series>> {
                 count[s] += 1;
             }
         }
+        if tracing::enabled!(tracing::Level::DEBUG) {
+            for (s, rec) in recs.iter().enumerate() {
+                if mark_max[s] > 5.0 {
+                    let worst = regions
+                        .iter()
+                        .enumerate()
+                        .map(|(v, &region)| {
+                            let r = owner_cache.get(&region).copied().flatten().unwrap_or(0);
+                            let p = recs[r].records[at[r]].vertices[v];
+                            let q = rec.records[at[s]].vertices[v];
+                            let d: f32 = (0..3).map(|k| (p[k] - q[k]).powi(2)).sum();
+                            (d, v, region, r)
+                        })
+                        .max_by(|a, b| a.0.total_cmp(&b.0));
+                    tracing::debug!(t, site = s, mm = mark_max[s], ?worst, "divergence");
+                }
+            }
+        }
         for s in 0..reports.len() {
             max[s] = max[s].max(mark_max[s]);
             if count[s] > 0 {

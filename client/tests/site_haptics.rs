@@ -51,8 +51,9 @@ struct DriverLog {
     forces: Vec<ForceDatagram>,
 }
 
-/// A device driver: sends the probe script's poses (from its approach into a 5 mm press
-/// near the gallbladder neck, then held) at about 1 kHz, and collects force datagrams.
+/// A device driver: holds the probe pressed 5 mm into the gallbladder neck (the probe
+/// script's pose at 1.5 s), sending a pose about every millisecond, and collects force
+/// datagrams.
 fn driver(to: SocketAddr, stop: Arc<AtomicBool>) -> std::thread::JoinHandle<DriverLog> {
     let script = builtin::cholecystectomy().scripts["probe"].clone();
     std::thread::spawn(move || {
@@ -62,9 +63,7 @@ fn driver(to: SocketAddr, stop: Arc<AtomicBool>) -> std::thread::JoinHandle<Driv
         let start = Instant::now();
         let mut buf = [0u8; 256];
         while !stop.load(Ordering::Relaxed) && start.elapsed() < Duration::from_secs(30) {
-            // Script time 0.6 s → 1.6 s over the first second (into contact), then held.
-            let tau = 0.6 + start.elapsed().as_secs_f64().min(1.0);
-            let p = script.sample("probe", tau).unwrap();
+            let p = script.sample("probe", 1.5).unwrap();
             log.sent += 1;
             let q = p.orientation.quaternion();
             let d = PoseDatagram {
@@ -94,10 +93,11 @@ fn udp_device_drives_the_local_tool_and_feels_the_contact() {
     let scene = builtin::cholecystectomy();
     let bridge = UdpBridgeDevice::bind("127.0.0.1:0").unwrap();
     let addr = bridge.local_addr();
-    let mut cfg = site(&scene, "device", Role::Trainee, "probe", 2.0);
-    // The scene's probe script must not move the tool: the device does.
+    let mut cfg = site(&scene, "device", Role::Trainee, "probe", 1.0);
+    // The probe's script would only reach the tissue after the run: any contact comes
+    // from the device.
     cfg.script = scene.scripts.get("probe").cloned();
-    cfg.script_start = 0.0;
+    cfg.script_start = 10.0;
     cfg.device = DeviceSpec::Udp(Box::new(bridge));
     let stop = Arc::new(AtomicBool::new(false));
     let drv = driver(addr, stop.clone());
@@ -112,11 +112,11 @@ fn udp_device_drives_the_local_tool_and_feels_the_contact() {
     );
     let received = report.device_poses_received.unwrap();
     assert!(
-        received > 50 && received <= u64::from(log.sent),
+        received > 10 && received <= u64::from(log.sent),
         "{received}"
     );
-    assert!(report.device_forces_sent.unwrap() > 50);
-    assert!(log.forces.len() > 50, "{} forces", log.forces.len());
+    assert!(report.device_forces_sent.unwrap() > 10);
+    assert!(log.forces.len() > 10, "{} forces", log.forces.len());
     // Forces answer our poses (echo) and are finite and within the device limit.
     let last = log.forces.last().unwrap();
     assert!(last.echo_seq > 0 && last.echo_seq <= log.sent);

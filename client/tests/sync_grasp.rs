@@ -8,6 +8,17 @@ use sim_core::{SimOptions, Simulation};
 
 #[test]
 fn receiver_follows_grasp_and_lift() {
+    follow(1);
+}
+
+#[test]
+fn lagging_receiver_follows_grasp_and_lift() {
+    follow(3);
+}
+
+/// The receiver steps once for every `lag`-th owner step until it falls 1.2 s behind,
+/// then keeps pace: keyframes from its future wait for its clock.
+fn follow(lag: usize) {
     let scene = builtin::cholecystectomy();
     let mut options = SimOptions::from_scene(&scene.scene);
     options.dt = 0.004;
@@ -21,7 +32,8 @@ fn receiver_follows_grasp_and_lift() {
     let script = scene.scripts.get("forceps").unwrap().clone();
     let mut owned = std::collections::BTreeSet::new();
     let mut worst: f64 = 0.0;
-    for _ in 0..(4.5 / 0.004) as usize {
+    let mut owner_frames: Vec<(f64, Vec<nalgebra::Vector3<f64>>)> = Vec::new();
+    for k in 0..(7.0 / 0.004) as usize {
         let t = owner.time();
         let input = tools.local_input(Some(&script), t);
         let touched = tools.before_step(&mut owner, input, &s_owner).unwrap();
@@ -50,17 +62,33 @@ fn receiver_follows_grasp_and_lift() {
                 }
             }
         }
-        s_recv.apply_due(&mut recv);
+        owner_frames.push((owner.time(), owner.surfaces()[0].deformed.clone()));
+        if lag > 1 && k % lag != 0 && owner.time() - recv.time() < 1.2 {
+            continue;
+        }
+        for (region, id) in s_recv.apply_due(&mut recv) {
+            s_owner.on_ack(&proto::KeyframeAck {
+                region,
+                keyframe: id,
+                site: 2,
+            });
+        }
         s_recv.drive(&mut recv);
         recv.step().unwrap();
-        let a = &owner.surfaces()[0].deformed;
+        // Compare with the owner at the same simulated time.
+        let Some((_, a)) = owner_frames
+            .iter()
+            .find(|(t, _)| (t - recv.time()).abs() < 1e-9)
+        else {
+            continue;
+        };
         let b = &recv.surfaces()[0].deformed;
         let d = a
             .iter()
             .zip(b)
             .map(|(p, q)| (p - q).norm())
             .fold(0.0, f64::max);
-        if d > worst + 0.005 {
+        if d > worst + 0.002 {
             let i = a
                 .iter()
                 .zip(b)
@@ -70,11 +98,24 @@ fn receiver_follows_grasp_and_lift() {
                 .0;
             let (host, w, nodes) = recv.surfaces()[0].embedding.host(i);
             eprintln!(
-                "t={t:.3} d={d:.4} v={i} owner={:?} recv={:?} host={host:?} w={w:?} nodes={nodes:?} owned={owned:?}",
+                "lag={lag} t={t:.3} d={d:.4} v={i} owner={:?} recv={:?} host={host:?} w={w:?} nodes={nodes:?} owned={owned:?}",
                 a[i], b[i]
             );
         }
         worst = worst.max(d);
     }
-    assert!(worst < 0.005, "receiver diverged by {worst} m");
+    // Bounds: the release of the grasp (tissue springing back while the owner still owns
+    // the region for 0.4 s) is the largest transient, ≈ 11 mm at 4 ms steps; at the end
+    // the tissue has settled on both sites.
+    assert!(worst < 0.015, "receiver diverged by {worst} m");
+    let a = &owner.surfaces()[0].deformed;
+    let b = &recv.surfaces()[0].deformed;
+    if (owner.time() - recv.time()).abs() < 1e-9 {
+        let end = a
+            .iter()
+            .zip(b)
+            .map(|(p, q)| (p - q).norm())
+            .fold(0.0, f64::max);
+        assert!(end < 0.001, "settled divergence {end} m");
+    }
 }

@@ -1368,6 +1368,10 @@ pub struct SiteSync {
     config: SyncConfig,
     full_state_next_id: KeyframeId,
     full_state_last: Option<KeyframeId>,
+    /// Newest keyframe id sent or applied per region: ids stay strictly increasing per
+    /// region across changes of ownership (including a site taking a region back), so
+    /// receivers and the coordinator never mistake a new keyframe for a stale one.
+    newest_id: BTreeMap<RegionId, KeyframeId>,
     /// Regions another site released; late frames for them are ignored once their
     /// remote state has blended out.
     released: std::collections::BTreeSet<RegionId>,
@@ -1383,6 +1387,7 @@ impl SiteSync {
             config,
             full_state_next_id: 1,
             full_state_last: None,
+            newest_id: BTreeMap::new(),
             released: Default::default(),
         }
     }
@@ -1412,7 +1417,15 @@ impl SiteSync {
         acked_base: impl Fn(RegionId) -> Option<KeyframeId>,
     ) -> Vec<SyncFrame> {
         match self.strategy {
-            SyncStrategy::Keyframe => self.policy.poll(sim, &self.map, sim.time(), acked_base),
+            SyncStrategy::Keyframe => {
+                let frames = self.policy.poll(sim, &self.map, sim.time(), acked_base);
+                for f in &frames {
+                    if let SyncFrame::Keyframe(kf) = f {
+                        self.note_id(kf.region, kf.keyframe_id);
+                    }
+                }
+                frames
+            }
             SyncStrategy::FullState { every_steps } => {
                 if self.policy.regions.is_empty()
                     || !sim.steps().is_multiple_of(u64::from(every_steps.max(1)))
@@ -1431,17 +1444,22 @@ impl SiteSync {
     /// This site was granted `region`; numbering continues after the newest id seen.
     pub fn on_grant(&mut self, region: RegionId) {
         self.released.remove(&region);
-        let next = self
-            .remote
-            .remove(&region)
-            .and_then(|r| r.last_keyframe())
-            .map_or(1, |k| k + 1);
+        if let Some(k) = self.remote.remove(&region).and_then(|r| r.last_keyframe()) {
+            self.note_id(region, k);
+        }
+        let next = self.newest_id.get(&region).map_or(1, |k| k + 1);
         self.policy.acquire(region, next);
+    }
+
+    fn note_id(&mut self, region: RegionId, id: KeyframeId) {
+        let e = self.newest_id.entry(region).or_insert(0);
+        *e = (*e).max(id);
     }
 
     /// This site releases `region`: the final keyframe to send (Keyframe strategy).
     pub fn release(&mut self, sim: &Simulation, region: RegionId) -> Option<SyncFrame> {
         let kf = self.policy.release(sim, &self.map, region)?;
+        self.note_id(region, kf.keyframe_id);
         (self.strategy == SyncStrategy::Keyframe).then_some(SyncFrame::Keyframe(kf))
     }
 
@@ -1489,8 +1507,11 @@ impl SiteSync {
                     .remote
                     .entry(kf.region)
                     .or_insert_with(|| RemoteRegion::new(kf.region, config));
-                Ok((r.apply_keyframe(sim, &self.map, kf)? == Applied::Applied)
-                    .then_some(kf.keyframe_id))
+                let applied = r.apply_keyframe(sim, &self.map, kf)? == Applied::Applied;
+                if applied {
+                    self.note_id(kf.region, kf.keyframe_id);
+                }
+                Ok(applied.then_some(kf.keyframe_id))
             }
             SyncFrame::TreeDelta(d) => {
                 match self.remote.get_mut(&d.region) {

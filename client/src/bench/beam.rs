@@ -260,63 +260,98 @@ pub fn live_nodes(sim: &Simulation) -> Vec<NodeId> {
     sim.lattice().nodes().collect()
 }
 
-/// Steps `sim` for `steps` steps, timing each step and sampling the positions of all live
-/// nodes every `sample_every` steps. Stops early (with `non_finite`) on a non-finite
-/// state.
-pub fn simulate(
-    sim: &mut Simulation,
-    steps: usize,
+/// One run advanced step by step (so that several runs can be interleaved and share the
+/// machine's load alike): times every step and samples the positions of all live nodes
+/// every `sample_every` steps. A non-finite state ends the run (`non_finite`).
+pub struct Runner {
+    pub sim: Simulation,
+    nodes: Vec<NodeId>,
     sample_every: usize,
-    bar: &ProgressBar,
-) -> Result<Trace> {
-    let nodes = live_nodes(sim);
-    let tets = sim.lattice().leaf_count();
-    let mut t = Trace {
-        step_ms: Vec::with_capacity(steps),
-        samples: Vec::with_capacity(steps / sample_every.max(1) + 1),
-        tets,
-        nodes: nodes.len(),
-        rotations_extracted: 0,
-        cg_iterations: 0,
-        newton_iterations: 0,
-        shared_elements: 0,
-        fallback_steps: 0,
-        non_finite: false,
-    };
-    // Build the FEM system (and its CSR pattern on the first step) outside the clock as
-    // far as possible.
-    sim.fem()?;
-    for k in 1..=steps {
+    k: usize,
+    pub trace: Trace,
+}
+
+impl Runner {
+    pub fn new(mut sim: Simulation, steps: usize, sample_every: usize) -> Result<Self> {
+        let nodes = live_nodes(&sim);
+        let tets = sim.lattice().leaf_count();
+        // Build the FEM system outside the clock.
+        sim.fem()?;
+        Ok(Runner {
+            trace: Trace {
+                step_ms: Vec::with_capacity(steps),
+                samples: Vec::with_capacity(steps / sample_every.max(1) + 1),
+                tets,
+                nodes: nodes.len(),
+                rotations_extracted: 0,
+                cg_iterations: 0,
+                newton_iterations: 0,
+                shared_elements: 0,
+                fallback_steps: 0,
+                non_finite: false,
+            },
+            sim,
+            nodes,
+            sample_every: sample_every.max(1),
+            k: 0,
+        })
+    }
+
+    /// One timed step (nothing once the run became non-finite).
+    pub fn step(&mut self) -> Result<()> {
+        let t = &mut self.trace;
+        if t.non_finite {
+            return Ok(());
+        }
         let t0 = Instant::now();
-        let r = match sim.step() {
+        let r = match self.sim.step() {
             Ok(r) => r,
             Err(sim_core::SimError::NonFinite { .. }) => {
                 t.non_finite = true;
-                break;
+                return Ok(());
             }
             Err(e) => return Err(e).context("step"),
         };
         t.step_ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        self.k += 1;
         t.rotations_extracted += r.fem.rotations_extracted;
         t.cg_iterations += r.fem.cg_iterations;
         t.newton_iterations += r.fem.newton_iterations;
         t.shared_elements += r.shared_rotations;
         t.fallback_steps += r.fem.fallback as usize;
-        if k % sample_every.max(1) == 0 {
-            let x = sim.positions();
-            let s: Vec<V3> = nodes.iter().map(|n| x[n.0 as usize]).collect();
+        if self.k.is_multiple_of(self.sample_every) {
+            let x = self.sim.positions();
+            let s: Vec<V3> = self.nodes.iter().map(|n| x[n.0 as usize]).collect();
             if s.iter().any(|p| !p.iter().all(|c| c.is_finite())) {
                 t.non_finite = true;
-                break;
+                return Ok(());
             }
             t.samples.push(s);
+        }
+        Ok(())
+    }
+}
+
+/// Steps `sim` for `steps` steps on its own (see [`Runner`]); returns the trace and the
+/// simulation in its final state.
+pub fn simulate(
+    sim: Simulation,
+    steps: usize,
+    sample_every: usize,
+    bar: &ProgressBar,
+) -> Result<(Trace, Simulation)> {
+    let mut r = Runner::new(sim, steps, sample_every)?;
+    for k in 1..=steps {
+        r.step()?;
+        if r.trace.non_finite {
+            break;
         }
         if k % 20 == 0 {
             bar.inc(20);
         }
     }
     bar.inc((steps % 20) as u64);
-    Ok(t)
+    Ok((r.trace, r.sim))
 }
 
 /// Max and RMS node distance (m) between two sampled runs over their common samples;

@@ -19,7 +19,7 @@ use sim_core::Simulation;
 use sim_core::sim_fem::Model;
 use sim_core::sim_scene::builtin::{cantilever, cantilever_with};
 
-use super::beam::{Knobs, Polar, RunConfig, Trace, build, deviation, model_name, simulate};
+use super::beam::{Knobs, Polar, RunConfig, Runner, Trace, build, deviation, model_name, simulate};
 use crate::cli::out_dir;
 use crate::plot::{Chart, Series, write_chart};
 
@@ -205,45 +205,39 @@ pub fn run(args: CantileverArgs) -> Result<()> {
         let scene = cantilever_with(young, cell).context("cantilever scene")?;
         let steps = (t_end / dt).round() as usize;
         let every = ((SAMPLE_INTERVAL / dt).round() as usize).max(1);
-        // Reference.
+        // The reference and every variant advance in lockstep, one step each in turn, so
+        // that load from other processes on the machine falls on all of them alike.
         bar.set_message(format!(
-            "{mat} {:.1} mm dt {} ms: reference",
+            "{mat} {:.1} mm dt {} ms: reference + {} runs in lockstep",
             cell * 1e3,
-            dt * 1e3
+            dt * 1e3,
+            list.len()
         ));
-        let rc = RunConfig::reference();
-        let (mut sim, knobs) = build(&scene, &rc, dt)?;
-        let reference = simulate(&mut sim, steps, every, &bar)?;
-        if reference.non_finite {
+        let mut configs = vec![RunConfig::reference()];
+        configs.extend(list);
+        let mut runners = Vec::with_capacity(configs.len());
+        let mut knobs = Vec::with_capacity(configs.len());
+        for rc in &configs {
+            let (sim, k) = build(&scene, rc, dt)?;
+            runners.push(Runner::new(sim, steps, every)?);
+            knobs.push(k);
+        }
+        for _ in 0..steps {
+            for r in &mut runners {
+                r.step()?;
+            }
+            bar.inc(runners.len() as u64);
+        }
+        if runners[0].trace.non_finite {
             anyhow::bail!("non-linear reference became non-finite ({mat}, cell {cell}, dt {dt})");
         }
-        rows.push(row(
-            &scene.hash,
-            mat,
-            young,
-            cell,
-            dt,
-            "nonlinear",
-            knobs,
-            &reference,
-            (0.0, 0.0),
-            tip_dz(&sim),
-        ));
-        for rc in list {
-            bar.set_message(format!(
-                "{mat} {:.1} mm dt {} ms: {} {}",
-                cell * 1e3,
-                dt * 1e3,
-                model_name(rc.model),
-                rc.variant
-            ));
-            let (mut sim, knobs) = build(&scene, &rc, dt)?;
-            let trace = simulate(&mut sim, steps, every, &bar)?;
-            let dev = if trace.non_finite {
+        let reference = runners[0].trace.samples.clone();
+        for ((rc, k), r) in configs.iter().zip(knobs).zip(&runners) {
+            let dev = if r.trace.non_finite {
                 (f64::NAN, f64::NAN)
             } else {
-                let (m, r, _) = deviation(&trace.samples, &reference.samples)?;
-                (m, r)
+                let (m, rms, _) = deviation(&r.trace.samples, &reference)?;
+                (m, rms)
             };
             rows.push(row(
                 &scene.hash,
@@ -252,10 +246,10 @@ pub fn run(args: CantileverArgs) -> Result<()> {
                 cell,
                 dt,
                 model_name(rc.model),
-                knobs,
-                &trace,
+                k,
+                &r.trace,
                 dev,
-                tip_dz(&sim),
+                tip_dz(&r.sim),
             ));
         }
     }
@@ -417,8 +411,8 @@ fn khz_sweep() -> Result<Vec<KhzPoint>> {
     for cell in KHZ_CELLS {
         let scene = cantilever_with(1e5, cell)?;
         let rc = RunConfig::all_on(Model::Corotational);
-        let (mut sim, _) = build(&scene, &rc, 0.001)?;
-        let t = simulate(&mut sim, 300, 1000, &ProgressBar::hidden())?;
+        let (sim, _) = build(&scene, &rc, 0.001)?;
+        let (t, _) = simulate(sim, 300, 1000, &ProgressBar::hidden())?;
         let p = KhzPoint {
             cell,
             tets: t.tets,

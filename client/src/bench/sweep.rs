@@ -163,24 +163,24 @@ pub fn run(args: SweepArgs) -> Result<()> {
     );
     bar.set_message("reference");
     let rc = RunConfig::reference();
-    let (mut sim, _) = build(&scene, &rc, REF_DT)?;
+    let (sim, _) = build(&scene, &rc, REF_DT)?;
     let nodes = super::beam::live_nodes(&sim);
     let every_ref = (SAMPLE_INTERVAL / REF_DT).round() as usize;
-    let reference = simulate(&mut sim, steps_of(REF_DT), every_ref, &bar)?;
+    let (reference, _) = simulate(sim, steps_of(REF_DT), every_ref, &bar)?;
     bar.set_message("converged co-rotational");
     let converged_cfg = RunConfig::all_off(Model::Corotational).with("converged", |c| {
         c.template_stiffness = true;
         c.cg_iterations = 2000;
         c.cg_tolerance = 1e-10;
     });
-    let (mut sim, _) = build(&scene, &converged_cfg, REF_DT)?;
-    let converged = simulate(&mut sim, steps_of(REF_DT), every_ref, &bar)?;
+    let (sim, _) = build(&scene, &converged_cfg, REF_DT)?;
+    let (converged, _) = simulate(sim, steps_of(REF_DT), every_ref, &bar)?;
     let mut points = Vec::new();
     for (knob, dt, rc) in runs {
         bar.set_message(rc.variant.clone());
-        let (mut sim, knobs) = build(&scene, &rc, dt)?;
+        let (sim, knobs) = build(&scene, &rc, dt)?;
         let every = ((SAMPLE_INTERVAL / dt).round() as usize).max(1);
-        let t = simulate(&mut sim, steps_of(dt), every, &bar)?;
+        let (t, sim) = simulate(sim, steps_of(dt), every, &bar)?;
         // Compare the root-lattice nodes only (refined runs have more).
         let ids = super::beam::live_nodes(&sim);
         let keep: Vec<usize> = nodes

@@ -166,6 +166,13 @@ impl Tools {
             .is_some_and(|t| t.grasped > 0)
     }
 
+    /// Torque of the tissue on the local tool about its tip (N·m).
+    pub fn local_torque(&self) -> V3 {
+        self.local
+            .and_then(|i| self.interaction.state().tools.get(i))
+            .map_or(V3::zeros(), |t| t.torque)
+    }
+
     /// The local tool's pose and its contact's local linear model (haptics).
     pub fn local_haptic(&self) -> Option<(ToolInput, LocalModel)> {
         let i = self.local?;
@@ -246,6 +253,8 @@ pub struct SyncState {
     me: u16,
     /// Keyframes from sites ahead of us in simulated time, waiting for our clock.
     pending: Vec<SyncFrame>,
+    /// Regions released by their owner whose last frames are still pending.
+    deferred_release: BTreeSet<u32>,
 }
 
 impl SyncState {
@@ -266,6 +275,7 @@ impl SyncState {
         SyncState {
             sync: SiteSync::new(strategy, RegionMap::for_simulation(sim), config),
             pending: Vec::new(),
+            deferred_release: BTreeSet::new(),
             acked: HashMap::new(),
             receivers: BTreeSet::new(),
             me: 0,
@@ -342,9 +352,22 @@ impl SyncState {
             );
             match self.sync.on_frame(sim, &frame) {
                 Ok(Some(id)) => applied.push((frame.region(), id)),
-                Ok(None) => {}
+                Ok(None) => tracing::debug!(
+                    region = frame.region(),
+                    "sync frame ignored (stale, owned or released)"
+                ),
                 Err(e) => warn!(region = frame.region(), error = %e, "sync frame not applied"),
             }
+        }
+        let done: Vec<u32> = self
+            .deferred_release
+            .iter()
+            .copied()
+            .filter(|r| !self.pending.iter().any(|f| f.region() == *r))
+            .collect();
+        for r in done {
+            self.deferred_release.remove(&r);
+            self.sync.on_remote_release(r);
         }
         applied
     }
@@ -366,7 +389,15 @@ impl SyncState {
         match owner {
             Some(o) if Some(o) == me => self.sync.on_grant(region),
             Some(_) => self.sync.on_remote_grant(region),
+            // A release takes effect after the owner's last frames, which may still be
+            // waiting for our clock (see `apply_due`).
+            None if self.pending.iter().any(|f| f.region() == region) => {
+                self.deferred_release.insert(region);
+            }
             None => self.sync.on_remote_release(region),
+        }
+        if owner.is_some() {
+            self.deferred_release.remove(&region);
         }
     }
 

@@ -303,8 +303,10 @@ impl HapticLoop {
                 orientation: input.pose.rotation,
                 jaw: input.jaw,
             },
-            force: local.force,
-            torque: local.torque,
+            // The contact's force and torque on the tool (sim-core leaves
+            // `LocalModel::force`/`torque` at zero; only its stiffness is filled).
+            force: tools.local_force(),
+            torque: tools.local_torque(),
             stiffness,
             grasped: tools.local_grasped(),
         });
@@ -658,5 +660,96 @@ impl Teaching {
             report.playback_distance_mm = Some(1e3 * self.dist_sum / self.dist_samples as f64);
             report.playback_distance_max_mm = Some(1e3 * self.dist_max);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::site::Strategy;
+    use sim_core::sim_scene::builtin;
+    use sim_core::{SimOptions, Simulation};
+
+    fn input(x: f64) -> sim_core::ToolInput {
+        sim_core::ToolInput::new(
+            V3::new(x, -0.1, -0.04),
+            nalgebra::UnitQuaternion::identity(),
+            0.3,
+        )
+    }
+
+    #[test]
+    fn instructor_act_to_trajectory_to_trainee_playback() {
+        let scene = builtin::cholecystectomy();
+        let sim = Simulation::new(scene.clone(), SimOptions::from_scene(&scene.scene)).unwrap();
+        let forceps = Tools::new(&sim, Some("forceps"), Strategy::Keyframe).unwrap();
+        let probe = Tools::new(&sim, Some("probe"), Strategy::Keyframe).unwrap();
+        let dt = 0.004;
+
+        // Instructor: idle, then an act moving 1 cm/s along x for 1 s, then idle.
+        let mut prof = Teaching::new(Role::Instructor, &forceps, None, 0.0);
+        let mut sent = Vec::new();
+        for k in 0..400 {
+            let t = k as f64 * dt;
+            let local = (0.2..=1.2).contains(&t).then(|| input(0.01 * (t - 0.2)));
+            sent.extend(prof.record(t, local.as_ref()));
+        }
+        assert!(prof.finish().is_none(), "the act was already sent");
+        let [Message::Teaching(tr)] = &sent[..] else {
+            panic!("one trajectory expected: {sent:?}")
+        };
+        assert_eq!(
+            (tr.id, tr.tool as usize),
+            (1, forceps.local_index().unwrap())
+        );
+        let last = tr.samples.last().unwrap();
+        assert!((last.t_s - 1.0).abs() < 0.005, "{}", last.t_s);
+        assert!((f64::from(last.position[0]) - 0.01 * last.t_s).abs() < 1e-6);
+        assert!(tr.samples.windows(2).all(|w| w[1].t_s > w[0].t_s));
+
+        // A trainee with another tool ignores it; one with the forceps plays it from its
+        // act's start (2 s), measuring its tip 3 mm off the recorded one.
+        let mut other = Teaching::new(Role::Trainee, &probe, None, 2.0);
+        other.on_trajectory(tr.clone());
+        let mut student = Teaching::new(Role::Trainee, &forceps, None, 2.0);
+        student.on_trajectory(tr.clone());
+        for k in 0..1000 {
+            let t = k as f64 * dt;
+            let x = 0.01 * (t - 2.0).clamp(0.0, 1.0) + 0.003;
+            let tip = V3::new(x, -0.1, -0.04);
+            other.playback_step(t, Some(tip), None);
+            student.playback_step(t, Some(tip), None);
+        }
+        let mut r = SiteReport::default();
+        other.report(&mut r);
+        assert!(r.playback_distance_mm.is_none());
+        student.report(&mut r);
+        let d = r.playback_distance_mm.unwrap();
+        assert!((d - 3.0).abs() < 0.05, "{d} mm");
+        assert!(r.playback_distance_max_mm.unwrap() < 3.1);
+
+        // An instructor's StartPlayback moves the start; StopPlayback ends it.
+        let mut late = Teaching::new(Role::Trainee, &forceps, None, 0.0);
+        late.on_trajectory(tr.clone());
+        late.on_command(
+            Command::StartPlayback {
+                trajectory: 1,
+                start_sim_time_s: 3.0,
+            },
+            None,
+        );
+        late.playback_step(2.9, Some(V3::zeros()), None);
+        assert!(late.playing.is_none());
+        late.playback_step(3.0, Some(V3::zeros()), None);
+        assert_eq!(late.playing.as_ref().map(|p| p.start), Some(3.0));
+        late.on_command(Command::StopPlayback { trajectory: 1 }, None);
+        assert!(late.playing.is_none());
+    }
+
+    #[test]
+    fn real_time_priority_fails_soft() {
+        // Whether or not the process may use SCHED_FIFO, the call returns normally.
+        RT_PRIORITY.store(1, Ordering::Relaxed);
+        std::thread::spawn(raise_priority).join().unwrap();
     }
 }

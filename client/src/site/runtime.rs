@@ -142,6 +142,9 @@ pub struct SiteReport {
     pub playback_distance_max_mm: Option<f64>,
     /// Contact force on the local tool, max magnitude over the run (N).
     pub max_tool_force_n: f64,
+    /// Wall time spent waiting so as not to run ahead of the owners' clocks (s).
+    #[serde(default)]
+    pub paced_seconds: f64,
 }
 
 /// Simulated time between surface recordings (s).
@@ -293,6 +296,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     let mut next_simtime_stamp = 0.0;
     let mut next_vtu = 0.0;
     let mut next_progress = 0.0;
+    let mut clocks = PeerClocks::default();
     let vtu_interval = cfg.vtu_interval.unwrap_or(f64::INFINITY);
 
     // Run until the session's simulated time reaches `seconds` (a late joiner starts
@@ -344,19 +348,29 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                     }
                     for o in s.owners {
                         sync.set_owner(o.region, Some(o.site), me);
+                        if Some(o.site) != me {
+                            clocks.owners.insert(o.region, o.site);
+                        }
                     }
                 }
                 Message::OwnershipGrant(g) => {
                     requested.remove(&g.region);
                     sync.set_owner(g.region, Some(g.site), me);
                     if Some(g.site) == me {
+                        clocks.owners.remove(&g.region);
+                    } else {
+                        clocks.owners.insert(g.region, g.site);
+                    }
+                    if Some(g.site) == me {
                         owned.insert(g.region, t);
                     } else if let Some(since) = owned.remove(&g.region) {
                         report.owned.push((g.region, since, t));
                     }
                 }
+                Message::SimTime(s) if Some(s.site) != me => clocks.heard(s.site, s.sim_time_s),
                 Message::OwnershipRelease(r) => {
                     sync.set_owner(r.region, None, me);
+                    clocks.owners.remove(&r.region);
                     if let Some(since) = owned.remove(&r.region) {
                         report.owned.push((r.region, since, t));
                     }
@@ -516,6 +530,15 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                 std::thread::sleep(due - now);
             }
         }
+        // A site never runs ahead of the owners whose regions it shows: their keyframes
+        // would arrive from its past. The simulation-time difference (from the owners'
+        // time stamps and their measured rates) sets how long to wait.
+        let ahead = clocks.ahead_of_owners(sim.time());
+        if ahead > MAX_LEAD {
+            let wait = (ahead - MAX_LEAD).min(0.02);
+            report.paced_seconds += wait;
+            std::thread::sleep(Duration::from_secs_f64(wait));
+        }
     }
     let wall = start.elapsed().as_secs_f64();
     for (region, since) in owned {
@@ -573,6 +596,44 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     }
     drop(runtime);
     Ok(report)
+}
+
+/// How far (s of simulated time) a site may run ahead of the owners it follows.
+const MAX_LEAD: f64 = 0.03;
+
+/// Other sites' simulation clocks, from their time stamps: last reported time, when it was
+/// heard, and the rate at which it advances (simulated s per wall s).
+#[derive(Default)]
+struct PeerClocks {
+    peers: HashMap<u16, (f64, Instant, f64)>,
+    /// Regions owned by other sites, and their owners.
+    owners: BTreeMap<u32, u16>,
+}
+
+impl PeerClocks {
+    fn heard(&mut self, site: u16, t: f64) {
+        let now = Instant::now();
+        let rate = match self.peers.get(&site) {
+            Some(&(t0, at, r)) if now > at && t > t0 => {
+                let measured = (t - t0) / (now - at).as_secs_f64();
+                // Smooth: stamps are 50 ms of simulated time apart and arrive with jitter.
+                (0.8 * r + 0.2 * measured).clamp(0.05, 2.0)
+            }
+            Some(&(_, _, r)) => r,
+            None => 1.0,
+        };
+        self.peers.insert(site, (t, now, rate));
+    }
+
+    /// How far `t` is ahead of the slowest owner we follow (s); ≤ 0 when behind or when
+    /// no other site owns anything.
+    fn ahead_of_owners(&self, t: f64) -> f64 {
+        self.owners
+            .values()
+            .filter_map(|s| self.peers.get(s))
+            .map(|&(t0, at, rate)| t - (t0 + rate * at.elapsed().as_secs_f64()))
+            .fold(f64::NEG_INFINITY, f64::max)
+    }
 }
 
 /// Counts applied keyframes (and their CPU time) and acknowledges them to their owner.
