@@ -33,6 +33,11 @@ pub mod quant;
 /// Protocol version carried in [`msg::Join`]; its low byte is the wire tag of every message.
 pub const PROTOCOL_VERSION: u16 = 1;
 
+/// A keyframe stream is reset in favour of a newer keyframe of the same region only after
+/// it has been in flight this long. Resetting younger streams starves paths whose round
+/// trip is longer than the keyframe interval: nothing would ever arrive.
+pub const KEYFRAME_STALL: std::time::Duration = std::time::Duration::from_millis(300);
+
 /// ALPN identifier of the protocol, used by both TLS sides.
 pub const ALPN: &[u8] = b"cosurg/1";
 

@@ -1016,6 +1016,10 @@ async fn send_stream_once(
     frame: Bytes,
     cancel: Option<oneshot::Receiver<()>>,
 ) -> Result<bool, String> {
+    // Superseded only once stalled (see `proto::KEYFRAME_STALL`), judged against this
+    // peer's round trip.
+    let started = tokio::time::Instant::now();
+    let stall = proto::KEYFRAME_STALL.max(conn.rtt() * 4);
     let cancelled = async move {
         match cancel {
             Some(rx) => {
@@ -1023,6 +1027,7 @@ async fn send_stream_once(
             }
             None => std::future::pending::<()>().await,
         }
+        tokio::time::sleep_until(started + stall).await;
     };
     tokio::pin!(cancelled);
     let mut s = tokio::select! {

@@ -18,7 +18,7 @@ use serde::Serialize;
 use sim_core::sim_fem::Model;
 use sim_core::sim_scene::builtin::cantilever_with;
 
-use super::beam::{Knobs, RunConfig, build, deviation, simulate};
+use super::beam::{Knobs, RunConfig, Runner, build, deviation, simulate};
 use crate::cli::out_dir;
 use crate::plot::{Chart, Series, write_chart};
 
@@ -175,14 +175,32 @@ pub fn run(args: SweepArgs) -> Result<()> {
     });
     let (sim, _) = build(&scene, &converged_cfg, REF_DT)?;
     let (converged, _) = simulate(sim, steps_of(REF_DT), every_ref, &bar)?;
-    let mut points = Vec::new();
-    for (knob, dt, rc) in runs {
-        bar.set_message(rc.variant.clone());
-        let (sim, knobs) = build(&scene, &rc, dt)?;
+    // All runs advance in lockstep by simulated time (the one furthest behind steps
+    // next), so that load from other processes falls on every run alike.
+    bar.set_message(format!("{} runs in lockstep", runs.len()));
+    let mut runners = Vec::with_capacity(runs.len());
+    let mut knobs = Vec::with_capacity(runs.len());
+    for (_, dt, rc) in &runs {
+        let (sim, k) = build(&scene, rc, *dt)?;
         let every = ((SAMPLE_INTERVAL / dt).round() as usize).max(1);
-        let (t, sim) = simulate(sim, steps_of(dt), every, &bar)?;
+        runners.push(Runner::new(sim, steps_of(*dt), every)?);
+        knobs.push(k);
+    }
+    let mut done = vec![0usize; runs.len()];
+    loop {
+        let next = (0..runs.len())
+            .filter(|&i| done[i] < steps_of(runs[i].1))
+            .min_by(|&a, &b| (done[a] as f64 * runs[a].1).total_cmp(&(done[b] as f64 * runs[b].1)));
+        let Some(i) = next else { break };
+        runners[i].step()?;
+        done[i] += 1;
+        bar.inc(1);
+    }
+    let mut points = Vec::new();
+    for (((knob, dt, _), k), r) in runs.into_iter().zip(knobs).zip(&runners) {
+        let t = &r.trace;
         // Compare the root-lattice nodes only (refined runs have more).
-        let ids = super::beam::live_nodes(&sim);
+        let ids = super::beam::live_nodes(&r.sim);
         let keep: Vec<usize> = nodes
             .iter()
             .map(|n| ids.iter().position(|m| m == n).expect("root node survives"))
@@ -196,14 +214,14 @@ pub fn run(args: SweepArgs) -> Result<()> {
             (f64::NAN, f64::NAN, f64::NAN)
         } else {
             let (m, r, _) = deviation(&samples, &reference.samples)?;
-            let (k, _, _) = deviation(&samples, &converged.samples)?;
-            (m, r, k)
+            let (kd, _, _) = deviation(&samples, &converged.samples)?;
+            (m, r, kd)
         };
         let p50 = t.p50();
         points.push(SweepPoint {
             knob,
             dt,
-            options: knobs,
+            options: k,
             tets: t.tets,
             step_ms_p50: p50,
             wall_per_sim_s: p50 * 1e-3 / dt,

@@ -347,7 +347,10 @@ struct Session<'a> {
     ctrl: Option<mpsc::UnboundedSender<Bytes>>,
     inbound: mpsc::UnboundedReceiver<Inbound>,
     tasks: JoinSet<()>,
-    keyframes: HashMap<RegionId, oneshot::Sender<()>>,
+    /// Per region: the keyframe stream in flight (its cancel handle, when it started).
+    keyframes: HashMap<RegionId, (oneshot::Sender<()>, tokio::time::Instant)>,
+    /// Per region: the newest keyframe waiting for the one in flight (newest wins).
+    held_keyframes: HashMap<RegionId, Bytes>,
     ping_seq: u32,
     /// UDP byte counters of earlier connections (up, down).
     udp_base: (u64, u64),
@@ -386,6 +389,7 @@ impl<'a> Session<'a> {
             inbound: in_rx,
             tasks,
             keyframes: HashMap::new(),
+            held_keyframes: HashMap::new(),
             ping_seq: 0,
             udp_base: (
                 c.udp_bytes_up.load(Ordering::Relaxed),
@@ -464,6 +468,7 @@ impl<'a> Session<'a> {
                 },
                 e = self.conn.closed() => return lost(e),
                 _ = tick.tick() => {
+                    self.pump_held_keyframes();
                     let now = local.now_us();
                     // Any packet from the coordinator (ACKs, keep-alives, …) proves it alive.
                     let rx = self.conn.stats().udp_rx.datagrams;
@@ -492,7 +497,7 @@ impl<'a> Session<'a> {
                         next_ping = tokio::time::Instant::now() + iv;
                     }
                     while self.tasks.try_join_next().is_some() {}
-                    self.keyframes.retain(|_, c| !c.is_closed());
+                    self.keyframes.retain(|_, c| !c.0.is_closed());
                 }
             }
         }
@@ -660,16 +665,55 @@ impl<'a> Session<'a> {
         }
     }
 
+    /// One keyframe stream per region at a time, newest wins: a newer keyframe waits for
+    /// the one in flight (replacing any that was already waiting) unless that one has
+    /// stalled for longer than `stall()`, in which case it is reset as superseded. On a
+    /// path slower than the keyframe rate, keyframes then arrive at the path's pace
+    /// instead of being reset one after the other.
     fn send_keyframe(&mut self, mut kf: RegionKeyframe) {
         kf.owner = self.site;
         let region = kf.region;
-        if let Some(old) = self.keyframes.remove(&region) {
-            // Supersede the older keyframe of this region if it is still in flight.
-            let _ = old.send(());
-        }
-        let (tx, rx) = oneshot::channel();
-        self.keyframes.insert(region, tx);
         let frame = Bytes::from(proto::encode_frame(&Message::Keyframe(kf)));
+        if let Some((old, started)) = self.keyframes.get(&region)
+            && !old.is_closed()
+        {
+            if started.elapsed() < self.stall() {
+                if self.held_keyframes.insert(region, frame).is_some() {
+                    add(&self.shared.counters.keyframes_superseded, 1);
+                }
+                return;
+            }
+            if let Some((old, _)) = self.keyframes.remove(&region) {
+                let _ = old.send(());
+            }
+        }
+        self.spawn_keyframe(region, frame);
+    }
+
+    /// How long a keyframe stream may be in flight before a newer one supersedes it.
+    fn stall(&self) -> std::time::Duration {
+        proto::KEYFRAME_STALL.max(self.conn.rtt() * 4)
+    }
+
+    /// Sends waiting keyframes whose predecessor has finished.
+    fn pump_held_keyframes(&mut self) {
+        let ready: Vec<RegionId> = self
+            .held_keyframes
+            .keys()
+            .copied()
+            .filter(|r| self.keyframes.get(r).is_none_or(|(tx, _)| tx.is_closed()))
+            .collect();
+        for region in ready {
+            if let Some(frame) = self.held_keyframes.remove(&region) {
+                self.spawn_keyframe(region, frame);
+            }
+        }
+    }
+
+    fn spawn_keyframe(&mut self, region: RegionId, frame: Bytes) {
+        let (tx, rx) = oneshot::channel();
+        self.keyframes
+            .insert(region, (tx, tokio::time::Instant::now()));
         add(&self.shared.counters.bytes_up, frame.len() as u64);
         self.tasks.spawn(keyframe_stream(
             self.conn.clone(),

@@ -269,7 +269,9 @@ impl SyncState {
         // at tens of m/s², and a receiver never extrapolates far (see `receive`).
         let config = SyncConfig {
             max_accel_m_s2: 5.0,
-            max_extrapolation_s: 0.25,
+            max_extrapolation_s: 0.06,
+            // At most ~33 keyframes per second per region.
+            min_interval_s: 0.03,
             ..SyncConfig::default()
         };
         SyncState {

@@ -297,6 +297,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     let mut next_vtu = 0.0;
     let mut next_progress = 0.0;
     let mut clocks = PeerClocks::default();
+    let mut next_pose = 0.0;
     let vtu_interval = cfg.vtu_interval.unwrap_or(f64::INFINITY);
 
     // Run until the session's simulated time reaches `seconds` (a late joiner starts
@@ -475,7 +476,12 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         if let Some(link) = &link
             && cfg.role != Role::Observer
         {
-            if let Some(pose) = tools.local_pose_message(me.unwrap_or(0), t) {
+            // Poses are the state itself under input-only; otherwise they only draw the
+            // remote tool, and ~60 Hz leaves a lossy path's congestion window to the
+            // keyframe streams.
+            let pose_due = cfg.strategy == Strategy::InputOnly || t >= next_pose;
+            if pose_due && let Some(pose) = tools.local_pose_message(me.unwrap_or(0), t) {
+                next_pose = t + POSE_INTERVAL;
                 link.send_datagram(Message::ToolPose(pose));
             }
             for out in sync.outgoing(&sim) {
@@ -597,6 +603,9 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     drop(runtime);
     Ok(report)
 }
+
+/// Simulated time between tool-pose datagrams, except under input-only (s).
+const POSE_INTERVAL: f64 = 0.016;
 
 /// How far (s of simulated time) a site may run ahead of the owners it follows.
 const MAX_LEAD: f64 = 0.03;
