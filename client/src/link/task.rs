@@ -695,15 +695,24 @@ impl<'a> Session<'a> {
         proto::KEYFRAME_STALL.max(self.conn.rtt() * 4)
     }
 
-    /// Sends waiting keyframes whose predecessor has finished.
+    /// Sends waiting keyframes whose predecessor has finished or stalled (a stalled one is
+    /// reset as superseded).
     fn pump_held_keyframes(&mut self) {
+        let stall = self.stall();
         let ready: Vec<RegionId> = self
             .held_keyframes
             .keys()
             .copied()
-            .filter(|r| self.keyframes.get(r).is_none_or(|(tx, _)| tx.is_closed()))
+            .filter(|r| {
+                self.keyframes
+                    .get(r)
+                    .is_none_or(|(tx, started)| tx.is_closed() || started.elapsed() >= stall)
+            })
             .collect();
         for region in ready {
+            if let Some((old, _)) = self.keyframes.remove(&region) {
+                let _ = old.send(());
+            }
             if let Some(frame) = self.held_keyframes.remove(&region) {
                 self.spawn_keyframe(region, frame);
             }
