@@ -409,7 +409,7 @@ fn garbage_from_one_site_does_not_disturb_the_others() {
         while tokio::time::Instant::now() < end {
             let junk: Vec<u8> = (0..64u32).map(|k| (k.wrapping_mul(31) ^ i) as u8).collect();
             let _ = site.conn.send_datagram(junk.into());
-            if i % 10 == 0 {
+            if i.is_multiple_of(10) {
                 // A keyframe frame header promising 1000 bytes, then only 10.
                 if let Ok(mut s) = site.conn.open_uni().await {
                     let _ = s.write_all(&1000u32.to_be_bytes()).await;

@@ -42,6 +42,9 @@ impl Strategy {
     }
 }
 
+/// Progress report: (simulated time in s, a short status line).
+pub type ProgressCallback = Box<dyn FnMut(f64, &str) + Send>;
+
 /// Everything a site needs to run.
 pub struct SiteConfig {
     pub name: String,
@@ -78,7 +81,7 @@ pub struct SiteConfig {
     /// SCHED_FIFO priority of the haptic thread (`None`: normal priority; fails soft).
     pub rt_priority: Option<i32>,
     /// Called about every 0.25 s of simulated time with (sim time s, a short status).
-    pub on_progress: Option<Box<dyn FnMut(f64, &str) + Send>>,
+    pub on_progress: Option<ProgressCallback>,
 }
 
 /// What a site did, printed by `cosurg join` and collected by `cosurg demo`.
