@@ -210,9 +210,10 @@ pub fn run_session(run: &SessionRun) -> Result<(Vec<SiteReport>, Vec<Series>)> {
                 "COSURG_LOG",
                 std::env::var("COSURG_SITE_LOG").unwrap_or_else(|_| "warn,cosurg::=info".into()),
             );
-        if let Some(t) = site.tool {
-            cmd.args(["--tool", t]);
-        }
+        match site.tool {
+            Some(t) => cmd.args(["--tool", t]),
+            None => cmd.arg("--no-tool"),
+        };
         if let Some(p) = &run.preset {
             cmd.args(["--preset", p]);
         }

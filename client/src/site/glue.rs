@@ -92,7 +92,13 @@ impl Tools {
                     jaw: tool.jaw(),
                 };
                 if Some(i) == self.local {
-                    local.unwrap_or(keep)
+                    // Between its own acts, a site's tool follows whoever else drives it
+                    // (input-only: every site simulates every tool).
+                    match (local, self.remote_contact) {
+                        (Some(l), _) => l,
+                        (None, true) => self.remote[i].unwrap_or(keep),
+                        (None, false) => keep,
+                    }
                 } else if self.remote_contact {
                     self.remote[i].unwrap_or(keep)
                 } else {
