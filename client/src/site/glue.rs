@@ -1,5 +1,7 @@
-//! Adapters between the site loop and the engine's tools, contact and sync state.
-//! PROVISIONAL: replaced by the sim-core interaction and sync modules as they land.
+//! Adapters between the site loop and the engine: the scene's tools and their contact
+//! (sim-core's `Interaction`), the sync state (sim-core's `SiteSync`) with its conversion
+//! to and from `proto` messages and its pacing by simulated time, and the surface
+//! recorder.
 
 use std::collections::{BTreeSet, HashMap};
 use std::path::Path;
