@@ -223,6 +223,38 @@ fn spawn_site(server: &Server, dir: &Path, name: &str, role: &str, extra: &[&str
     c.spawn().expect("spawn site")
 }
 
+/// Simulated seconds of the grasp-and-lift sessions.
+const SESSION_SECONDS: &str = "8.0";
+
+/// The instructor: grasps and lifts with the forceps from 0.2 s, in a session of `sites`.
+fn spawn_lifter(server: &Server, dir: &Path, sites: usize) -> Child {
+    let n = sites.to_string();
+    let args = [
+        "--expect-sites",
+        &n,
+        "--seconds",
+        SESSION_SECONDS,
+        "--tool",
+        "forceps",
+        "--script-start",
+        "0.2",
+    ];
+    spawn_site(server, dir, "instructor", "instructor", &args)
+}
+
+/// A trainee without a tool, in a session of `sites`.
+fn spawn_watcher(server: &Server, dir: &Path, name: &str, sites: usize) -> Child {
+    let n = sites.to_string();
+    let args = [
+        "--expect-sites",
+        &n,
+        "--seconds",
+        SESSION_SECONDS,
+        "--no-tool",
+    ];
+    spawn_site(server, dir, name, "trainee", &args)
+}
+
 fn wait_report(mut child: Child, limit: Duration, log: PathBuf) -> SiteReport {
     let deadline = Instant::now() + limit;
     loop {
@@ -263,25 +295,17 @@ fn three_sites_follow_the_owners_grasp_and_lift() {
     let _serial = serial();
     let server = start_server();
     let dir = session_dir();
-    let seconds = "8.0";
-    let common = ["--expect-sites", "3", "--seconds", seconds];
-    let mut kids = Vec::new();
-    let mut args = common.to_vec();
-    args.extend(["--tool", "forceps", "--script-start", "0.2"]);
-    kids.push((
-        "instructor",
-        spawn_site(&server, dir.path(), "instructor", "instructor", &args),
-    ));
-    let mut args = common.to_vec();
-    args.push("--no-tool");
-    kids.push((
-        "trainee-a",
-        spawn_site(&server, dir.path(), "trainee-a", "trainee", &args),
-    ));
-    kids.push((
-        "trainee-b",
-        spawn_site(&server, dir.path(), "trainee-b", "trainee", &args),
-    ));
+    let kids = vec![
+        ("instructor", spawn_lifter(&server, dir.path(), 3)),
+        (
+            "trainee-a",
+            spawn_watcher(&server, dir.path(), "trainee-a", 3),
+        ),
+        (
+            "trainee-b",
+            spawn_watcher(&server, dir.path(), "trainee-b", 3),
+        ),
+    ];
     let mut reports: Vec<SiteReport> = kids
         .into_iter()
         .map(|(name, c)| {
@@ -321,26 +345,14 @@ fn killed_site_rejoins_and_resynchronises() {
     let _serial = serial();
     let server = start_server();
     let dir = session_dir();
-    let seconds = "8.0";
-    let mut args = vec![
-        "--expect-sites",
-        "2",
-        "--seconds",
-        seconds,
-        "--tool",
-        "forceps",
-    ];
-    args.extend(["--script-start", "0.2"]);
-    let instructor = spawn_site(&server, dir.path(), "instructor", "instructor", &args);
-    let trainee_args = ["--expect-sites", "2", "--seconds", seconds, "--no-tool"];
-    let mut trainee = spawn_site(&server, dir.path(), "trainee", "trainee", &trainee_args);
+    let instructor = spawn_lifter(&server, dir.path(), 2);
+    let mut trainee = spawn_watcher(&server, dir.path(), "trainee", 2);
     // Kill the trainee in the middle of the lift, then start it again under its name.
     std::thread::sleep(Duration::from_millis(3500));
     trainee.kill().unwrap();
     trainee.wait().unwrap();
     std::thread::sleep(Duration::from_millis(1500));
-    let rejoin_args = ["--expect-sites", "1", "--seconds", seconds, "--no-tool"];
-    let again = spawn_site(&server, dir.path(), "trainee", "trainee", &rejoin_args);
+    let again = spawn_watcher(&server, dir.path(), "trainee", 1);
     let r_instructor = wait_report(
         instructor,
         Duration::from_secs(120),
@@ -370,19 +382,8 @@ fn garbage_from_one_site_does_not_disturb_the_others() {
     let _serial = serial();
     let server = start_server();
     let dir = session_dir();
-    let seconds = "8.0";
-    let mut args = vec![
-        "--expect-sites",
-        "3",
-        "--seconds",
-        seconds,
-        "--tool",
-        "forceps",
-    ];
-    args.extend(["--script-start", "0.2"]);
-    let instructor = spawn_site(&server, dir.path(), "instructor", "instructor", &args);
-    let trainee_args = ["--expect-sites", "3", "--seconds", seconds, "--no-tool"];
-    let trainee = spawn_site(&server, dir.path(), "trainee", "trainee", &trainee_args);
+    let instructor = spawn_lifter(&server, dir.path(), 3);
+    let trainee = spawn_watcher(&server, dir.path(), "trainee", 3);
 
     // A misbehaving third site: joins properly, then sends garbage datagrams, a truncated
     // keyframe stream, a stream of random bytes and a malformed control frame.
