@@ -457,3 +457,103 @@ fn garbage_from_one_site_does_not_disturb_the_others() {
         "settled divergence {settled} mm with a rogue site"
     );
 }
+
+/// Bounds under the `poor` preset (200 ± 30 ms one way, 10 % loss, on every site's own
+/// link in both directions): during the lift a receiver may lag the owner by the whole
+/// lift (keyframes arrive late and rarely), so the motion bound is the lift plus margin;
+/// within 1.8 s after the tools stop the sites must agree.
+#[test]
+fn poor_network_keeps_divergence_bounded_and_settles() {
+    let _serial = serial();
+    let server = start_server();
+    let dir = session_dir();
+    let poor = ["--preset", "poor", "--seed", "5"];
+    let n = "2";
+    let mut a = vec![
+        "--expect-sites",
+        n,
+        "--seconds",
+        SESSION_SECONDS,
+        "--tool",
+        "forceps",
+    ];
+    a.extend(["--script-start", "0.2"]);
+    a.extend(poor);
+    let instructor = spawn_site(&server, dir.path(), "instructor", "instructor", &a);
+    let mut b = vec![
+        "--expect-sites",
+        n,
+        "--seconds",
+        SESSION_SECONDS,
+        "--no-tool",
+    ];
+    b.extend(poor);
+    let trainee = spawn_site(&server, dir.path(), "trainee", "trainee", &b);
+    let r_i = wait_report(
+        instructor,
+        Duration::from_secs(120),
+        dir.path().join("instructor.log"),
+    );
+    let r_t = wait_report(
+        trainee,
+        Duration::from_secs(120),
+        dir.path().join("trainee.log"),
+    );
+    assert!(
+        r_i.keyframes_sent > 0,
+        "keyframes got through the poor path"
+    );
+    let mut reports = vec![r_i, r_t];
+    let series = fill_divergence(&mut reports).unwrap();
+    let max = reports[1].divergence_max_mm.unwrap();
+    assert!(
+        max < MOTION_BOUND_MM,
+        "divergence {max} mm under the poor preset"
+    );
+    let settled = settled_max(&series, 7.0);
+    assert!(
+        settled < SETTLED_BOUND_MM,
+        "settled divergence {settled} mm under poor"
+    );
+}
+
+/// 100 % loss on a trainee's link for 2 s in the middle of the lift, then recovery: the
+/// trainee reconnects (or rides out the outage) and ends where the owner ends.
+#[test]
+fn total_outage_then_recovery_resynchronises() {
+    let _serial = serial();
+    let server = start_server();
+    let dir = session_dir();
+    let instructor = spawn_lifter(&server, dir.path(), 2);
+    let b = [
+        "--expect-sites",
+        "2",
+        "--seconds",
+        SESSION_SECONDS,
+        "--no-tool",
+        "--outage",
+        "2.0,2.0",
+    ];
+    let trainee = spawn_site(&server, dir.path(), "trainee", "trainee", &b);
+    let r_i = wait_report(
+        instructor,
+        Duration::from_secs(120),
+        dir.path().join("instructor.log"),
+    );
+    let r_t = wait_report(
+        trainee,
+        Duration::from_secs(120),
+        dir.path().join("trainee.log"),
+    );
+    assert!(r_t.keyframes_applied > 0);
+    // 2 s of silence is longer than the link's liveness limit (2.4 heartbeats): it must
+    // have noticed the loss and joined again.
+    assert!(r_t.reconnects >= 1, "the trainee reconnected after the outage");
+    let mut reports = vec![r_i, r_t];
+    let series = fill_divergence(&mut reports).unwrap();
+    let settled = settled_max(&series, 7.0);
+    assert!(
+        settled < SETTLED_BOUND_MM,
+        "settled divergence {settled} mm after the outage"
+    );
+}

@@ -90,6 +90,10 @@ pub struct JoinArgs {
     /// Seed of the impairment.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Cut this site's link completely (100 % loss both ways) for DURATION seconds,
+    /// START seconds after it starts: `--outage START,DURATION`.
+    #[arg(long, value_name = "START,DURATION")]
+    pub outage: Option<String>,
     /// Output folder (surface recordings, VTU/PVD, report.json).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -188,6 +192,27 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
     }
     if let Some(p) = &args.preset {
         link.impairment = Some(LinkImpairment::preset(p, args.seed)?);
+    }
+    if let Some(o) = &args.outage {
+        let parts: Vec<f64> = o
+            .split(',')
+            .map(|v| v.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|e| anyhow!("--outage {o:?}: {e} (expected START,DURATION in seconds)"))?;
+        let [start_s, duration_s] = parts[..] else {
+            bail!("--outage {o:?}: expected START,DURATION in seconds");
+        };
+        let mut imp = match link.impairment.take() {
+            Some(i) => i,
+            None => LinkImpairment::preset("none", args.seed)?,
+        };
+        let outage = netem::Outage {
+            start_s,
+            duration_s,
+        };
+        imp.up.outage = Some(outage);
+        imp.down.outage = Some(outage);
+        link.impairment = Some(imp);
     }
     Ok(SiteConfig {
         name: args.site.clone(),
