@@ -548,7 +548,10 @@ fn total_outage_then_recovery_resynchronises() {
     assert!(r_t.keyframes_applied > 0);
     // 2 s of silence is longer than the link's liveness limit (2.4 heartbeats): it must
     // have noticed the loss and joined again.
-    assert!(r_t.reconnects >= 1, "the trainee reconnected after the outage");
+    assert!(
+        r_t.reconnects >= 1,
+        "the trainee reconnected after the outage"
+    );
     let mut reports = vec![r_i, r_t];
     let series = fill_divergence(&mut reports).unwrap();
     let settled = settled_max(&series, 7.0);
