@@ -290,6 +290,28 @@ fn settled_max(series: &[cosurg::plot::Series], from: f64) -> f64 {
         .fold(0.0, f64::max)
 }
 
+/// The receiver's divergence from the owner over a finished session: during motion below
+/// [`MOTION_BOUND_MM`] (when `check_motion`), and below [`SETTLED_BOUND_MM`] from 7 s on,
+/// after the tools stopped. `what` names the situation in failure messages.
+fn assert_receiver_follows(
+    owner: SiteReport,
+    receiver: SiteReport,
+    check_motion: bool,
+    what: &str,
+) {
+    let mut reports = vec![owner, receiver];
+    let series = fill_divergence(&mut reports).unwrap();
+    if check_motion {
+        let max = reports[1].divergence_max_mm.unwrap();
+        assert!(max < MOTION_BOUND_MM, "divergence {max} mm {what}");
+    }
+    let settled = settled_max(&series, 7.0);
+    assert!(
+        settled < SETTLED_BOUND_MM,
+        "settled divergence {settled} mm {what}"
+    );
+}
+
 #[test]
 fn three_sites_follow_the_owners_grasp_and_lift() {
     let _serial = serial();
@@ -367,14 +389,8 @@ fn killed_site_rejoins_and_resynchronises() {
         r_trainee.sim_seconds > 0.0 && r_trainee.keyframes_applied > 0,
         "the rejoined site applied the snapshot and later keyframes"
     );
-    let mut reports = vec![r_instructor, r_trainee];
     // The rejoined site started at the session's time: compare where both recorded.
-    let series = fill_divergence(&mut reports).unwrap();
-    let settled = settled_max(&series, 7.0);
-    assert!(
-        settled < SETTLED_BOUND_MM,
-        "after rejoining, settled divergence {settled} mm"
-    );
+    assert_receiver_follows(r_instructor, r_trainee, false, "after rejoining");
 }
 
 #[test]
@@ -444,18 +460,7 @@ fn garbage_from_one_site_does_not_disturb_the_others() {
         dir.path().join("trainee.log"),
     );
     assert!(r_t.keyframes_applied > 0 && r_i.keyframes_sent > 0);
-    let mut reports = vec![r_i, r_t];
-    let series = fill_divergence(&mut reports).unwrap();
-    let max = reports[1].divergence_max_mm.unwrap();
-    assert!(
-        max < MOTION_BOUND_MM,
-        "divergence {max} mm with a rogue site"
-    );
-    let settled = settled_max(&series, 7.0);
-    assert!(
-        settled < SETTLED_BOUND_MM,
-        "settled divergence {settled} mm with a rogue site"
-    );
+    assert_receiver_follows(r_i, r_t, true, "with a rogue site");
 }
 
 /// Bounds under the `poor` preset (200 ± 30 ms one way, 10 % loss, on every site's own
@@ -503,18 +508,7 @@ fn poor_network_keeps_divergence_bounded_and_settles() {
         r_i.keyframes_sent > 0,
         "keyframes got through the poor path"
     );
-    let mut reports = vec![r_i, r_t];
-    let series = fill_divergence(&mut reports).unwrap();
-    let max = reports[1].divergence_max_mm.unwrap();
-    assert!(
-        max < MOTION_BOUND_MM,
-        "divergence {max} mm under the poor preset"
-    );
-    let settled = settled_max(&series, 7.0);
-    assert!(
-        settled < SETTLED_BOUND_MM,
-        "settled divergence {settled} mm under poor"
-    );
+    assert_receiver_follows(r_i, r_t, true, "under the poor preset");
 }
 
 /// 100 % loss on a trainee's link for 2 s in the middle of the lift, then recovery: the
@@ -552,11 +546,5 @@ fn total_outage_then_recovery_resynchronises() {
         r_t.reconnects >= 1,
         "the trainee reconnected after the outage"
     );
-    let mut reports = vec![r_i, r_t];
-    let series = fill_divergence(&mut reports).unwrap();
-    let settled = settled_max(&series, 7.0);
-    assert!(
-        settled < SETTLED_BOUND_MM,
-        "settled divergence {settled} mm after the outage"
-    );
+    assert_receiver_follows(r_i, r_t, false, "after the outage");
 }

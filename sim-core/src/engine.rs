@@ -103,6 +103,8 @@ pub struct Simulation {
     /// Nodes whose motion is prescribed for the next step (sync takeover): target
     /// position at the end of the step.
     prescribed: HashMap<NodeId, V3>,
+    /// Whether the last step had prescribed nodes (they must be freed again).
+    prescribed_last_step: bool,
     materials: Vec<sim_fem::Material>,
     material_names: Vec<String>,
     material_map: MaterialMap,
@@ -285,6 +287,7 @@ impl Simulation {
             k_extra: Vec::new(),
             fixed_scene: vec![false; cap],
             prescribed: HashMap::new(),
+            prescribed_last_step: false,
             materials,
             material_names,
             material_map: map,
@@ -418,15 +421,23 @@ impl Simulation {
         }
         // Prescribed nodes are Dirichlet nodes for this step; the FEM moves fixed nodes by
         // `dt v`, so their velocity is the one that reaches the target.
-        let alive: Vec<bool> = (0..self.lattice.node_capacity())
-            .map(|i| self.lattice.node_alive(NodeId(i as u32)))
-            .collect();
-        let fixed = self.effective_fixed(&alive);
-        let fem = self.fem.as_mut().expect("built above");
-        if fixed != self.fem_fixed {
-            fem.set_fixed(fixed.clone())?;
-            self.fem_fixed = fixed;
+        // The Dirichlet set changes only with prescriptions (a rebuild already used the
+        // current ones), so a step without them, after one without them, skips this.
+        if !report.rebuilt && (!self.prescribed.is_empty() || self.prescribed_last_step) {
+            let alive: Vec<bool> = (0..self.lattice.node_capacity())
+                .map(|i| self.lattice.node_alive(NodeId(i as u32)))
+                .collect();
+            let fixed = self.effective_fixed(&alive);
+            if fixed != self.fem_fixed {
+                self.fem
+                    .as_mut()
+                    .expect("built above")
+                    .set_fixed(fixed.clone())?;
+                self.fem_fixed = fixed;
+            }
         }
+        self.prescribed_last_step = !self.prescribed.is_empty();
+        let fem = self.fem.as_mut().expect("built above");
         for (n, target) in &self.prescribed {
             let i = n.0 as usize;
             self.v[i] = (target - self.x[i]) / dt;
