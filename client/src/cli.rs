@@ -80,6 +80,9 @@ pub struct SimKnobs {
     /// Switch the scene's tool-following refinement on or off.
     #[arg(long)]
     pub adaptivity: Option<bool>,
+    /// Threads of the FEM step (default 1: the step stays on the simulation thread).
+    #[arg(long)]
+    pub threads: Option<usize>,
 }
 
 impl SimKnobs {
@@ -98,6 +101,9 @@ impl SimKnobs {
         }
         if let Some(a) = self.sharing_angle {
             o.sharing_angle_deg = (a > 0.0).then_some(a);
+        }
+        if let Some(t) = self.threads {
+            o.threads = t.max(1);
         }
     }
 }

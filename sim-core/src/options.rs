@@ -39,6 +39,9 @@ pub struct SimOptions {
     pub contact: bool,
     /// Gravity (m/s²).
     pub gravity: Vector3<f64>,
+    /// Threads of the FEM step ([`StepParams::threads`]); 1 (default) keeps the step on
+    /// the simulation's own thread, as a site that runs a haptic loop beside it wants.
+    pub threads: usize,
 }
 
 impl SimOptions {
@@ -85,6 +88,7 @@ impl SimOptions {
             adaptivity: f.adaptivity,
             contact: f.contact,
             gravity: scene.gravity,
+            threads: 1,
         }
     }
 
@@ -104,6 +108,7 @@ impl SimOptions {
             rest_threshold: self.rest_threshold,
             newton: (self.model == Model::StVK).then_some(self.newton),
             fallback_angle_deg: self.fallback_angle_deg,
+            threads: self.threads,
         }
     }
 }

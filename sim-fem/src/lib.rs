@@ -11,6 +11,7 @@
 
 pub mod element;
 pub mod mesh;
+mod parallel;
 pub mod polar;
 pub mod solver;
 pub mod system;

@@ -126,10 +126,17 @@ pub fn pcg(
     if res.relative_residual <= params.tol {
         return res;
     }
+    // The vector updates of an iteration are fused into two passes over the unknowns (they
+    // cost as much as the sparse product on small meshes).
     for k in 0..params.max_iters {
         op.apply(&p, &mut ap);
-        project(&mut ap);
-        let pap = dot(&p, &ap);
+        let mut pap = 0.0;
+        for ((api, pi), f) in ap.iter_mut().zip(&p).zip(fixed) {
+            if *f {
+                *api = V3::zeros();
+            }
+            pap += pi.dot(api);
+        }
         if pap <= 0.0 || !pap.is_finite() {
             res.negative_curvature = true;
             if k == 0 {
@@ -139,19 +146,19 @@ pub fn pcg(
             return res;
         }
         let alpha = rz / pap;
+        let (mut rr, mut rz_new) = (0.0, 0.0);
         for i in 0..n {
             x[i] += p[i] * alpha;
             r[i] -= ap[i] * alpha;
+            rr += r[i].norm_squared();
+            z[i] = r[i].component_mul(&inv_diag[i]);
+            rz_new += r[i].dot(&z[i]);
         }
         res.iterations = k + 1;
-        res.relative_residual = dot(&r, &r).sqrt() / bnorm;
+        res.relative_residual = rr.sqrt() / bnorm;
         if res.relative_residual <= params.tol {
             break;
         }
-        for i in 0..n {
-            z[i] = r[i].component_mul(&inv_diag[i]);
-        }
-        let rz_new = dot(&r, &z);
         let beta = rz_new / rz;
         rz = rz_new;
         for i in 0..n {
@@ -168,6 +175,9 @@ pub struct BlockPattern {
     cols: Vec<usize>,
     diag: Vec<usize>,
     elem_slots: Vec<[usize; 16]>,
+    /// Per element, bit `4a + b` set when block `(a, b)` lies on or above the diagonal
+    /// (row node ≤ column node): the blocks a symmetric assembly stores.
+    elem_upper: Vec<u16>,
 }
 
 impl BlockPattern {
@@ -207,12 +217,31 @@ impl BlockPattern {
                 s
             })
             .collect();
+        let elem_upper = tets
+            .iter()
+            .map(|t| {
+                let mut m = 0u16;
+                for a in 0..4 {
+                    for b in 0..4 {
+                        if t[a] <= t[b] {
+                            m |= 1 << (4 * a + b);
+                        }
+                    }
+                }
+                m
+            })
+            .collect();
         Self {
             row_ptr,
             cols,
             diag,
             elem_slots,
+            elem_upper,
         }
+    }
+    /// Blocks of element `e` on or above the diagonal (bit `4a + b`).
+    pub fn element_upper(&self, e: usize) -> u16 {
+        self.elem_upper[e]
     }
     /// Number of 3×3 blocks.
     pub fn num_blocks(&self) -> usize {
@@ -235,5 +264,59 @@ impl BlockPattern {
             }
             *o = acc;
         }
+    }
+    /// `out = A p` for a symmetric `A` of which only the blocks on and above the diagonal
+    /// are stored (the others are ignored): each stored off-diagonal block is used twice,
+    /// as `A_ij p_j` and `A_ijᵀ p_i`, so half the matrix is read.
+    pub fn multiply_upper(&self, blocks: &[Matrix3<f64>], p: &[V3], out: &mut [V3]) {
+        self.multiply_upper_rows(blocks, p, 0, out.len(), out, &mut []);
+    }
+
+    /// Rows `start..end` of [`BlockPattern::multiply_upper`]: `rows` (length `end − start`)
+    /// receives those rows' products, `spill` (length `n − end`) the transposed products
+    /// that fall on later rows; both are overwritten.
+    pub fn multiply_upper_rows(
+        &self,
+        blocks: &[Matrix3<f64>],
+        p: &[V3],
+        start: usize,
+        end: usize,
+        rows: &mut [V3],
+        spill: &mut [V3],
+    ) {
+        rows.fill(V3::zeros());
+        spill.fill(V3::zeros());
+        for i in start..end {
+            let d = self.diag[i];
+            let pi = p[i];
+            let row_end = self.row_ptr[i + 1];
+            let mut acc = blocks[d] * pi;
+            for (b, &j) in blocks[d + 1..row_end]
+                .iter()
+                .zip(&self.cols[d + 1..row_end])
+            {
+                acc += b * p[j];
+                let t = b.tr_mul(&pi);
+                if j < end {
+                    rows[j - start] += t;
+                } else {
+                    spill[j - end] += t;
+                }
+            }
+            rows[i - start] += acc;
+        }
+    }
+
+    /// Stored blocks of each row under upper (symmetric) storage: the work of its row in
+    /// [`BlockPattern::multiply_upper`].
+    pub fn upper_row_work(&self) -> Vec<usize> {
+        (0..self.diag.len())
+            .map(|i| self.row_ptr[i + 1] - self.diag[i])
+            .collect()
+    }
+
+    /// Block range `[first, last)` holding the rows of nodes `start..end`.
+    pub fn row_block_range(&self, start: usize, end: usize) -> (usize, usize) {
+        (self.row_ptr[start], self.row_ptr[end])
     }
 }

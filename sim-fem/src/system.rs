@@ -16,6 +16,7 @@ use crate::FemError;
 use crate::element::{
     Mat12, Template, TetGeometry, apply_dense, apply_k_gradient, edge_matrix, k_lambda_mu, lame,
 };
+use crate::parallel::{Partition, multiply_upper_parts, split_ranges};
 use crate::polar::{PolarMethod, RotationExtractor, WarmStart};
 use crate::solver::{BlockPattern, CgResult, LinearOperator, SolverParams, pcg};
 
@@ -181,6 +182,11 @@ pub struct StepParams {
     /// as backward Euler with [`FALLBACK_NEWTON`] iterations (consistent tangent, line
     /// search on the incremental potential) instead. See [`StepStats::fallback`].
     pub fallback_angle_deg: f64,
+    /// Threads for the linearised step (1 = the calling thread only). With more, rotation
+    /// extraction, element forces, assembly and the sparse products of the assembled
+    /// operator run on a pool of that many threads (see `parallel.rs`); results equal the
+    /// sequential ones up to the order of floating-point sums.
+    pub threads: usize,
 }
 
 /// Newton control of the robust fallback step ([`StepParams::fallback_angle_deg`]).
@@ -201,6 +207,7 @@ impl Default for StepParams {
             rest_threshold: 0.0,
             newton: None,
             fallback_angle_deg: 0.0,
+            threads: 1,
         }
     }
 }
@@ -346,6 +353,18 @@ struct ExtractCount {
     max_change_sq: f64,
 }
 
+impl ExtractCount {
+    fn merge(self, o: Self) -> Self {
+        Self {
+            extracted: self.extracted + o.extracted,
+            reused: self.reused + o.reused,
+            iterations: self.iterations + o.iterations,
+            inverted: self.inverted + o.inverted,
+            max_change_sq: self.max_change_sq.max(o.max_change_sq),
+        }
+    }
+}
+
 #[derive(Clone, Copy, Debug)]
 struct MatData {
     lambda: f64,
@@ -386,6 +405,18 @@ pub struct FemSystem {
     k_ext: Vec<(usize, Matrix3<f64>)>,
     warm_dv: Vec<V3>,
     pattern: Option<BlockPattern>,
+    /// Element indices grouped by their current rotation source (assembly order), and
+    /// whether the assignment changed since it was built.
+    by_source: Vec<u32>,
+    by_source_stale: bool,
+    /// Block storage of the assembled operator, kept between steps to avoid reallocating.
+    block_buf: Vec<Matrix3<f64>>,
+    /// Thread pool of multi-threaded steps ([`StepParams::threads`]), built on first use.
+    pool: Option<std::sync::Arc<rayon::ThreadPool>>,
+    /// Threads of the step in progress (1 outside multi-threaded steps).
+    threads: usize,
+    /// Split of nodes and elements for `threads` (rebuilt with `by_source`).
+    partition: Option<Partition>,
 }
 
 fn gather(x: &[V3], n: &[usize; 4]) -> [V3; 4] {
@@ -591,6 +622,12 @@ impl FemSystem {
             k_ext: Vec::new(),
             warm_dv: vec![V3::zeros(); n],
             pattern: None,
+            by_source: Vec::new(),
+            by_source_stale: true,
+            block_buf: Vec::new(),
+            pool: None,
+            threads: 1,
+            partition: None,
         })
     }
 
@@ -678,6 +715,7 @@ impl FemSystem {
                 self.sources[e.source].users -= 1;
                 self.sources[new].users += 1;
                 e.source = new;
+                self.by_source_stale = true;
             }
         }
         Ok(())
@@ -849,14 +887,30 @@ impl FemSystem {
         rest_threshold: f64,
     ) -> (usize, usize, usize, usize) {
         let mut c = std::mem::take(&mut self.pending);
-        for s in &mut self.sources {
+        let pass = self.pass;
+        let visit = |s: &mut Source, c: &mut ExtractCount| {
             if s.fresh {
                 s.fresh = false;
-                continue;
-            }
-            if s.users > 0 {
-                extract_source(s, x, polar, rest_threshold, self.pass, &mut c);
+            } else if s.users > 0 {
+                extract_source(s, x, polar, rest_threshold, pass, c);
                 s.fresh = false;
+            }
+        };
+        if self.threads > 1 {
+            use rayon::prelude::*;
+            let counts = self
+                .sources
+                .par_iter_mut()
+                .with_min_len(64)
+                .fold(ExtractCount::default, |mut c, s| {
+                    visit(s, &mut c);
+                    c
+                })
+                .reduce(ExtractCount::default, ExtractCount::merge);
+            c = c.merge(counts);
+        } else {
+            for s in &mut self.sources {
+                visit(s, &mut c);
             }
         }
         self.pass += 1;
@@ -872,55 +926,94 @@ impl FemSystem {
         model: Model,
         mode: StiffnessMode,
         rotations: Option<&[Matrix3<f64>]>,
-        mut forces: Option<&mut [V3]>,
+        forces: Option<&mut [V3]>,
     ) -> f64 {
-        let mut energy = 0.0;
-        for (ei, e) in self.elements.iter().enumerate() {
-            let xe = gather(x, &e.nodes);
-            let xr = gather(&self.rest, &e.nodes);
-            let fe: [V3; 4] = match model {
-                Model::Linear => {
-                    let u = [xe[0] - xr[0], xe[1] - xr[1], xe[2] - xr[2], xe[3] - xr[3]];
-                    let y = self.apply_k0(ei, &u, mode);
-                    energy += 0.5 * (0..4).map(|a| u[a].dot(&y[a])).sum::<f64>();
-                    [-y[0], -y[1], -y[2], -y[3]]
-                }
-                Model::Corotational => {
-                    let r = self.element_rotation_of(ei, rotations);
-                    let rt = r.transpose();
-                    // Relative to node 0: K annihilates translations, so this equals
-                    // Rᵀx − X in K's range and cancels large translations exactly.
-                    let mut u = [V3::zeros(); 4];
-                    for a in 1..4 {
-                        u[a] = rt * (xe[a] - xe[0]) - (xr[a] - xr[0]);
-                    }
-                    let y = self.apply_k0(ei, &u, mode);
-                    energy += 0.5 * (0..4).map(|a| u[a].dot(&y[a])).sum::<f64>();
-                    [-(r * y[0]), -(r * y[1]), -(r * y[2]), -(r * y[3])]
-                }
-                Model::StVK => {
-                    let m = &self.materials[e.material];
-                    let f = edge_matrix(&xe) * e.dm_inv;
-                    let green = (f.transpose() * f - Matrix3::identity()) * 0.5;
-                    let tr = green.trace();
-                    energy += e.volume * (m.mu * green.norm_squared() + 0.5 * m.lambda * tr * tr);
-                    let s = green * (2.0 * m.mu) + Matrix3::identity() * (m.lambda * tr);
-                    let p = f * s * e.volume;
-                    [
-                        -(p * e.grads[0]),
-                        -(p * e.grads[1]),
-                        -(p * e.grads[2]),
-                        -(p * e.grads[3]),
-                    ]
-                }
-            };
-            if let Some(out) = forces.as_deref_mut() {
-                for a in 0..4 {
-                    out[e.nodes[a]] += fe[a];
-                }
+        let one = |ei: usize| self.element_force(ei, x, model, mode, rotations);
+        let Some(out) = forces else {
+            return (0..self.elements.len()).map(|ei| one(ei).0).sum();
+        };
+        let scatter = |out: &mut [V3], offset: usize, ei: usize| {
+            let (energy, fe) = one(ei);
+            for (&k, f) in self.elements[ei].nodes.iter().zip(&fe) {
+                out[k - offset] += f;
             }
+            energy
+        };
+        match &self.partition {
+            Some(part) if self.threads > 1 && part.parts() == self.threads => {
+                use rayon::prelude::*;
+                let inner: f64 = split_ranges(out, &part.node_start)
+                    .into_par_iter()
+                    .zip(part.elements.par_iter())
+                    .zip(part.node_start.par_iter())
+                    .map(|((rows, els), &start)| {
+                        els.iter()
+                            .map(|&ei| scatter(rows, start, ei as usize))
+                            .sum::<f64>()
+                    })
+                    .sum();
+                let edge: f64 = part
+                    .interface
+                    .iter()
+                    .map(|&ei| scatter(out, 0, ei as usize))
+                    .sum();
+                inner + edge
+            }
+            _ => (0..self.elements.len()).map(|ei| scatter(out, 0, ei)).sum(),
         }
-        energy
+    }
+
+    /// Elastic energy (J) and internal forces (N) of one element.
+    #[inline]
+    fn element_force(
+        &self,
+        ei: usize,
+        x: &[V3],
+        model: Model,
+        mode: StiffnessMode,
+        rotations: Option<&[Matrix3<f64>]>,
+    ) -> (f64, [V3; 4]) {
+        let e = &self.elements[ei];
+        let mut energy = 0.0;
+        let xe = gather(x, &e.nodes);
+        let xr = gather(&self.rest, &e.nodes);
+        let fe: [V3; 4] = match model {
+            Model::Linear => {
+                let u = [xe[0] - xr[0], xe[1] - xr[1], xe[2] - xr[2], xe[3] - xr[3]];
+                let y = self.apply_k0(ei, &u, mode);
+                energy += 0.5 * (0..4).map(|a| u[a].dot(&y[a])).sum::<f64>();
+                [-y[0], -y[1], -y[2], -y[3]]
+            }
+            Model::Corotational => {
+                let r = self.element_rotation_of(ei, rotations);
+                let rt = r.transpose();
+                // Relative to node 0: K annihilates translations, so this equals
+                // Rᵀx − X in K's range and cancels large translations exactly.
+                let mut u = [V3::zeros(); 4];
+                for a in 1..4 {
+                    u[a] = rt * (xe[a] - xe[0]) - (xr[a] - xr[0]);
+                }
+                let y = self.apply_k0(ei, &u, mode);
+                energy += 0.5 * (0..4).map(|a| u[a].dot(&y[a])).sum::<f64>();
+                [-(r * y[0]), -(r * y[1]), -(r * y[2]), -(r * y[3])]
+            }
+            Model::StVK => {
+                let m = &self.materials[e.material];
+                let f = edge_matrix(&xe) * e.dm_inv;
+                let green = (f.transpose() * f - Matrix3::identity()) * 0.5;
+                let tr = green.trace();
+                energy += e.volume * (m.mu * green.norm_squared() + 0.5 * m.lambda * tr * tr);
+                let s = green * (2.0 * m.mu) + Matrix3::identity() * (m.lambda * tr);
+                let p = f * s * e.volume;
+                [
+                    -(p * e.grads[0]),
+                    -(p * e.grads[1]),
+                    -(p * e.grads[2]),
+                    -(p * e.grads[3]),
+                ]
+            }
+        };
+        (energy, fe)
     }
 
     /// Consistent StVK tangent of one element at `x` (N/m):
@@ -1010,10 +1103,10 @@ impl FemSystem {
         mode: StiffnessMode,
         operator: OperatorMode,
     ) -> SysOp<'a> {
-        if operator == OperatorMode::Assembled && self.pattern.is_none() {
-            let conn: Vec<[usize; 4]> = self.elements.iter().map(|e| e.nodes).collect();
-            self.pattern = Some(BlockPattern::new(self.rest.len(), &conn));
+        if operator == OperatorMode::Assembled || self.threads > 1 {
+            self.refresh_order();
         }
+        let buf = std::mem::take(&mut self.block_buf);
         let this: &'a FemSystem = self;
         let mut op = SysOp {
             sys: this,
@@ -1024,9 +1117,52 @@ impl FemSystem {
             assembled: None,
         };
         if operator == OperatorMode::Assembled {
-            op.assemble();
+            op.assemble(buf);
         }
         op
+    }
+
+    /// Counting sort of the elements by their current rotation source (O(elements +
+    /// sources)), the order in which assembly visits them.
+    /// Brings the block pattern, the assembly order and (on multi-threaded steps) the
+    /// partition up to date.
+    fn refresh_order(&mut self) {
+        if self.pattern.is_none() {
+            let conn: Vec<[usize; 4]> = self.elements.iter().map(|e| e.nodes).collect();
+            self.pattern = Some(BlockPattern::new(self.rest.len(), &conn));
+        }
+        if self.by_source_stale {
+            self.group_by_source();
+        }
+    }
+
+    fn group_by_source(&mut self) {
+        let mut start = vec![0u32; self.sources.len() + 1];
+        for e in &self.elements {
+            start[e.source + 1] += 1;
+        }
+        for s in 0..self.sources.len() {
+            start[s + 1] += start[s];
+        }
+        self.by_source.clear();
+        self.by_source.resize(self.elements.len(), 0);
+        for (ei, e) in self.elements.iter().enumerate() {
+            let slot = &mut start[e.source];
+            self.by_source[*slot as usize] = ei as u32;
+            *slot += 1;
+        }
+        self.by_source_stale = false;
+        if self.threads > 1
+            && let Some(pat) = &self.pattern
+        {
+            let elements = &self.elements;
+            self.partition = Some(Partition::new(
+                self.threads,
+                &pat.upper_row_work(),
+                &self.by_source,
+                |e| elements[e].nodes,
+            ));
+        }
     }
 
     /// Deformation gradient `F = D_s D_m⁻¹` of element `ei` at `x`.
@@ -1100,7 +1236,46 @@ impl FemSystem {
     ///
     /// **Fixed nodes**: `Δv = 0` there (projection in CG); they move with the velocity the
     /// caller gives them (`x += dt v`), so prescribed motion = set `v` of fixed nodes.
+    ///
+    /// **Threads**: with [`StepParams::threads`] > 1 the step runs on a pool of that many
+    /// threads (built on first use, kept for the next steps).
     pub fn step(
+        &mut self,
+        x: &mut [V3],
+        v: &mut [V3],
+        f_ext: &[V3],
+        dt: f64,
+        p: &StepParams,
+    ) -> Result<StepStats, FemError> {
+        if p.threads <= 1 {
+            return self.step_on_this_thread(x, v, f_ext, dt, p);
+        }
+        let pool = match &self.pool {
+            Some(pool) if pool.current_num_threads() == p.threads => pool.clone(),
+            _ => {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(p.threads)
+                    .thread_name(|i| format!("cosurg-fem-{i}"))
+                    .build()
+                    .map_err(|e| {
+                        FemError::BadParameter(format!("{} FEM threads: {e}", p.threads))
+                    })?;
+                let pool = std::sync::Arc::new(pool);
+                self.pool = Some(pool.clone());
+                pool
+            }
+        };
+        if self.partition.as_ref().map(Partition::parts) != Some(p.threads) {
+            self.by_source_stale = true;
+        }
+        self.threads = p.threads;
+        // The whole step runs inside the pool so that each fork is a cheap work-steal.
+        let result = pool.install(|| self.step_on_this_thread(x, v, f_ext, dt, p));
+        self.threads = 1;
+        result
+    }
+
+    fn step_on_this_thread(
         &mut self,
         x: &mut [V3],
         v: &mut [V3],
@@ -1147,6 +1322,10 @@ impl FemSystem {
                 return Ok(s);
             }
         }
+        if self.threads > 1 {
+            // The parallel force loop needs the partition.
+            self.refresh_order();
+        }
         let mut fint = vec![V3::zeros(); n];
         self.elastic(x, p.model, p.stiffness, None, Some(&mut fint));
         let mass_coef: Vec<f64> = (0..n)
@@ -1186,7 +1365,7 @@ impl FemSystem {
             vec![V3::zeros(); n]
         };
         let res: CgResult = pcg(&op, &fixed, &rhs, &mut dv, &p.solver);
-        drop(op);
+        self.block_buf = op.into_blocks();
         stats.cg_iterations = res.iterations;
         stats.cg_residual = res.relative_residual;
         for i in 0..n {
@@ -1367,7 +1546,7 @@ impl FemSystem {
             let rhs: Vec<V3> = grad.iter().map(|g| -g).collect();
             let mut dx = vec![V3::zeros(); n];
             let res = pcg(&op, &fixed, &rhs, &mut dx, &p.solver);
-            drop(op);
+            self.block_buf = op.into_blocks();
             stats.cg_iterations += res.iterations;
             stats.cg_residual = res.relative_residual;
             let (nv, nr, ng) = line_search(self, x, &dx, &grad, val, |s, xt, g| {
@@ -1484,7 +1663,7 @@ impl FemSystem {
                 let rhs: Vec<V3> = grad.iter().map(|g| -g).collect();
                 let mut dx = vec![V3::zeros(); n];
                 let res = pcg(&op, &fixed, &rhs, &mut dx, &p.solver);
-                drop(op);
+                self.block_buf = op.into_blocks();
                 stats.cg_iterations += res.iterations;
                 let (nv, nr, ng) = line_search(self, x, &dx, &grad, val, |sys, xt, g| {
                     potential(sys, xt, s_try, g)
@@ -1617,32 +1796,196 @@ struct SysOp<'a> {
     assembled: Option<Vec<Matrix3<f64>>>,
 }
 
+/// The 16 3×3 blocks (index `4a + b`) of `R K Rᵀ` for a symmetric 12×12 `K` (`r = None`:
+/// `K` itself). Only the 10 blocks with `a ≤ b` are rotated; the others are their
+/// transposes.
+fn rotated_blocks(k: &Mat12, r: Option<&Matrix3<f64>>) -> [Matrix3<f64>; 16] {
+    let mut out = [Matrix3::zeros(); 16];
+    for a in 0..4 {
+        for b in a..4 {
+            let kab: Matrix3<f64> = k.fixed_view::<3, 3>(3 * a, 3 * b).into_owned();
+            let blk = match r {
+                Some(r) => r * kab * r.transpose(),
+                None => kab,
+            };
+            out[4 * a + b] = blk;
+            if a != b {
+                out[4 * b + a] = blk.transpose();
+            }
+        }
+    }
+    out
+}
+
+/// The 16 blocks of `R K Rᵀ` of an isotropic linear tet straight from its shape-function
+/// gradients `g` (1/m) and volume `v` (m³): `K_ab = v [λ g_a g_bᵀ + μ g_b g_aᵀ + μ (g_a·g_b)
+/// I]`, so with `r_a = R g_a` a rotated block is `v [λ r_a r_bᵀ + μ r_b r_aᵀ + μ (g_a·g_b)
+/// I]` — about a third of the flops of rotating each block of `K`.
+fn rotated_iso_blocks(
+    g: &[V3; 4],
+    v: f64,
+    lambda: f64,
+    mu: f64,
+    r: Option<&Matrix3<f64>>,
+    out: &mut [Matrix3<f64>; 16],
+) {
+    let rg = match r {
+        Some(r) => [r * g[0], r * g[1], r * g[2], r * g[3]],
+        None => *g,
+    };
+    for a in 0..4 {
+        for b in a..4 {
+            let mut blk =
+                rg[a] * rg[b].transpose() * (v * lambda) + rg[b] * rg[a].transpose() * (v * mu);
+            let d = v * mu * g[a].dot(&g[b]);
+            blk[(0, 0)] += d;
+            blk[(1, 1)] += d;
+            blk[(2, 2)] += d;
+            out[4 * a + b] = blk;
+            if a != b {
+                out[4 * b + a] = blk.transpose();
+            }
+        }
+    }
+}
+
+/// `blocks[slots[i]] += c · local[i]` for the blocks of one element whose bit is set in
+/// `mask` (all 16, or those on and above the diagonal for symmetric storage).
+#[inline]
+fn scatter_blocks(
+    blocks: &mut [Matrix3<f64>],
+    slots: &[usize; 16],
+    mask: u16,
+    local: &[Matrix3<f64>; 16],
+    c: f64,
+) {
+    for (i, (s, l)) in slots.iter().zip(local).enumerate() {
+        if mask & (1 << i) != 0 {
+            blocks[*s] += l * c;
+        }
+    }
+}
+
 impl SysOp<'_> {
-    fn element_matrix(&self, ei: usize) -> Mat12 {
-        match &self.elem {
-            ElemMats::Dense(m) => m[ei],
-            ElemMats::Rotated { coef, rotated } => {
-                let r = if *rotated {
-                    self.sys.sources[self.sys.elements[ei].source].rotation
-                } else {
-                    Matrix3::identity()
-                };
-                self.sys.rotated_k(ei, &r, self.mode) * coef[ei]
+    /// Hands back the assembled block storage (for reuse by the next step).
+    fn into_blocks(self) -> Vec<Matrix3<f64>> {
+        self.assembled.unwrap_or_default()
+    }
+
+    /// Adds `coef_e · R_e K_e R_eᵀ` (upper blocks) of `elements` (grouped by rotation
+    /// source) into `blocks`, which holds the pattern's blocks from index `offset` on.
+    /// With template stiffness `R C Rᵀ` is formed once per (source, template-material
+    /// combination) and shared by every element of the group, scaled by its size `h`: with
+    /// rotation sharing most elements then cost a scaled scatter only (the point of
+    /// combining sharing with templates).
+    fn add_rotated(
+        &self,
+        elements: &[u32],
+        blocks: &mut [Matrix3<f64>],
+        offset: usize,
+        coef: &[f64],
+        rotated: bool,
+    ) {
+        let sys = self.sys;
+        let pat = sys.pattern.as_ref().expect("pattern built");
+        let templated = matches!(
+            self.mode,
+            StiffnessMode::Template | StiffnessMode::TemplateSparse
+        );
+        // Per group: the combos seen and `R C Rᵀ` of each (C = template stiffness at unit
+        // size: the element's own blocks over its size h). Few per group.
+        const CACHE: usize = 8;
+        let mut cache_combo = [usize::MAX; CACHE];
+        let mut cache = [[Matrix3::zeros(); 16]; CACHE];
+        let mut cached = 0;
+        let mut group = usize::MAX;
+        let mut local = [Matrix3::zeros(); 16];
+        let mut slots = [0usize; 16];
+        for &ei in elements {
+            let ei = ei as usize;
+            let e = &sys.elements[ei];
+            for (s, abs) in slots.iter_mut().zip(pat.element_slots(ei)) {
+                *s = abs - offset;
+            }
+            // `R K Rᵀ` is symmetric: store the upper triangle only.
+            let upper = pat.element_upper(ei);
+            let r = rotated.then(|| &sys.sources[e.source].rotation);
+            let m = &sys.materials[e.material];
+            match (templated, e.template, self.mode) {
+                (true, Some((_, h)), _) => {
+                    // Unrotated: one group for all elements.
+                    let key = if rotated { e.source } else { 0 };
+                    if key != group {
+                        cached = 0;
+                        group = key;
+                    }
+                    let hit = cache_combo[..cached].iter().position(|c| *c == e.combo);
+                    let i = match hit {
+                        Some(i) => i,
+                        None => {
+                            // A full cache (rare) recycles its last entry.
+                            let i = cached.min(CACHE - 1);
+                            cached = (cached + 1).min(CACHE);
+                            cache_combo[i] = e.combo;
+                            let v = e.volume / h;
+                            rotated_iso_blocks(&e.grads, v, m.lambda, m.mu, r, &mut cache[i]);
+                            i
+                        }
+                    };
+                    scatter_blocks(blocks, &slots, upper, &cache[i], coef[ei] * h);
+                }
+                (_, _, StiffnessMode::Dense) => {
+                    let k0 = sys.k0_matrix(ei, self.mode);
+                    let k = rotated_blocks(&k0, r);
+                    scatter_blocks(blocks, &slots, upper, &k, coef[ei]);
+                }
+                _ => {
+                    rotated_iso_blocks(&e.grads, e.volume, m.lambda, m.mu, r, &mut local);
+                    scatter_blocks(blocks, &slots, upper, &local, coef[ei]);
+                }
             }
         }
     }
 
-    fn assemble(&mut self) {
-        let pat = self.sys.pattern.as_ref().expect("pattern built");
-        let mut blocks = vec![Matrix3::zeros(); pat.num_blocks()];
-        for ei in 0..self.sys.elements.len() {
-            let k = self.element_matrix(ei);
-            let slots = pat.element_slots(ei);
-            for a in 0..4 {
-                for b in 0..4 {
-                    blocks[slots[4 * a + b]] += k.fixed_view::<3, 3>(3 * a, 3 * b);
+    /// Assembles `A` into `blocks` (reused storage): element blocks (on the parts of a
+    /// multi-threaded step in parallel, then the interface), mass and external stiffness.
+    fn assemble(&mut self, mut blocks: Vec<Matrix3<f64>>) {
+        let sys = self.sys;
+        let pat = sys.pattern.as_ref().expect("pattern built");
+        blocks.clear();
+        blocks.resize(pat.num_blocks(), Matrix3::zeros());
+        match &self.elem {
+            ElemMats::Dense(m) => {
+                // Newton tangents (possibly unsymmetric): every block as given.
+                for (ei, k) in m.iter().enumerate() {
+                    let slots = pat.element_slots(ei);
+                    for a in 0..4 {
+                        for b in 0..4 {
+                            blocks[slots[4 * a + b]] += k.fixed_view::<3, 3>(3 * a, 3 * b);
+                        }
+                    }
                 }
             }
+            ElemMats::Rotated { coef, rotated } => match &sys.partition {
+                Some(part) if sys.threads > 1 && part.parts() == sys.threads => {
+                    use rayon::prelude::*;
+                    // A part's elements only touch its nodes' rows: a contiguous block range.
+                    let bounds: Vec<usize> = part
+                        .node_start
+                        .iter()
+                        .map(|&s| pat.row_block_range(s, s).0)
+                        .collect();
+                    split_ranges(&mut blocks, &bounds)
+                        .into_par_iter()
+                        .zip(part.elements.par_iter())
+                        .zip(bounds.par_iter())
+                        .for_each(|((b, els), &offset)| {
+                            self.add_rotated(els, b, offset, coef, *rotated)
+                        });
+                    self.add_rotated(&part.interface, &mut blocks, 0, coef, *rotated);
+                }
+                _ => self.add_rotated(&sys.by_source, &mut blocks, 0, coef, *rotated),
+            },
         }
         for (i, d) in pat.diagonal_slots().iter().enumerate() {
             blocks[*d] += Matrix3::identity() * self.mass_coef[i];
@@ -1657,11 +2000,16 @@ impl SysOp<'_> {
 impl LinearOperator for SysOp<'_> {
     fn apply(&self, p: &[V3], out: &mut [V3]) {
         if let Some(blocks) = &self.assembled {
-            self.sys
-                .pattern
-                .as_ref()
-                .expect("pattern")
-                .multiply(blocks, p, out);
+            let pat = self.sys.pattern.as_ref().expect("pattern");
+            match (&self.elem, &self.sys.partition) {
+                (ElemMats::Rotated { .. }, Some(part))
+                    if self.sys.threads > 1 && part.parts() == self.sys.threads =>
+                {
+                    multiply_upper_parts(pat, blocks, p, out, &part.node_start)
+                }
+                (ElemMats::Rotated { .. }, _) => pat.multiply_upper(blocks, p, out),
+                (ElemMats::Dense(_), _) => pat.multiply(blocks, p, out),
+            }
             return;
         }
         for (i, o) in out.iter_mut().enumerate() {
@@ -1746,5 +2094,75 @@ impl LinearOperator for SysOp<'_> {
             d[*k] += blk.diagonal() * self.ext_coef;
         }
         d
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Rotation3, SMatrix};
+
+    /// Element stiffness the textbook way, `V Bᵀ D B` with Voigt strains (independent of
+    /// the gradient formula under test).
+    fn voigt_stiffness(g: &[V3; 4], v: f64, lambda: f64, mu: f64) -> Mat12 {
+        let mut b = SMatrix::<f64, 6, 12>::zeros();
+        for (a, ga) in g.iter().enumerate() {
+            let (x, y, z) = (ga.x, ga.y, ga.z);
+            let c = 3 * a;
+            b[(0, c)] = x;
+            b[(1, c + 1)] = y;
+            b[(2, c + 2)] = z;
+            b[(3, c)] = y;
+            b[(3, c + 1)] = x;
+            b[(4, c + 1)] = z;
+            b[(4, c + 2)] = y;
+            b[(5, c)] = z;
+            b[(5, c + 2)] = x;
+        }
+        let mut d = SMatrix::<f64, 6, 6>::zeros();
+        for i in 0..3 {
+            for j in 0..3 {
+                d[(i, j)] = lambda;
+            }
+            d[(i, i)] += 2.0 * mu;
+            d[(i + 3, i + 3)] = mu;
+        }
+        b.transpose() * d * b * v
+    }
+
+    #[test]
+    fn rotated_gradient_blocks_match_rotated_voigt_stiffness() {
+        let x = [
+            V3::new(0.0, 0.0, 0.0),
+            V3::new(0.031, 0.002, -0.004),
+            V3::new(0.003, 0.027, 0.001),
+            V3::new(-0.002, 0.004, 0.022),
+        ];
+        let geom = TetGeometry::new(&x).unwrap();
+        let (lambda, mu) = lame(1e5, 0.45);
+        let k = voigt_stiffness(&geom.grads, geom.volume, lambda, mu);
+        let r = *Rotation3::from_scaled_axis(V3::new(0.7, -1.1, 0.4)).matrix();
+        let mut big_r = Mat12::zeros();
+        for a in 0..4 {
+            big_r.fixed_view_mut::<3, 3>(3 * a, 3 * a).copy_from(&r);
+        }
+        let expect = big_r * k * big_r.transpose();
+        let mut got = [Matrix3::zeros(); 16];
+        rotated_iso_blocks(&geom.grads, geom.volume, lambda, mu, Some(&r), &mut got);
+        let via_blocks = rotated_blocks(&k, Some(&r));
+        let scale = expect.amax();
+        for a in 0..4 {
+            for b in 0..4 {
+                let e = expect.fixed_view::<3, 3>(3 * a, 3 * b).into_owned();
+                assert!(
+                    (got[4 * a + b] - e).amax() < 1e-12 * scale,
+                    "iso block ({a},{b})"
+                );
+                assert!(
+                    (via_blocks[4 * a + b] - e).amax() < 1e-12 * scale,
+                    "block ({a},{b})"
+                );
+            }
+        }
     }
 }

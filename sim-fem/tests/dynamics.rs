@@ -319,6 +319,65 @@ fn operator_and_kernel_variants_give_the_same_step() {
 }
 
 #[test]
+fn threaded_step_matches_sequential() {
+    // 2 and 3 threads against 1, with the real-time CG budget (truncated, warm-started:
+    // the result depends on every rounding, so this checks the parallel loops and the
+    // split sparse product do the same arithmetic up to summation order), on a beam
+    // deformed by 20 steps of gravity first so that rotations are far from identity.
+    let g = V3::new(0.0, 0.0, -9.81);
+    let base = |threads: usize, model: Model| StepParams {
+        gravity: g,
+        model,
+        solver: SolverParams {
+            max_iters: 30,
+            tol: 1e-8,
+            warm_start: true,
+        },
+        threads,
+        ..Default::default()
+    };
+    for model in [Model::Corotational, Model::Linear] {
+        let (mesh, mut sys) = beam([12, 3, 3], soft(), true);
+        let zero = vec![V3::zeros(); mesh.rest.len()];
+        let (mut x, mut v) = (mesh.rest.clone(), zero.clone());
+        for _ in 0..20 {
+            sys.step(&mut x, &mut v, &zero, 0.01, &base(1, model))
+                .unwrap();
+        }
+        let mut one = None;
+        for threads in [1, 2, 3] {
+            let mut s = sys.clone();
+            let (mut xt, mut vt) = (x.clone(), v.clone());
+            let mut stats = Vec::new();
+            for _ in 0..3 {
+                stats.push(
+                    s.step(&mut xt, &mut vt, &zero, 0.01, &base(threads, model))
+                        .unwrap(),
+                );
+            }
+            match &one {
+                None => one = Some((xt, stats)),
+                Some((x1, s1)) => {
+                    let d = xt
+                        .iter()
+                        .zip(x1)
+                        .map(|(a, b)| (a - b).norm())
+                        .fold(0.0, f64::max);
+                    assert!(
+                        d < 1e-12,
+                        "{model:?}, {threads} threads: {d} m from 1 thread"
+                    );
+                    for (a, b) in stats.iter().zip(s1) {
+                        assert_eq!(a.cg_iterations, b.cg_iterations);
+                        assert_eq!(a.rotations_extracted, b.rotations_extracted);
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[test]
 fn stiffness_range_and_time_steps_stay_bounded() {
     // E = 1e4 Pa (the beam folds down under gravity) and 1e6 Pa, dt = 0.5 ms and 33 ms,
     // 1 s of simulated time, real-time CG budget (25 iterations, warm start).

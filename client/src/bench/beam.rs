@@ -81,6 +81,8 @@ pub struct Knobs {
     pub newton_tolerance_n: Option<f64>,
     /// Bisection depth of the lattice below the root cubes (uniform refinement).
     pub refinement_depth: u32,
+    /// Threads of the FEM step (1 = single-threaded).
+    pub threads: usize,
 }
 
 /// A run's knobs before they are applied to [`SimOptions`].
@@ -98,6 +100,8 @@ pub struct RunConfig {
     pub newton: NewtonParams,
     /// Uniform refinement (bisection levels) of every root tet before the run.
     pub depth: u32,
+    /// Threads of the FEM step.
+    pub threads: usize,
 }
 
 /// Rest threshold of the skip-rest speed-up (m): the scene default.
@@ -122,6 +126,7 @@ impl RunConfig {
                 tol: 1e-6,
             },
             depth: 0,
+            threads: 1,
         }
     }
     /// Every speed-up off: SVD, no sharing, dense element matrices, no skip-rest.
@@ -169,6 +174,7 @@ impl RunConfig {
             warm_start: false,
         };
         o.newton = self.newton;
+        o.threads = self.threads;
         o
     }
 
@@ -189,6 +195,7 @@ impl RunConfig {
             newton_iterations: nonlinear.then_some(self.newton.max_iters),
             newton_tolerance_n: nonlinear.then_some(self.newton.tol),
             refinement_depth: self.depth,
+            threads: options.threads,
         }
     }
 }

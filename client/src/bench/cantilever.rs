@@ -88,6 +88,8 @@ pub struct RunRow {
 
 #[derive(Clone, Debug, Serialize)]
 pub struct KhzPoint {
+    /// FEM step threads.
+    pub threads: usize,
     pub cell: f64,
     pub tets: usize,
     pub step_ms_p50: f64,
@@ -104,6 +106,8 @@ pub struct PeerRow {
     pub tip_z_disp_m: f64,
     /// Our co-rotational all-on p50 for the same mesh, dt and material (ms).
     pub cosurg_corot_p50_ms: Option<f64>,
+    /// The same on two threads (ms).
+    pub cosurg_corot_2_threads_p50_ms: Option<f64>,
     pub note: String,
 }
 
@@ -125,6 +129,8 @@ pub struct CantileverReport {
     pub khz_sweep: Vec<KhzPoint>,
     /// Largest mesh whose co-rotational (all-on) step p50 ≤ 1 ms at dt 1 ms, one core.
     pub largest_1khz: Option<KhzPoint>,
+    /// The same with the step on two threads.
+    pub largest_1khz_2_threads: Option<KhzPoint>,
     pub peers: Vec<PeerRow>,
     pub wall_s: f64,
 }
@@ -140,6 +146,7 @@ fn variants(all: bool) -> Vec<RunConfig> {
         on().with("no-sharing", |c| c.sharing_angle_deg = 0.0),
         on().with("dense", |c| c.template_stiffness = false),
         on().with("polar-svd", |c| c.polar = Polar::Svd),
+        on().with(TWO_THREADS, |c| c.threads = 2),
     ];
     if all {
         v.push(RunConfig::all_off(Model::Corotational));
@@ -179,6 +186,7 @@ pub fn run(args: CantileverArgs) -> Result<()> {
                         RunConfig::all_on(Model::Linear).with("default", |_| {}),
                         RunConfig::all_on(Model::Corotational),
                         RunConfig::all_off(Model::Corotational),
+                        RunConfig::all_on(Model::Corotational).with(TWO_THREADS, |c| c.threads = 2),
                     ]
                 } else {
                     variants(args.full || !expensive)
@@ -259,11 +267,13 @@ pub fn run(args: CantileverArgs) -> Result<()> {
     } else {
         khz_sweep()?
     };
-    let largest_1khz = khz
-        .iter()
-        .filter(|p| p.step_ms_p50 <= 1.0)
-        .max_by_key(|p| p.tets)
-        .cloned();
+    let largest = |threads: usize| {
+        khz.iter()
+            .filter(|p| p.threads == threads && p.step_ms_p50 <= 1.0)
+            .max_by_key(|p| p.tets)
+            .cloned()
+    };
+    let (largest_1khz, largest_1khz_2_threads) = (largest(1), largest(2));
     let peers = match &args.peer {
         Some(script) => run_peers(script, &cells, &dts, t_end, &rows)?,
         None => Vec::new(),
@@ -276,6 +286,7 @@ pub fn run(args: CantileverArgs) -> Result<()> {
         runs: rows,
         khz_sweep: khz,
         largest_1khz,
+        largest_1khz_2_threads,
         peers,
         wall_s: wall.elapsed().as_secs_f64(),
     };
@@ -347,7 +358,11 @@ fn group_key(r: &RunRow) -> String {
     format!("{} {:.1}mm dt{}ms", r.material, r.cell * 1e3, r.dt * 1e3)
 }
 
-/// p50 of each single-technique-off variant over p50 of all-on, per group.
+/// Variant label of the all-on configuration stepped on two threads.
+const TWO_THREADS: &str = "all-on-2-threads";
+
+/// p50 of each single-technique-off variant over p50 of all-on, per group (and all-on
+/// over all-on on two threads: what the second core gives).
 fn speedups(rows: &[RunRow]) -> Vec<Speedup> {
     let techniques = [
         ("rotation sharing (θ 5° vs off)", "no-sharing"),
@@ -357,6 +372,7 @@ fn speedups(rows: &[RunRow]) -> Vec<Speedup> {
         ("polar Byers-Xu (vs Müller)", "polar-muller"),
         ("skip-rest (vs off)", "no-skip-rest"),
         ("all speed-ups (vs all off)", "all-off"),
+        ("second core (2 threads vs 1)", TWO_THREADS),
     ];
     let mut on: BTreeMap<String, f64> = BTreeMap::new();
     for r in rows
@@ -372,8 +388,14 @@ fn speedups(rows: &[RunRow]) -> Vec<Speedup> {
                 .iter()
                 .filter(|r| r.model == "corotational" && r.options.variant == *variant)
                 .filter_map(|r| {
-                    on.get(&group_key(r))
-                        .map(|p| (group_key(r), r.step_ms_p50 / p))
+                    on.get(&group_key(r)).map(|p| {
+                        let ratio = if *variant == TWO_THREADS {
+                            p / r.step_ms_p50
+                        } else {
+                            r.step_ms_p50 / p
+                        };
+                        (group_key(r), ratio)
+                    })
                 })
                 .collect();
             if per_group.is_empty() {
@@ -401,30 +423,37 @@ const KHZ_CELLS: [f64; 8] = [
     0.01,
 ];
 
-/// Co-rotational (all-on), soft beam, dt 1 ms, 0.3 s per mesh until the p50 exceeds 1 ms.
+/// Co-rotational (all-on), soft beam, dt 1 ms, 0.3 s per mesh until the p50 exceeds 1 ms;
+/// on one thread, then on two.
 fn khz_sweep() -> Result<Vec<KhzPoint>> {
     let mut out = Vec::new();
-    let bar = ProgressBar::new(KHZ_CELLS.len() as u64);
+    let bar = ProgressBar::new(2 * KHZ_CELLS.len() as u64);
     bar.set_style(
         ProgressStyle::with_template("{bar:40} {pos}/{len} 1 kHz sweep {msg}").expect("static"),
     );
-    for cell in KHZ_CELLS {
-        let scene = cantilever_with(1e5, cell)?;
-        let rc = RunConfig::all_on(Model::Corotational);
-        let (sim, _) = build(&scene, &rc, 0.001)?;
-        let (t, _) = simulate(sim, 300, 1000, &ProgressBar::hidden())?;
-        let p = KhzPoint {
-            cell,
-            tets: t.tets,
-            step_ms_p50: t.p50(),
-            step_ms_p99: t.p99(),
-        };
-        bar.set_message(format!("{} tets: {:.3} ms", p.tets, p.step_ms_p50));
-        bar.inc(1);
-        let over = p.step_ms_p50 > 1.0;
-        out.push(p);
-        if over {
-            break;
+    for threads in [1, 2] {
+        for cell in KHZ_CELLS {
+            let scene = cantilever_with(1e5, cell)?;
+            let rc = RunConfig::all_on(Model::Corotational).with("all-on", |c| c.threads = threads);
+            let (sim, _) = build(&scene, &rc, 0.001)?;
+            let (t, _) = simulate(sim, 300, 1000, &ProgressBar::hidden())?;
+            let p = KhzPoint {
+                threads,
+                cell,
+                tets: t.tets,
+                step_ms_p50: t.p50(),
+                step_ms_p99: t.p99(),
+            };
+            bar.set_message(format!(
+                "{threads} thread(s), {} tets: {:.3} ms",
+                p.tets, p.step_ms_p50
+            ));
+            bar.inc(1);
+            let over = p.step_ms_p50 > 1.0;
+            out.push(p);
+            if over {
+                break;
+            }
         }
     }
     bar.finish_and_clear();
@@ -476,16 +505,17 @@ fn run_peers(
             let text = std::fs::read_to_string(&file)
                 .with_context(|| format!("reading {}", file.display()))?;
             let v: serde_json::Value = serde_json::from_str(&text)?;
-            let ours = rows
-                .iter()
-                .find(|r| {
-                    r.model == "corotational"
-                        && r.options.variant == "all-on"
-                        && r.material == "soft"
-                        && (r.cell - cell).abs() < 1e-9
-                        && (r.dt - dt).abs() < 1e-12
-                })
-                .map(|r| r.step_ms_p50);
+            let ours = |variant: &str| {
+                rows.iter()
+                    .find(|r| {
+                        r.model == "corotational"
+                            && r.options.variant == variant
+                            && r.material == "soft"
+                            && (r.cell - cell).abs() < 1e-9
+                            && (r.dt - dt).abs() < 1e-12
+                    })
+                    .map(|r| r.step_ms_p50)
+            };
             out.push(PeerRow {
                 peer: format!("mujoco {}", v["version"].as_str().unwrap_or("?")),
                 mesh: mesh.into(),
@@ -493,7 +523,8 @@ fn run_peers(
                 dt,
                 median_ms: v["median_ms"].as_f64().unwrap_or(f64::NAN),
                 tip_z_disp_m: v["tip_z_disp_m"].as_f64().unwrap_or(f64::NAN),
-                cosurg_corot_p50_ms: ours,
+                cosurg_corot_p50_ms: ours("all-on"),
+                cosurg_corot_2_threads_p50_ms: ours(TWO_THREADS),
                 note: "StVK flex, implicit (discrete), Rayleigh β = 0.3 s; cosurg runs undamped"
                     .into(),
             });
@@ -600,10 +631,11 @@ fn print_table(r: &CantileverReport) {
         }
     }
     if !r.khz_sweep.is_empty() {
-        println!("\n1 kHz sweep (co-rotational all-on, soft, dt 1 ms, one core):");
+        println!("\n1 kHz sweep (co-rotational all-on, soft, dt 1 ms):");
         for p in &r.khz_sweep {
             println!(
-                "  cell {:>6.2} mm  {:>6} tets  p50 {:.3} ms  p99 {:.3} ms",
+                "  {} thread(s)  cell {:>6.2} mm  {:>6} tets  p50 {:.3} ms  p99 {:.3} ms",
+                p.threads,
                 p.cell * 1e3,
                 p.tets,
                 p.step_ms_p50,
@@ -619,10 +651,18 @@ fn print_table(r: &CantileverReport) {
             ),
             None => println!("no mesh of the sweep steps at 1 kHz"),
         }
+        if let Some(p) = &r.largest_1khz_2_threads {
+            println!(
+                "largest mesh stepping at 1 kHz on two threads: {} tets (cell {:.2} mm, p50 {:.3} ms)",
+                p.tets,
+                p.cell * 1e3,
+                p.step_ms_p50
+            );
+        }
     }
     for p in &r.peers {
         println!(
-            "peer {} {} ({} tets) dt {} ms: median {:.3} ms/step, tip dz {:.4} m; cosurg corotational all-on p50 {} ms ({})",
+            "peer {} {} ({} tets) dt {} ms: median {:.3} ms/step, tip dz {:.4} m; cosurg corotational all-on p50 {} ms, on 2 threads {} ms ({})",
             p.peer,
             p.mesh,
             p.tets,
@@ -630,6 +670,8 @@ fn print_table(r: &CantileverReport) {
             p.median_ms,
             p.tip_z_disp_m,
             p.cosurg_corot_p50_ms
+                .map_or("-".into(), |v| format!("{v:.3}")),
+            p.cosurg_corot_2_threads_p50_ms
                 .map_or("-".into(), |v| format!("{v:.3}")),
             p.note
         );
