@@ -691,9 +691,12 @@ impl Simulation {
         let rest = self.rest_positions();
         let params = self.options.step_params();
         let fem = self.fem()?;
-        // Co-rotational elastic energy with the rotations of the last step (those of the
-        // previous positions): exact at rest, O(dt) off while moving.
-        let elastic = fem.elastic(&x, params.model, params.stiffness, None, None);
+        // Co-rotational elastic energy with the rotations at the current positions (the
+        // stored ones are those of the previous step: for an inverted element whose
+        // rotation flipped in the step they would be far off), extracted without touching
+        // the stored state.
+        let rotations = fem.compute_rotations(&x, &params.polar);
+        let elastic = fem.elastic(&x, params.model, params.stiffness, Some(&rotations), None);
         Ok(
             elastic + fem.kinetic_energy(&v) + fem.gravity_energy(&x, &g)
                 - fem.gravity_energy(&rest, &g),

@@ -42,6 +42,8 @@ pub struct SimOptions {
     /// Threads of the FEM step ([`StepParams::threads`]); 1 (default) keeps the step on
     /// the simulation's own thread, as a site that runs a haptic loop beside it wants.
     pub threads: usize,
+    /// Energy guard of the co-rotational step ([`StepParams::energy_guard`]); on by default.
+    pub energy_guard: bool,
 }
 
 impl SimOptions {
@@ -89,6 +91,7 @@ impl SimOptions {
             contact: f.contact,
             gravity: scene.gravity,
             threads: 1,
+            energy_guard: true,
         }
     }
 
@@ -109,6 +112,7 @@ impl SimOptions {
             newton: (self.model == Model::StVK).then_some(self.newton),
             fallback_angle_deg: self.fallback_angle_deg,
             threads: self.threads,
+            energy_guard: self.energy_guard,
         }
     }
 }

@@ -17,6 +17,13 @@
 //! to single cubes. Leaves of a cube that fails the test extract their own rotation.
 //! θ_tol = 0 disables sharing.
 //!
+//! Two rules keep the shared forces continuous where the field is not smooth: a block that
+//! holds an inverted element (det F ≤ 0, a signed-volume test per element) never shares,
+//! and a block whose leaves used their own rotations in the previous step starts sharing
+//! again only when its neighbours agree within θ_tol / 2 (hysteresis). Without them a pull
+//! through inversion switched blocks between shared and own rotations every step and each
+//! switch released tens of J (`cosurg bench stress`).
+//!
 //! Block rotations are extracted lazily by the FEM system
 //! ([`FemSystem::shared_source_rotation`]) only for the blocks the test visits (and their
 //! neighbours); the FEM then extracts only the sources some element references
@@ -60,6 +67,9 @@ pub(crate) struct SharingUpdate {
 pub(crate) struct RotationSharing {
     /// `‖R_m − R_n‖²_F` threshold; `None`: sharing off.
     threshold_sq: Option<f64>,
+    /// Stricter threshold (θ_tol / 2) for a block whose leaves did not share a rotation
+    /// in the previous update to start sharing again (see [`RotationSharing::update`]).
+    enter_threshold_sq: f64,
     /// Blocks, finest level first (so coarser blocks come later; the top-down pass walks
     /// the array backwards).
     blocks: Vec<Block>,
@@ -77,6 +87,9 @@ impl RotationSharing {
             threshold_sq: angle_deg
                 .filter(|a| *a > 0.0)
                 .map(|a| sim_fem::rotation_threshold_sq(a.to_radians())),
+            enter_threshold_sq: angle_deg.map_or(0.0, |a| {
+                sim_fem::rotation_threshold_sq(0.5 * a.to_radians())
+            }),
             ..Default::default()
         }
     }
@@ -231,6 +244,32 @@ impl RotationSharing {
         let mut out = SharingUpdate::default();
         let polar = options.polar;
         let rest = options.rest_threshold;
+        // Hysteresis: leaves keep their block's rotation while the test holds at θ_tol, but
+        // a block whose leaves extracted their own rotations last time starts sharing only
+        // when its neighbours agree within θ_tol / 2. Without it, a block whose neighbour
+        // differences sit at the threshold (a tangled or inverted region at rest) switches
+        // between shared and own rotations every step, and each switch changes the elastic
+        // forces discontinuously: the body never comes to rest (`cosurg bench stress`).
+        let was_shared: Vec<bool> = self.assigned.iter().map(Option::is_some).collect();
+        // A block holding an inverted element never shares: an inverted leaf's elastic
+        // force and energy under a foreign rotation differ wildly from those under its own
+        // (inversion-aware) one, and switching between the two as the block passes and
+        // fails the test injected tens of J per switch into a pull through inversion.
+        // Blocks are stored finest first with parents later, so one forward pass
+        // propagates the flag upwards.
+        let mut inverted = vec![false; self.blocks.len()];
+        for (ei, &b) in self.element_block.iter().enumerate() {
+            if !inverted[b] && fem.element_inverted(ei, x) {
+                inverted[b] = true;
+            }
+        }
+        for bi in 0..self.blocks.len() {
+            if inverted[bi]
+                && let Some(p) = self.blocks[bi].parent
+            {
+                inverted[p] = true;
+            }
+        }
         // Blocks are stored finest level first: walk backwards = coarsest first, so a
         // block's parent is decided before the block.
         for bi in (0..self.blocks.len()).rev() {
@@ -243,12 +282,17 @@ impl RotationSharing {
             }
             out.blocks_tested += 1;
             let neighbours = b.neighbours;
-            let mut coherent = neighbours.iter().any(Option::is_some);
+            let mut coherent = !inverted[bi] && neighbours.iter().any(Option::is_some);
             if coherent {
                 let rm = fem.shared_source_rotation(bi, x, &polar, rest);
+                let limit = if was_shared[bi] {
+                    thr
+                } else {
+                    self.enter_threshold_sq
+                };
                 for n in neighbours.into_iter().flatten() {
                     let rn = fem.shared_source_rotation(n, x, &polar, rest);
-                    if (rm - rn).norm_squared() >= thr {
+                    if (rm - rn).norm_squared() >= limit {
                         coherent = false;
                         break;
                     }

@@ -86,6 +86,53 @@ fn rigid_rotation_shares_everywhere_and_stays_force_free() {
 
 /// Bends the soft beam under gravity for 0.3 s at dt = 10 ms; returns the node positions
 /// and the total number of rotation extractions.
+#[test]
+fn blocks_holding_inverted_elements_do_not_share() {
+    // A rigidly rotated beam shares everywhere; push one interior node through its
+    // neighbours and the blocks around it must fall back to the leaves' own rotations,
+    // while the far end still shares.
+    let mut s = sim(Some(5.0), false, 0.01);
+    let elements = s.fem().unwrap().num_elements();
+    let rot = Rotation3::from_euler_angles(0.3, 0.2, -0.5).into_inner();
+    let nodes = live(&s);
+    let pushed = nodes
+        .iter()
+        .copied()
+        .min_by(|a, b| {
+            let d = |n: NodeId| (s.lattice().node_rest(n) - V3::new(0.2, 0.05, 0.05)).norm();
+            d(*a).total_cmp(&d(*b))
+        })
+        .unwrap();
+    for n in nodes {
+        let mut p = s.lattice().node_rest(n);
+        if n == pushed {
+            p += V3::new(0.0, 0.0, 0.06); // 2.4 cells up: through the tets above it
+        }
+        s.set_node_state(n, rot * p, V3::zeros());
+    }
+    let x0 = s.positions().to_vec();
+    let inverted: Vec<usize> = {
+        let fem = s.fem().unwrap();
+        (0..elements)
+            .filter(|&e| fem.element_inverted(e, &x0))
+            .collect()
+    };
+    assert!(!inverted.is_empty(), "the push inverts elements");
+    let r = s.step().unwrap();
+    let fem = s.fem().unwrap();
+    for &e in &inverted {
+        assert!(
+            fem.element_source(e).is_none(),
+            "inverted element {e} shares a rotation"
+        );
+    }
+    assert!(
+        r.shared_rotations > elements / 4,
+        "{} of {elements} share",
+        r.shared_rotations
+    );
+}
+
 fn bend(angle: Option<f64>) -> (Vec<V3>, usize, usize) {
     let mut s = sim(angle, true, 0.01);
     let mut extracted = 0;

@@ -187,6 +187,14 @@ pub struct StepParams {
     /// operator run on a pool of that many threads (see `parallel.rs`); results equal the
     /// sequential ones up to the order of floating-point sums.
     pub threads: usize,
+    /// Energy guard of the linearised co-rotational step: on steps that start with
+    /// inverted elements (whose rotation can jump as they pass through degenerate shapes)
+    /// and no prescribed motion, the step is redone with the Newton fallback
+    /// ([`FALLBACK_NEWTON`]) when it raised the total energy (elastic + kinetic +
+    /// gravitational) by more than the external forces' work. Backward Euler must not
+    /// create energy; without the guard a pull through inversion can gain tens of J in one
+    /// step. Costs one extra rotation pass and energy evaluation on those steps only.
+    pub energy_guard: bool,
 }
 
 /// Newton control of the robust fallback step ([`StepParams::fallback_angle_deg`]).
@@ -208,6 +216,7 @@ impl Default for StepParams {
             newton: None,
             fallback_angle_deg: 0.0,
             threads: 1,
+            energy_guard: false,
         }
     }
 }
@@ -233,8 +242,12 @@ pub struct StepStats {
     pub polar_iterations: usize,
     /// Sources found inverted (det F ≤ 0).
     pub inverted: usize,
-    /// The linearised step fell back to Newton ([`StepParams::fallback_angle_deg`]).
+    /// The linearised step fell back to Newton ([`StepParams::fallback_angle_deg`], or
+    /// the energy guard: see `energy_guard`).
     pub fallback: bool,
+    /// The step was redone with Newton because the linearised one created energy
+    /// ([`StepParams::energy_guard`]).
+    pub energy_guard: bool,
     /// Largest rotation change of a source since the previous step, as
     /// `‖R_new − R_old‖²_F = 4(1 − cos θ)` (0 when none was extracted).
     pub max_rotation_change_sq: f64,
@@ -773,6 +786,19 @@ impl FemSystem {
     /// Remove all external stiffness blocks.
     pub fn clear_external_stiffness(&mut self) {
         self.k_ext.clear();
+    }
+
+    /// Whether some element has `det F ≤ 0` at `x`.
+    pub fn any_inverted(&self, x: &[V3]) -> bool {
+        (0..self.elements.len()).any(|ei| self.element_inverted(ei, x))
+    }
+
+    /// Whether element `ei` has `det F ≤ 0` at `x`: rest elements are positively oriented,
+    /// so this is the sign of `det D_s = (b − a)·((c − a) × (d − a))`.
+    #[inline]
+    pub fn element_inverted(&self, ei: usize, x: &[V3]) -> bool {
+        let [a, b, c, d] = gather(x, &self.elements[ei].nodes);
+        (b - a).dot(&(c - a).cross(&(d - a))) <= 0.0
     }
 
     /// Rest volume of all elements (m³).
@@ -1327,7 +1353,25 @@ impl FemSystem {
             self.refresh_order();
         }
         let mut fint = vec![V3::zeros(); n];
-        self.elastic(x, p.model, p.stiffness, None, Some(&mut fint));
+        let elastic_n = self.elastic(x, p.model, p.stiffness, None, Some(&mut fint));
+        // Energy guard: only where rotations can jump (elements inverted before or after
+        // the step, checked below) and no boundary moves (its work is not known here).
+        let guard = (p.energy_guard
+            && p.model == Model::Corotational
+            && !self
+                .fixed
+                .iter()
+                .zip(v.iter())
+                .any(|(f, vi)| *f && *vi != V3::zeros()))
+        .then(|| {
+            let energy = elastic_n + self.kinetic_energy(v) + self.gravity_energy(x, &p.gravity);
+            (
+                x.to_vec(),
+                v.to_vec(),
+                energy,
+                elastic_n + self.kinetic_energy(v),
+            )
+        });
         let mass_coef: Vec<f64> = (0..n)
             .map(|i| self.mass[i] + dt * self.mass_damping[i])
             .collect();
@@ -1378,6 +1422,41 @@ impl FemSystem {
             return Err(FemError::NonFinite);
         }
         self.warm_dv = dv;
+        if let Some((x0, v0, energy_n, scale)) = guard
+            && (stats.inverted > 0 || self.any_inverted(x))
+        {
+            // Energy at x_{n+1} with its own rotations (stored state untouched).
+            let rotations = self.compute_rotations(x, &p.polar);
+            let elastic = self.elastic(x, p.model, p.stiffness, Some(&rotations), None);
+            let energy = elastic + self.kinetic_energy(v) + self.gravity_energy(x, &p.gravity);
+            let work: f64 = (0..n)
+                .filter(|&i| !fixed[i])
+                .map(|i| f_ext[i].dot(&(x[i] - x0[i])))
+                .sum();
+            // Round-off allowance: 1e-6 of the elastic + kinetic energy.
+            if energy > energy_n + work + 1e-6 * scale + 1e-12 {
+                tracing::debug!(
+                    gained_j = energy - energy_n - work,
+                    inverted = stats.inverted,
+                    "linearised step created energy; redone with Newton"
+                );
+                x.copy_from_slice(&x0);
+                v.copy_from_slice(&v0);
+                let q = StepParams {
+                    newton: Some(FALLBACK_NEWTON),
+                    ..*p
+                };
+                let mut s = self.step_newton(x, v, f_ext, dt, &q)?;
+                s.rotations_extracted += stats.rotations_extracted;
+                s.polar_iterations += stats.polar_iterations;
+                s.cg_iterations += stats.cg_iterations;
+                s.inverted = stats.inverted;
+                s.fallback = true;
+                s.energy_guard = true;
+                s.max_rotation_change_sq = stats.max_rotation_change_sq;
+                return Ok(s);
+            }
+        }
         Ok(stats)
     }
 
@@ -1521,6 +1600,23 @@ impl FemSystem {
         let mut rots = rotations(self, x);
         let mut grad = vec![V3::zeros(); n];
         let mut val = phi(self, x, &rots, Some(&mut grad));
+        if corot {
+            // The co-rotational fallback runs where rotations jump (inverted elements,
+            // fast spins); there the predictor x̂ can sit far up the energy landscape, and
+            // a few Newton iterations from it may end above the energy the step started
+            // with. Starting from x_n (free nodes) when Φ is lower there bounds the step:
+            // Φ(x_{n+1}) ≤ Φ(x_n) = kinetic + elastic energy at the start (no load work).
+            let start: Vec<V3> = (0..n)
+                .map(|i| if fixed[i] { x_hat[i] } else { x_n[i] })
+                .collect();
+            let start_rots = rotations(self, &start);
+            let mut start_grad = vec![V3::zeros(); n];
+            let start_val = phi(self, &start, &start_rots, Some(&mut start_grad));
+            if start_val < val {
+                x.copy_from_slice(&start);
+                (rots, grad, val) = (start_rots, start_grad, start_val);
+            }
+        }
         for _ in 0..np.max_iters.max(1) {
             let gnorm = dot(&grad, &grad).sqrt() / dt2;
             stats.newton_residual = gnorm;

@@ -28,6 +28,7 @@ use sim_core::sim_scene::{Capsule, Inclusion, LoadedScene, Material};
 
 use super::beam::{RunConfig, build};
 use crate::cli::out_dir;
+use crate::plot::{Chart, Series};
 
 type V3 = Vector3<f64>;
 
@@ -51,6 +52,9 @@ pub struct StressArgs {
     /// Random seed of the impulses.
     #[arg(long, default_value_t = 7)]
     pub seed: u64,
+    /// Run only the cases whose name contains this (e.g. `pull-through-10ms`).
+    #[arg(long)]
+    pub case: Option<String>,
 }
 
 #[derive(Debug, Serialize)]
@@ -62,6 +66,8 @@ pub struct CaseResult {
     /// CG iterations per step (mean) and steps that fell back to Newton.
     pub cg_per_step: f64,
     pub fallback_steps: usize,
+    /// Of the fallback steps, those redone because the linearised step created energy.
+    pub energy_guard_steps: usize,
     pub dt: f64,
     pub steps: usize,
     pub tets: usize,
@@ -85,6 +91,8 @@ pub struct CaseResult {
     /// Largest node speed (m/s).
     pub max_speed: f64,
     pub wall_s: f64,
+    /// About 500 samples over the run: (time s, energy J, max node speed m/s).
+    pub trace: Vec<(f64, f64, f64)>,
 }
 
 #[derive(Debug, Serialize)]
@@ -93,10 +101,18 @@ pub struct StressReport {
     pub cases: Vec<CaseResult>,
 }
 
-/// The beam with a stiff axial capsule: 1000× contrast.
+/// Mass-proportional Rayleigh damping of the tissue in the stress scene (1/s): about 5 %
+/// of critical for the beam's first bending mode (≈ 3 Hz). Undamped, a body comes to rest
+/// only through backward Euler's numerical damping, which at dt = 1 ms takes minutes.
+pub const TISSUE_DAMPING: f64 = 2.0;
+
+/// The beam with a stiff axial capsule: 1000× contrast, damped tissue.
 pub fn inclusion_beam(cell: f64) -> Result<LoadedScene> {
     let mut scene = cantilever_with(1e5, cell)?;
     scene.modify(|sc| {
+        for m in sc.materials.values_mut() {
+            m.rayleigh_mass = TISSUE_DAMPING;
+        }
         sc.materials.insert(
             "stiff".into(),
             Material {
@@ -180,17 +196,32 @@ pub fn run(args: StressArgs) -> Result<()> {
         .steps
         .unwrap_or(if args.quick { 2_000 } else { 100_000 });
     let scene = inclusion_beam(args.cell).context("inclusion beam scene")?;
+    let selected: Vec<&Case> = CASES
+        .iter()
+        .filter(|c| {
+            args.case
+                .as_ref()
+                .is_none_or(|f| c.name.contains(f.as_str()))
+        })
+        .collect();
+    if selected.is_empty() {
+        anyhow::bail!(
+            "no stress case matches {:?}; cases: {}",
+            args.case.as_deref().unwrap_or(""),
+            CASES.iter().map(|c| c.name).collect::<Vec<_>>().join(", ")
+        );
+    }
     let bar = if args.json {
         ProgressBar::hidden()
     } else {
-        ProgressBar::new((2 * steps * CASES.len()) as u64)
+        ProgressBar::new((2 * steps * selected.len()) as u64)
     };
     bar.set_style(
         ProgressStyle::with_template("{bar:40} {percent:>3}% eta {eta:>4} {msg}")
             .expect("static template"),
     );
     let mut cases = Vec::new();
-    for case in &CASES {
+    for case in selected {
         for converged in [false, true] {
             bar.set_message(format!(
                 "{} {}",
@@ -209,14 +240,15 @@ pub fn run(args: StressArgs) -> Result<()> {
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let json = serde_json::to_string_pretty(&report)?;
     std::fs::write(dir.join("stress.json"), &json)?;
+    let plots = plot(&dir, &report)?;
     if args.json {
         println!("{json}");
     } else {
         println!(
-            "stress: beam with a 1000× stiffer rod, co-rotational all-on, {steps} steps per case"
+            "stress: beam with a 1000× stiffer rod, tissue damping α = {TISSUE_DAMPING}/s, co-rotational all-on, {steps} steps per case"
         );
         println!(
-            "{:<18} {:<12} {:>5} {:>5} {:>4} {:>9} {:>10} {:>11} {:>8} {:>9} {:>8} {:>6} {:>6} {:>7}",
+            "{:<18} {:<12} {:>5} {:>5} {:>4} {:>9} {:>10} {:>11} {:>8} {:>9} {:>8} {:>6} {:>6} {:>6} {:>7}",
             "case",
             "config",
             "dt ms",
@@ -230,11 +262,12 @@ pub fn run(args: StressArgs) -> Result<()> {
             "max v",
             "cg/st",
             "fallbk",
+            "guard",
             "wall s"
         );
         for c in &report.cases {
             println!(
-                "{:<18} {:<12} {:>5} {:>5} {:>4} {:>9.3} {:>10.3e} {:>11} {:>8} {:>9.2} {:>8.2} {:>6.0} {:>6} {:>7.1}",
+                "{:<18} {:<12} {:>5} {:>5} {:>4} {:>9.3} {:>10.3e} {:>11} {:>8} {:>9.2} {:>8.2} {:>6.0} {:>6} {:>6} {:>7.1}",
                 c.name,
                 c.config,
                 c.dt * 1e3,
@@ -248,12 +281,69 @@ pub fn run(args: StressArgs) -> Result<()> {
                 c.max_speed,
                 c.cg_per_step,
                 c.fallback_steps,
+                c.energy_guard_steps,
                 c.wall_s
             );
         }
         println!("wrote {}", dir.join("stress.json").display());
+        for p in plots {
+            println!("wrote {}", p.display());
+        }
     }
     Ok(())
+}
+
+/// Energy and largest node speed against time, one series per case and configuration.
+fn plot(dir: &std::path::Path, r: &StressReport) -> Result<Vec<PathBuf>> {
+    let series = |value: fn(&(f64, f64, f64)) -> f64| -> Vec<Series> {
+        r.cases
+            .iter()
+            .map(|c| Series {
+                label: format!("{} {}", c.name, c.config),
+                points: c.trace.iter().map(|s| (s.0, value(s))).collect(),
+            })
+            .collect()
+    };
+    // Energy relative to the rest pose can be negative (gravity): plot it shifted by the
+    // run's minimum so the log axis shows decay and growth alike.
+    let energy: Vec<Series> = r
+        .cases
+        .iter()
+        .map(|c| {
+            let min = c.trace.iter().map(|s| s.1).fold(f64::INFINITY, f64::min);
+            Series {
+                label: format!("{} {}", c.name, c.config),
+                points: c.trace.iter().map(|s| (s.0, s.1 - min + 1e-9)).collect(),
+            }
+        })
+        .collect();
+    let mut out = crate::plot::write_chart(
+        dir,
+        "stress_energy",
+        &Chart {
+            title: "stress: energy above its minimum",
+            x_label: "simulated time (s)",
+            y_label: "E - E_min (J)",
+            log_x: false,
+            log_y: true,
+            scatter: false,
+        },
+        &energy,
+    )?;
+    out.extend(crate::plot::write_chart(
+        dir,
+        "stress_speed",
+        &Chart {
+            title: "stress: largest node speed",
+            x_label: "simulated time (s)",
+            y_label: "max |v| (m/s)",
+            log_x: false,
+            log_y: true,
+            scatter: false,
+        },
+        &series(|s| s.2.max(1e-9)),
+    )?);
+    Ok(out)
 }
 
 fn run_case(
@@ -298,6 +388,7 @@ fn run_case(
         config: config.variant.clone(),
         cg_per_step: 0.0,
         fallback_steps: 0,
+        energy_guard_steps: 0,
         dt: case.dt,
         steps: 0,
         tets,
@@ -312,7 +403,9 @@ fn run_case(
         min_det_f: f64::INFINITY,
         max_speed: 0.0,
         wall_s: 0.0,
+        trace: Vec::new(),
     };
+    let trace_every = (steps / 500).max(1);
     let mut free_energies: Vec<f64> = Vec::new();
     let mut rest_run = 0usize;
     for k in 0..steps {
@@ -345,6 +438,7 @@ fn run_case(
             Ok(r) => {
                 out.cg_per_step += r.fem.cg_iterations as f64;
                 out.fallback_steps += r.fem.fallback as usize;
+                out.energy_guard_steps += r.fem.energy_guard as usize;
             }
             Err(sim_core::SimError::NonFinite { .. }) => {
                 out.nan = true;
@@ -383,6 +477,9 @@ fn run_case(
             break;
         }
         out.energy_max_j = out.energy_max_j.max(e);
+        if k % trace_every == 0 {
+            out.trace.push(((k + 1) as f64 * case.dt, e, vmax));
+        }
         if k + 1 == injection_steps {
             out.energy_release_j = e;
         }
