@@ -1,7 +1,8 @@
 //! Cost of one co-rotational step on the cantilever beam with every speed-up on (the
 //! configuration `cosurg bench cantilever` calls `all-on`), for profiling the FEM step
 //! without the client: `cargo run --release -p cosurg-sim-core --example step_cost --
-//! [young Pa] [cell m] [dt s] [steps] [threads]`, e.g. `1e5 0.0125 0.01 200 1`. Prints the
+//! [young Pa] [cell m] [dt s] [steps] [threads] [energy guard 1|0]`, e.g. `1e5 0.0125 0.01
+//! 200 1 1`. Prints the
 //! p50 / p99 step time, mean CG iterations and the tip position (to check that an
 //! optimisation changed nothing but the time).
 
@@ -36,6 +37,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         warm_start: true,
     };
     o.threads = threads;
+    o.energy_guard = arg(6, 1.0) != 0.0;
     if let Some(it) = std::env::var("CG_ITERS").ok().and_then(|s| s.parse().ok()) {
         o.solver.max_iters = it;
     }

@@ -75,6 +75,8 @@ pub struct Knobs {
     pub cg_iterations: usize,
     /// CG relative tolerance.
     pub cg_tolerance: f64,
+    /// CG warm start from the previous step's Δv.
+    pub cg_warm_start: bool,
     /// Newton iterations allowed per step (non-linear model), else null.
     pub newton_iterations: Option<usize>,
     /// Newton force-residual tolerance (N), else null.
@@ -97,6 +99,8 @@ pub struct RunConfig {
     pub skip_rest: bool,
     pub cg_iterations: usize,
     pub cg_tolerance: f64,
+    /// CG starts from the previous step's Δv (the product does; see `SolverParams`).
+    pub cg_warm_start: bool,
     pub newton: NewtonParams,
     /// Uniform refinement (bisection levels) of every root tet before the run.
     pub depth: u32,
@@ -121,6 +125,7 @@ impl RunConfig {
             skip_rest: true,
             cg_iterations: 50,
             cg_tolerance: 1e-6,
+            cg_warm_start: true,
             newton: NewtonParams {
                 max_iters: 8,
                 tol: 1e-6,
@@ -148,6 +153,7 @@ impl RunConfig {
             skip_rest: false,
             cg_iterations: 500,
             cg_tolerance: 1e-8,
+            cg_warm_start: false,
             newton: NewtonParams {
                 max_iters: 10,
                 tol: 1e-7,
@@ -171,7 +177,7 @@ impl RunConfig {
         o.solver = SolverParams {
             max_iters: self.cg_iterations,
             tol: self.cg_tolerance,
-            warm_start: false,
+            warm_start: self.cg_warm_start,
         };
         o.newton = self.newton;
         o.threads = self.threads;
@@ -192,6 +198,7 @@ impl RunConfig {
             operator: format!("{:?}", options.operator).to_lowercase(),
             cg_iterations: self.cg_iterations,
             cg_tolerance: self.cg_tolerance,
+            cg_warm_start: self.cg_warm_start,
             newton_iterations: nonlinear.then_some(self.newton.max_iters),
             newton_tolerance_n: nonlinear.then_some(self.newton.tol),
             refinement_depth: self.depth,
