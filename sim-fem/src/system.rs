@@ -191,7 +191,7 @@ pub struct StepParams {
     /// inverted elements (whose rotation can jump as they pass through degenerate shapes)
     /// and no prescribed motion, the step is redone with the Newton fallback
     /// ([`FALLBACK_NEWTON`]) when it raised the total energy (elastic + kinetic +
-    /// gravitational) by more than the external forces' work. Backward Euler must not
+    /// gravitational) by more than the external forces' work (no contact stiffness set). Backward Euler must not
     /// create energy; without the guard a pull through inversion can gain tens of J in one
     /// step. Costs one extra rotation pass and energy evaluation on those steps only.
     pub energy_guard: bool,
@@ -1355,9 +1355,11 @@ impl FemSystem {
         let mut fint = vec![V3::zeros(); n];
         let elastic_n = self.elastic(x, p.model, p.stiffness, None, Some(&mut fint));
         // Energy guard: only where rotations can jump (elements inverted before or after
-        // the step, checked below) and no boundary moves (its work is not known here).
+        // the step, checked below), no boundary moves and no contact springs act (their
+        // work and stored energy are not known here; a tool is an energy source anyway).
         let guard = (p.energy_guard
             && p.model == Model::Corotational
+            && self.k_ext.is_empty()
             && !self
                 .fixed
                 .iter()
