@@ -73,6 +73,33 @@ pub fn write_chart(
     Ok(vec![png, svg])
 }
 
+/// Axis tick text with at most three significant digits (`0.25`, `1.5e-5`, `120`): the
+/// default formatting prints log-axis ticks as `9.999999999e-5`.
+fn tick(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() {
+        return format!("{v}");
+    }
+    let a = v.abs();
+    if (1e-3..1e5).contains(&a) {
+        let digits = (2 - a.log10().floor() as i32).max(0) as usize;
+        let s = format!("{v:.digits$}");
+        if s.contains('.') {
+            s.trim_end_matches('0').trim_end_matches('.').to_string()
+        } else {
+            s
+        }
+    } else {
+        let s = format!("{v:.2e}");
+        let (m, e) = s.split_once('e').unwrap_or((&s, "0"));
+        let m = if m.contains('.') {
+            m.trim_end_matches('0').trim_end_matches('.')
+        } else {
+            m
+        };
+        format!("{m}e{e}")
+    }
+}
+
 fn bounds(series: &[Series], pick: impl Fn(&(f64, f64)) -> f64, log: bool) -> (f64, f64) {
     let vals = series
         .iter()
@@ -115,6 +142,8 @@ where
             ctx.configure_mesh()
                 .x_desc(chart.x_label)
                 .y_desc(chart.y_label)
+                .x_label_formatter(&|v| tick(*v))
+                .y_label_formatter(&|v| tick(*v))
                 .draw()
                 .map_err(|e| anyhow::anyhow!("{e}"))?;
             for (i, s) in series.iter().enumerate() {
@@ -162,6 +191,16 @@ where
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn ticks_are_short() {
+        assert_eq!(tick(9.999999999999e-5), "1e-4");
+        assert_eq!(tick(0.25), "0.25");
+        assert_eq!(tick(120.0), "120");
+        assert_eq!(tick(1.5e-5), "1.5e-5");
+        assert_eq!(tick(-2.0), "-2");
+        assert_eq!(tick(1e6), "1e6");
+    }
 
     #[test]
     fn writes_png_and_svg_with_text() {
