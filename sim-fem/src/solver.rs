@@ -243,6 +243,14 @@ impl BlockPattern {
     pub fn element_upper(&self, e: usize) -> u16 {
         self.elem_upper[e]
     }
+    /// Number of block rows (nodes).
+    pub fn num_rows(&self) -> usize {
+        self.diag.len()
+    }
+    /// `(slot, column)` of every block of row `i`, columns ascending.
+    pub fn row(&self, i: usize) -> impl Iterator<Item = (usize, usize)> + '_ {
+        (self.row_ptr[i]..self.row_ptr[i + 1]).map(move |k| (k, self.cols[k]))
+    }
     /// Number of 3×3 blocks.
     pub fn num_blocks(&self) -> usize {
         self.cols.len()

@@ -788,6 +788,57 @@ impl FemSystem {
         self.k_ext.clear();
     }
 
+    /// The matrix of the linearised step at `x`, `M + dt C + (β dt + dt²) R K Rᵀ` with the
+    /// rotations extracted at `x` (model and stiffness kernel of `p`), as 3×3 blocks
+    /// `(row node, column node, block)` of both triangles, without the fixed nodes' rows
+    /// and columns. For comparing linear solvers on the step's own system
+    /// (`examples/direct_vs_cg.rs`); a step does not go through it.
+    pub fn step_matrix(
+        &mut self,
+        x: &[V3],
+        dt: f64,
+        p: &StepParams,
+    ) -> Result<Vec<(usize, usize, Matrix3<f64>)>, FemError> {
+        self.check_sizes(x, None, x)?;
+        if p.model == Model::Corotational {
+            self.update_rotations(x, &p.polar, 0.0);
+        }
+        let n = self.rest.len();
+        let mass_coef: Vec<f64> = (0..n)
+            .map(|i| self.mass[i] + dt * self.mass_damping[i])
+            .collect();
+        let coef: Vec<f64> = self
+            .elements
+            .iter()
+            .map(|e| dt * self.materials[e.material].beta + dt * dt)
+            .collect();
+        let fixed = self.fixed.clone();
+        let rotated = p.model == Model::Corotational;
+        let op = self.build_operator(
+            mass_coef,
+            ElemMats::Rotated { coef, rotated },
+            dt * dt,
+            p.stiffness,
+            OperatorMode::Assembled,
+        );
+        let pat = op.sys.pattern.as_ref().expect("assembled");
+        let blocks = op.assembled.as_ref().expect("assembled");
+        let mut out = Vec::new();
+        for i in 0..pat.num_rows() {
+            for (k, j) in pat.row(i) {
+                // Upper storage: mirror the blocks above the diagonal.
+                if j < i || fixed[i] || fixed[j] {
+                    continue;
+                }
+                out.push((i, j, blocks[k]));
+                if j != i {
+                    out.push((j, i, blocks[k].transpose()));
+                }
+            }
+        }
+        Ok(out)
+    }
+
     /// Whether some element has `det F ≤ 0` at `x`.
     pub fn any_inverted(&self, x: &[V3]) -> bool {
         (0..self.elements.len()).any(|ei| self.element_inverted(ei, x))
