@@ -695,8 +695,15 @@ impl Simulation {
         // stored ones are those of the previous step: for an inverted element whose
         // rotation flipped in the step they would be far off), extracted without touching
         // the stored state.
-        let rotations = fem.compute_rotations(&x, &params.polar);
-        let elastic = fem.elastic(&x, params.model, params.stiffness, Some(&rotations), None);
+        let rotations = (params.model == sim_fem::Model::Corotational)
+            .then(|| fem.compute_rotations(&x, &params.polar));
+        let elastic = fem.elastic(
+            &x,
+            params.model,
+            params.stiffness,
+            rotations.as_deref(),
+            None,
+        );
         Ok(
             elastic + fem.kinetic_energy(&v) + fem.gravity_energy(&x, &g)
                 - fem.gravity_energy(&rest, &g),

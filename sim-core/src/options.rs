@@ -75,7 +75,11 @@ impl SimOptions {
             solver: SolverParams {
                 max_iters: s.cg_iterations as usize,
                 tol: s.cg_tolerance,
-                warm_start: true,
+                // Cold start: with the 50-iteration budget at dt = 33 ms, starting CG from
+                // the previous step's Δv pumped about 9 kJ into the stress beam after violent
+                // impulses (`cosurg bench stress --case impulses-33ms`; 1.02× with a cold
+                // start). It saves only a few iterations where CG converges (dt ≤ 1 ms).
+                warm_start: false,
             },
             newton: NewtonParams {
                 max_iters: 8,

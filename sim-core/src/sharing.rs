@@ -70,6 +70,9 @@ pub(crate) struct RotationSharing {
     /// Stricter threshold (θ_tol / 2) for a block whose leaves did not share a rotation
     /// in the previous update to start sharing again (see [`RotationSharing::update`]).
     enter_threshold_sq: f64,
+    /// No update since the hierarchy was (re)built: every block is tested at θ_tol (a
+    /// rebuild after a topology change must not look like a block that stopped sharing).
+    fresh: bool,
     /// Blocks, finest level first (so coarser blocks come later; the top-down pass walks
     /// the array backwards).
     blocks: Vec<Block>,
@@ -216,6 +219,7 @@ impl RotationSharing {
         }
         self.element_block = element_cube.iter().map(|c| index[&(0, *c)]).collect();
         self.assigned = vec![None; self.blocks.len()];
+        self.fresh = true;
         self.assignment = vec![None; elements.len()];
         self.blocks
             .iter()
@@ -250,7 +254,12 @@ impl RotationSharing {
         // differences sit at the threshold (a tangled or inverted region at rest) switches
         // between shared and own rotations every step, and each switch changes the elastic
         // forces discontinuously: the body never comes to rest (`cosurg bench stress`).
-        let was_shared: Vec<bool> = self.assigned.iter().map(Option::is_some).collect();
+        let was_shared: Vec<bool> = self
+            .assigned
+            .iter()
+            .map(|a| self.fresh || a.is_some())
+            .collect();
+        self.fresh = false;
         // A block holding an inverted element never shares: an inverted leaf's elastic
         // force and energy under a foreign rotation differ wildly from those under its own
         // (inversion-aware) one, and switching between the two as the block passes and

@@ -19,12 +19,17 @@ type V3 = Vector3<f64>;
 /// Nodes and elements split for `parts` threads.
 #[derive(Clone, Debug)]
 pub(crate) struct Partition {
+    /// The thread count it was built for (parts are fewer when nodes are fewer).
+    pub threads: usize,
     /// Node index where each part starts, then the node count (`parts + 1` entries).
     pub node_start: Vec<usize>,
     /// Per part, its elements (in the order they were given).
     pub elements: Vec<Vec<u32>>,
     /// Elements with nodes in more than one part.
     pub interface: Vec<u32>,
+    /// Per part, one past the largest column its rows reach (its spill range in
+    /// [`multiply_upper_parts`] ends there); set by [`Partition::set_spill_ends`].
+    pub spill_end: Vec<usize>,
 }
 
 impl Partition {
@@ -37,6 +42,7 @@ impl Partition {
         nodes_of: impl Fn(usize) -> [usize; 4],
     ) -> Self {
         let n = row_work.len();
+        let threads = parts;
         let parts = parts.clamp(1, n.max(1));
         let total: usize = row_work.iter().sum();
         let mut node_start = vec![0];
@@ -64,16 +70,26 @@ impl Partition {
                 interface.push(e);
             }
         }
+        let spill_end = node_start[1..].to_vec();
         Partition {
+            threads,
             node_start,
             elements,
             interface,
+            spill_end,
         }
     }
 
-    /// Number of parts.
-    pub fn parts(&self) -> usize {
-        self.elements.len()
+    /// Records how far each part's rows reach to the right in `pat` (with the lattice's
+    /// node order, a thin band past the part's end).
+    pub fn set_spill_ends(&mut self, pat: &BlockPattern) {
+        for (t, w) in self.node_start.windows(2).enumerate() {
+            let reach = (w[0]..w[1])
+                .filter_map(|i| pat.row(i).last().map(|(_, c)| c + 1))
+                .max()
+                .unwrap_or(w[1]);
+            self.spill_end[t] = reach.max(w[1]);
+        }
     }
 }
 
@@ -98,12 +114,12 @@ pub(crate) fn multiply_upper_parts(
     blocks: &[Matrix3<f64>],
     p: &[V3],
     out: &mut [V3],
-    node_start: &[usize],
+    part: &Partition,
 ) {
-    let n = out.len();
+    let node_start = &part.node_start;
     let parts = node_start.len() - 1;
     let mut spills: Vec<Vec<V3>> = (0..parts)
-        .map(|t| vec![V3::zeros(); n - node_start[t + 1]])
+        .map(|t| vec![V3::zeros(); part.spill_end[t] - node_start[t + 1]])
         .collect();
     split_ranges(out, node_start)
         .into_par_iter()
@@ -132,7 +148,7 @@ mod tests {
         let p = Partition::new(2, &[1; 13], &order, |e| tets[e]);
         assert_eq!(p.node_start.first(), Some(&0));
         assert_eq!(p.node_start.last(), Some(&13));
-        assert_eq!(p.parts(), 2);
+        assert_eq!(p.elements.len(), 2);
         let mut all: Vec<u32> = p.elements.concat();
         all.extend(&p.interface);
         all.sort_unstable();
@@ -213,7 +229,17 @@ mod product_tests {
             .build()
             .unwrap();
         let mut split = vec![V3::zeros(); n];
-        pool.install(|| multiply_upper_parts(&pat, &upper, &p, &mut split, &[0, 10, 21, n]));
+        let mut part = Partition {
+            threads: 3,
+            node_start: vec![0, 10, 21, n],
+            elements: vec![Vec::new(); 3],
+            interface: Vec::new(),
+            spill_end: vec![10, 21, n],
+        };
+        part.set_spill_ends(&pat);
+        // The strip's rows reach 3 nodes ahead: the spills are that thin.
+        assert_eq!(part.spill_end, vec![13, 24, n]);
+        pool.install(|| multiply_upper_parts(&pat, &upper, &p, &mut split, &part));
         for i in 0..n {
             assert!(
                 (upper_only[i] - reference[i]).norm() < 1e-9,

@@ -183,17 +183,21 @@ pub struct StepParams {
     /// search on the incremental potential) instead. See [`StepStats::fallback`].
     pub fallback_angle_deg: f64,
     /// Threads for the linearised step (1 = the calling thread only). With more, rotation
-    /// extraction, element forces, assembly and the sparse products of the assembled
-    /// operator run on a pool of that many threads (see `parallel.rs`); results equal the
-    /// sequential ones up to the order of floating-point sums.
+    /// extraction, element forces, the assembly and the sparse products of the assembled
+    /// co-rotational/linear operator run on a pool of that many threads (see
+    /// `parallel.rs`); Newton steps, the matrix-free operator and the energy guard's extra
+    /// work stay sequential. Results equal the sequential ones up to the order of
+    /// floating-point sums.
     pub threads: usize,
-    /// Energy guard of the linearised co-rotational step: on steps that start with
-    /// inverted elements (whose rotation can jump as they pass through degenerate shapes)
-    /// and no prescribed motion, the step is redone with the Newton fallback
-    /// ([`FALLBACK_NEWTON`]) when it raised the total energy (elastic + kinetic +
-    /// gravitational) by more than the external forces' work (no contact stiffness set). Backward Euler must not
-    /// create energy; without the guard a pull through inversion can gain tens of J in one
-    /// step. Costs one extra rotation pass and energy evaluation on those steps only.
+    /// Energy guard of the linearised co-rotational step: on steps with inverted elements
+    /// before or after them (whose rotations can jump as they pass through degenerate
+    /// shapes), no prescribed motion and no contact stiffness, the step is redone with the
+    /// Newton fallback ([`FALLBACK_NEWTON`]) when it raised the total energy (elastic +
+    /// kinetic + gravitational) by more than the external forces' work. Backward Euler
+    /// must not create energy; without the guard a pull through inversion gained tens of J
+    /// in one step. Every step then pays a copy of x and v and a signed-volume scan of the
+    /// elements; steps with inverted elements also a rotation pass and an energy
+    /// evaluation.
     pub energy_guard: bool,
 }
 
@@ -788,11 +792,12 @@ impl FemSystem {
         self.k_ext.clear();
     }
 
-    /// The matrix of the linearised step at `x`, `M + dt C + (β dt + dt²) R K Rᵀ` with the
-    /// rotations extracted at `x` (model and stiffness kernel of `p`), as 3×3 blocks
-    /// `(row node, column node, block)` of both triangles, without the fixed nodes' rows
-    /// and columns. For comparing linear solvers on the step's own system
-    /// (`examples/direct_vs_cg.rs`); a step does not go through it.
+    /// The matrix of the linearised step at `x`, `M + dt C + (β dt + dt²) R K Rᵀ + dt² K_c`
+    /// with the rotations extracted at `x` (model and stiffness kernel of `p`), as 3×3
+    /// blocks `(row node, column node, block)` of both triangles, without the fixed nodes'
+    /// rows and columns. For comparing linear solvers on the step's own system
+    /// (`examples/direct_vs_cg.rs`); a step does not go through it. Like a step, it stores
+    /// the rotations it extracts (the next step starts from them).
     pub fn step_matrix(
         &mut self,
         x: &[V3],
@@ -1017,7 +1022,7 @@ impl FemSystem {
             energy
         };
         match &self.partition {
-            Some(part) if self.threads > 1 && part.parts() == self.threads => {
+            Some(part) if self.threads > 1 && part.threads == self.threads => {
                 use rayon::prelude::*;
                 let inner: f64 = split_ranges(out, &part.node_start)
                     .into_par_iter()
@@ -1199,8 +1204,6 @@ impl FemSystem {
         op
     }
 
-    /// Counting sort of the elements by their current rotation source (O(elements +
-    /// sources)), the order in which assembly visits them.
     /// Brings the block pattern, the assembly order and (on multi-threaded steps) the
     /// partition up to date.
     fn refresh_order(&mut self) {
@@ -1213,6 +1216,9 @@ impl FemSystem {
         }
     }
 
+    /// Counting sort of the elements by their current rotation source (O(elements +
+    /// sources)), the order in which assembly visits them; on multi-threaded steps also
+    /// the partition (its element lists follow that order).
     fn group_by_source(&mut self) {
         let mut start = vec![0u32; self.sources.len() + 1];
         for e in &self.elements {
@@ -1229,16 +1235,19 @@ impl FemSystem {
             *slot += 1;
         }
         self.by_source_stale = false;
+        // A partition's element lists follow this order: rebuild it, or drop it when the
+        // step is single-threaded (the next multi-threaded step rebuilds it).
+        self.partition = None;
         if self.threads > 1
             && let Some(pat) = &self.pattern
         {
             let elements = &self.elements;
-            self.partition = Some(Partition::new(
-                self.threads,
-                &pat.upper_row_work(),
-                &self.by_source,
-                |e| elements[e].nodes,
-            ));
+            let mut part =
+                Partition::new(self.threads, &pat.upper_row_work(), &self.by_source, |e| {
+                    elements[e].nodes
+                });
+            part.set_spill_ends(pat);
+            self.partition = Some(part);
         }
     }
 
@@ -1342,7 +1351,7 @@ impl FemSystem {
                 pool
             }
         };
-        if self.partition.as_ref().map(Partition::parts) != Some(p.threads) {
+        if self.partition.as_ref().map(|q| q.threads) != Some(p.threads) {
             self.by_source_stale = true;
         }
         self.threads = p.threads;
@@ -1368,7 +1377,7 @@ impl FemSystem {
             self.ensure_dense();
         }
         if p.newton.is_some() || p.model == Model::StVK {
-            return self.step_newton(x, v, f_ext, dt, p);
+            return self.step_newton(x, v, f_ext, dt, p, false);
         }
         let n = self.rest.len();
         let mut stats = StepStats {
@@ -1391,7 +1400,7 @@ impl FemSystem {
                     newton: Some(FALLBACK_NEWTON),
                     ..*p
                 };
-                let mut s = self.step_newton(x, v, f_ext, dt, &q)?;
+                let mut s = self.step_newton(x, v, f_ext, dt, &q, true)?;
                 s.rotations_extracted += stats.rotations_extracted;
                 s.polar_iterations += stats.polar_iterations;
                 s.fallback = true;
@@ -1476,7 +1485,7 @@ impl FemSystem {
         }
         self.warm_dv = dv;
         if let Some((x0, v0, energy_n, scale)) = guard
-            && (stats.inverted > 0 || self.any_inverted(x))
+            && (stats.inverted > 0 || self.any_inverted(&x0) || self.any_inverted(x))
         {
             // Energy at x_{n+1} with its own rotations (stored state untouched).
             let rotations = self.compute_rotations(x, &p.polar);
@@ -1495,11 +1504,13 @@ impl FemSystem {
                 );
                 x.copy_from_slice(&x0);
                 v.copy_from_slice(&v0);
+                // The rejected step's Δv is no guess for the next one.
+                self.warm_dv = vec![V3::zeros(); n];
                 let q = StepParams {
                     newton: Some(FALLBACK_NEWTON),
                     ..*p
                 };
-                let mut s = self.step_newton(x, v, f_ext, dt, &q)?;
+                let mut s = self.step_newton(x, v, f_ext, dt, &q, true)?;
                 s.rotations_extracted += stats.rotations_extracted;
                 s.polar_iterations += stats.polar_iterations;
                 s.cg_iterations += stats.cg_iterations;
@@ -1555,6 +1566,10 @@ impl FemSystem {
     /// `Φ(x) = ½‖x − x̂‖²_M + ½ dt ‖x − x_n‖²_{D_n} + dt² [W(x) − (f_ext + M g)ᵀx
     /// + ½‖x − x_n‖²_{K_c}]`, `x̂ = x_n + dt v_n`, `D_n = C + Σ β_e R_e K_e R_eᵀ` frozen at
     /// `x_n`; backtracking (Armijo) line search on Φ, CG truncated at negative curvature.
+    ///
+    /// `rotations_current`: the stored rotations are already those at `x` (the fallbacks of
+    /// the linearised step extracted them); extracting again would count every source as
+    /// reused and hide the rotation change from the next step's fallback test.
     fn step_newton(
         &mut self,
         x: &mut [V3],
@@ -1562,6 +1577,7 @@ impl FemSystem {
         f_ext: &[V3],
         dt: f64,
         p: &StepParams,
+        rotations_current: bool,
     ) -> Result<StepStats, FemError> {
         let n = self.rest.len();
         let np = p.newton.unwrap_or(NewtonParams {
@@ -1574,7 +1590,7 @@ impl FemSystem {
         // trial would dominate its cost).
         let corot = p.model == Model::Corotational;
         let need_rotations = corot || self.materials.iter().any(|m| m.beta != 0.0);
-        let (e, r, it, inv) = if need_rotations {
+        let (e, r, it, inv) = if need_rotations && !rotations_current {
             self.update_rotations(x, &p.polar, p.rest_threshold)
         } else {
             (0, 0, 0, 0)
@@ -2116,7 +2132,7 @@ impl SysOp<'_> {
                 }
             }
             ElemMats::Rotated { coef, rotated } => match &sys.partition {
-                Some(part) if sys.threads > 1 && part.parts() == sys.threads => {
+                Some(part) if sys.threads > 1 && part.threads == sys.threads => {
                     use rayon::prelude::*;
                     // A part's elements only touch its nodes' rows: a contiguous block range.
                     let bounds: Vec<usize> = part
@@ -2152,9 +2168,9 @@ impl LinearOperator for SysOp<'_> {
             let pat = self.sys.pattern.as_ref().expect("pattern");
             match (&self.elem, &self.sys.partition) {
                 (ElemMats::Rotated { .. }, Some(part))
-                    if self.sys.threads > 1 && part.parts() == self.sys.threads =>
+                    if self.sys.threads > 1 && part.threads == self.sys.threads =>
                 {
-                    multiply_upper_parts(pat, blocks, p, out, &part.node_start)
+                    multiply_upper_parts(pat, blocks, p, out, part)
                 }
                 (ElemMats::Rotated { .. }, _) => pat.multiply_upper(blocks, p, out),
                 (ElemMats::Dense(_), _) => pat.multiply(blocks, p, out),

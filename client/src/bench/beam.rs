@@ -85,6 +85,8 @@ pub struct Knobs {
     pub refinement_depth: u32,
     /// Threads of the FEM step (1 = single-threaded).
     pub threads: usize,
+    /// Energy guard of the co-rotational step (`StepParams::energy_guard`).
+    pub energy_guard: bool,
 }
 
 /// A run's knobs before they are applied to [`SimOptions`].
@@ -99,7 +101,7 @@ pub struct RunConfig {
     pub skip_rest: bool,
     pub cg_iterations: usize,
     pub cg_tolerance: f64,
-    /// CG starts from the previous step's Δv (the product does; see `SolverParams`).
+    /// CG starts from the previous step's Δv (off, as in the product: see `SimOptions`).
     pub cg_warm_start: bool,
     pub newton: NewtonParams,
     /// Uniform refinement (bisection levels) of every root tet before the run.
@@ -125,7 +127,7 @@ impl RunConfig {
             skip_rest: true,
             cg_iterations: 50,
             cg_tolerance: 1e-6,
-            cg_warm_start: true,
+            cg_warm_start: false,
             newton: NewtonParams {
                 max_iters: 8,
                 tol: 1e-6,
@@ -203,6 +205,7 @@ impl RunConfig {
             newton_tolerance_n: nonlinear.then_some(self.newton.tol),
             refinement_depth: self.depth,
             threads: options.threads,
+            energy_guard: corot && options.energy_guard,
         }
     }
 }
