@@ -282,6 +282,10 @@ fn wait_report(mut child: Child, limit: Duration, log: PathBuf) -> SiteReport {
 /// once the tools stop and the tissue has settled the sites must agree.
 const MOTION_BOUND_MM: f64 = 40.0;
 const SETTLED_BOUND_MM: f64 = 1.0;
+/// On loopback, receivers keep a playout lag behind the owner, so keyframes arrive before
+/// they are due and the region is interpolated between them rather than extrapolated:
+/// 2–12 mm measured with debug binaries (the grasp release is the largest transient).
+const LOOPBACK_MOTION_BOUND_MM: f64 = 25.0;
 
 fn settled_max(series: &[cosurg::plot::Series], from: f64) -> f64 {
     series
@@ -348,8 +352,12 @@ fn three_sites_follow_the_owners_grasp_and_lift() {
     for r in &reports[1..] {
         assert!(r.keyframes_applied > 0, "{} applied keyframes", r.name);
         let max = r.divergence_max_mm.unwrap();
+        eprintln!(
+            "{}: divergence {max:.2} mm, display delay {:.0} ms",
+            r.name, r.playout_lag_ms
+        );
         assert!(
-            max < MOTION_BOUND_MM,
+            max < LOOPBACK_MOTION_BOUND_MM,
             "{}: divergence {max} mm during motion",
             r.name
         );

@@ -23,7 +23,7 @@ pub enum Command {
     /// The multi-site demo: a coordinator and N sites on loopback over QUIC/TLS.
     Demo(crate::demo::DemoArgs),
     /// Join a session as one site.
-    Join(crate::join::JoinArgs),
+    Join(Box<crate::join::JoinArgs>),
     /// Simulate a scene on this machine alone and write VTU/PVD + OBJ results.
     Run(crate::run::RunArgs),
     /// Static equilibrium of a scene under its loads and gravity.
@@ -135,7 +135,7 @@ pub fn exit_code(e: &anyhow::Error) -> i32 {
 pub fn dispatch(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Demo(a) => crate::demo::demo(a),
-        Command::Join(a) => crate::join::join(a),
+        Command::Join(a) => crate::join::join(*a),
         Command::Run(a) => crate::run::run(a),
         Command::Solve(a) => crate::solve::solve(a),
         Command::Bench(a) => crate::bench::run(a),

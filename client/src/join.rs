@@ -106,6 +106,12 @@ pub struct JoinArgs {
     /// Do not pace to wall-clock time.
     #[arg(long)]
     pub no_realtime: bool,
+    /// While following another site's regions or tool, keep this site's simulated time
+    /// this far behind it, so that keyframes and poses arrive before they are due and are
+    /// interpolated rather than extrapolated: `auto` (measured delay + jitter margin + one
+    /// keyframe interval, at most 600 ms) or milliseconds (0: no lag).
+    #[arg(long, default_value = "auto")]
+    pub playout_lag: crate::site::PlayoutLag,
     /// Do not run the 1 kHz haptic loop.
     #[arg(long)]
     pub no_haptics: bool,
@@ -229,6 +235,7 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
         link: Some(link),
         expect_sites: args.expect_sites,
         realtime: !args.no_realtime,
+        playout_lag: args.playout_lag,
         haptics: !args.no_haptics,
         device: crate::site::glue::DeviceSpec::parse(&args.device)?,
         rt_priority: args.rt_priority,

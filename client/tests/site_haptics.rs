@@ -13,7 +13,7 @@ use cosurg::haptic::UdpBridgeDevice;
 use cosurg::haptic::udp::{ForceDatagram, PoseDatagram};
 use cosurg::link::LinkConfig;
 use cosurg::site::glue::DeviceSpec;
-use cosurg::site::{SiteConfig, SiteReport, Strategy, run_site};
+use cosurg::site::{PlayoutLag, SiteConfig, SiteReport, Strategy, run_site};
 use proto::Role;
 use sim_core::SimOptions;
 use sim_core::sim_scene::{Keyframe, LoadedScene, ToolPose, ToolScript, builtin};
@@ -37,6 +37,7 @@ fn site(scene: &LoadedScene, name: &str, role: Role, tool: &str, seconds: f64) -
         link: None,
         expect_sites: 1,
         realtime: true,
+        playout_lag: PlayoutLag::Auto,
         haptics: true,
         device: DeviceSpec::Script,
         rt_priority: None,

@@ -105,9 +105,12 @@ fn follow(lag: usize) {
         worst = worst.max(d);
     }
     // Bounds: the release of the grasp (tissue springing back while the owner still owns
-    // the region for 0.4 s) is the largest transient, ≈ 11 mm at 4 ms steps; at the end
-    // the tissue has settled on both sites.
-    assert!(worst < 0.015, "receiver diverged by {worst} m");
+    // the region for 0.4 s) is the largest transient, ≈ 12 mm at 4 ms steps for a
+    // receiver level with the owner (it extrapolates); a receiver behind the owner holds
+    // the next keyframe and interpolates towards it (≈ 7.5 mm: the snap is faster than
+    // the owner's 30 ms keyframe rate cap). At the end the tissue has settled on both.
+    let bound = if lag > 1 { 0.010 } else { 0.015 };
+    assert!(worst < bound, "receiver diverged by {worst} m");
     let a = &owner.surfaces()[0].deformed;
     let b = &recv.surfaces()[0].deformed;
     if (owner.time() - recv.time()).abs() < 1e-9 {

@@ -29,6 +29,18 @@
 //! position departs from the pure extrapolation by at most `|offset| · dt / window` more.
 //! A window of 0 snaps (position and velocity taken over at once).
 //!
+//! # Interpolation
+//! A receiver that runs behind the owner in simulated time (a playout lag) often holds the
+//! region's *next* keyframe before its clock reaches it ([`RemoteRegion::hold_next`]).
+//! Between the last applied keyframe and the held one at `t_n` it then shows the
+//! extrapolation plus the difference to the held keyframe, made up over a tail before
+//! `t_n` (one step when no keyframe is missing in between — the owner's dead reckoning
+//! kept the extrapolation within its threshold until then —, else estimated from the held
+//! velocities; see [`RemoteRegion::motion_at`]), and applies the held keyframe at `t_n` as
+//! usual (its correction offset is then about zero). Only a keyframe of the region's
+//! current tree state is held (its nodes are the current nodes); otherwise extrapolation
+//! as above.
+//!
 //! # Dead reckoning
 //! [`SendPolicy`] keeps, per owned region, the same extrapolation the receivers run from
 //! its last sent keyframe and sends when the largest node distance between it and the
@@ -798,13 +810,51 @@ pub enum DriveStatus {
     Local,
 }
 
+/// The next keyframe of a remote region, held before this site's clock reaches it (a
+/// follower running behind the owner: see [`RemoteRegion::hold_next`]).
+#[derive(Clone, Debug)]
+struct NextKeyframe {
+    id: KeyframeId,
+    sim_time: f64,
+    /// `Some(w)` when it directly follows the last applied keyframe (no keyframe of the
+    /// region in between was lost or superseded): the owner then kept the receivers'
+    /// extrapolation within its drift threshold until `w` before it, so the region follows
+    /// that extrapolation and the difference is made up over the last `w` only. `None`:
+    /// keyframes are missing in between; each node's tail is estimated from its velocity
+    /// in the held keyframe (see [`RemoteRegion::motion_at`]).
+    tail: Option<f64>,
+    /// Position and velocity of every node by grid coordinate (nodes created since are
+    /// derived from the edge they split, like [`MotionSet::motion`]).
+    states: HashMap<Grid, (V3, V3)>,
+}
+
+impl NextKeyframe {
+    fn state(&mut self, lattice: &Lattice, n: NodeId) -> Option<(V3, V3)> {
+        let g = lattice.node_grid(n);
+        if let Some(s) = self.states.get(&g) {
+            return Some(*s);
+        }
+        let (a, b) = lattice.node_parent_edge(n)?;
+        let (xa, va) = self.state(lattice, a)?;
+        let (xb, vb) = self.state(lattice, b)?;
+        let s = (0.5 * (xa + xb), 0.5 * (va + vb));
+        self.states.insert(g, s);
+        Some(s)
+    }
+}
+
 /// A region another site owns, as seen on this site: applies its keyframes and drives its
-/// nodes between them.
+/// nodes between them — interpolating towards the next keyframe when it is already held,
+/// extrapolating from the last one otherwise.
 #[derive(Clone, Debug)]
 pub struct RemoteRegion {
     region: RegionId,
     config: SyncConfig,
     motions: MotionSet,
+    next: Option<NextKeyframe>,
+    /// A keyframe [`RemoteRegion::hold_next`] turned down for the current tree state (not
+    /// checked again until the tree changes).
+    refused_next: Option<KeyframeId>,
     /// Correction offset per node (m) at `corr_start`.
     offsets: HashMap<Grid, V3>,
     corr_start: f64,
@@ -823,6 +873,8 @@ impl RemoteRegion {
             region,
             config,
             motions: MotionSet::default(),
+            next: None,
+            refused_next: None,
             offsets: HashMap::new(),
             corr_start: f64::NEG_INFINITY,
             last_keyframe: None,
@@ -878,6 +930,10 @@ impl RemoteRegion {
         let grids: Vec<Grid> = nodes.iter().map(|&n| lattice.node_grid(n)).collect();
         self.motions
             .take_keyframe(&grids, kf, self.config.max_accel_m_s2);
+        if self.next.as_ref().is_some_and(|n| n.id <= kf.keyframe_id) {
+            self.next = None;
+        }
+        self.refused_next = None;
         let t = sim.time();
         let h = self.config.max_extrapolation_s;
         self.offsets.clear();
@@ -948,6 +1004,9 @@ impl RemoteRegion {
         let target =
             xor_state(base, &delta).map_err(|source| SyncError::TreeBits { region, source })?;
         apply_tree(sim, map, region, &target)?;
+        // The held next keyframe was checked against the old tree state.
+        self.next = None;
+        self.refused_next = None;
         self.last_time = d.sim_time;
         self.deltas_applied += 1;
         Ok(Applied::Applied)
@@ -960,10 +1019,120 @@ impl RemoteRegion {
         self.released = true;
     }
 
-    /// Shown position of a node at time `t` (m): extrapolation plus the decayed offset.
-    fn shown(&mut self, lattice: &Lattice, n: NodeId, t: f64) -> Option<V3> {
+    /// Holds `kf`, the next keyframe of the region, before this site's simulated time
+    /// reaches it: until it is applied (at its own time, by
+    /// [`RemoteRegion::apply_keyframe`]), [`RemoteRegion::drive`] interpolates between the
+    /// last applied keyframe and this one instead of extrapolating. Only a keyframe newer
+    /// than the last applied one, of the region's current tree state (so that its nodes
+    /// are the region's current nodes), is held; returns whether `kf` is held.
+    pub fn hold_next(&mut self, sim: &Simulation, map: &RegionMap, kf: &RegionKeyframe) -> bool {
+        if self.next.as_ref().is_some_and(|n| n.id == kf.keyframe_id) {
+            return true;
+        }
+        if self.refused_next == Some(kf.keyframe_id) {
+            return false;
+        }
+        let newer = self
+            .last_keyframe
+            .is_some_and(|k| kf.keyframe_id > k && kf.sim_time > self.last_time);
+        if !newer
+            || kf.region != self.region
+            || kf.positions.len() != kf.velocities.len()
+            || kf
+                .positions
+                .iter()
+                .chain(&kf.velocities)
+                .any(|p| p.iter().any(|c| !c.is_finite()))
+        {
+            return false;
+        }
+        let same_tree = RegionState::from_bytes(&kf.tree_bits)
+            .is_ok_and(|s| s == map.state(sim.lattice(), self.region));
+        let grids = self.cache.get(map, sim.lattice(), self.region).1;
+        if !same_tree || grids.len() != kf.positions.len() {
+            self.refused_next = Some(kf.keyframe_id);
+            return false;
+        }
+        let states = grids
+            .iter()
+            .zip(kf.positions.iter().zip(&kf.velocities))
+            .map(|(g, (x, v))| (*g, (V3::from(*x), V3::from(*v))))
+            .collect();
+        // The owner checks its drift after every step and sends at the first step past
+        // the threshold, unless its rate cap (`min_interval_s`) delays the send: then the
+        // drift may have built up since the last keyframe.
+        let gap = kf.sim_time - self.last_time;
+        let dt = sim.options().dt;
+        let consecutive = self.last_keyframe.is_some_and(|k| kf.keyframe_id == k + 1);
+        let tail = consecutive.then(|| {
+            if gap > self.config.min_interval_s + 0.5 * dt {
+                dt.min(gap)
+            } else {
+                gap
+            }
+        });
+        self.next = Some(NextKeyframe {
+            id: kf.keyframe_id,
+            sim_time: kf.sim_time,
+            tail,
+            states,
+        });
+        true
+    }
+
+    /// Whether a next keyframe is held (see [`RemoteRegion::hold_next`]).
+    pub fn holds_next(&self) -> bool {
+        self.next.is_some()
+    }
+
+    /// Position of a node at time `t` from the keyframes alone (m). Between the last
+    /// applied keyframe and a held next one, the last keyframe's extrapolation plus the
+    /// difference `e` between the held keyframe and that extrapolation at its time, made
+    /// up linearly over a *tail* before it. When the held keyframe directly follows, the
+    /// owner kept the extrapolation within its drift threshold until the tail (one step,
+    /// or the rate-capped interval): a sudden change such as released tissue snapping back
+    /// then happens when it happened at the owner instead of being smeared over the
+    /// interval. When keyframes are missing in between, the tail is `|e| / |v|` with `v`
+    /// the node's velocity in the held keyframe (how long the node took to cover the
+    /// difference at that speed; the whole interval if it is at rest): exact for a linear
+    /// motion even past the extrapolation horizon, and a snap stays a snap. Never
+    /// overshoots the held position. Past the held keyframe, its linear extrapolation (at
+    /// most a step, until it is applied); without one, the last keyframe's extrapolation.
+    pub fn motion_at(&mut self, lattice: &Lattice, n: NodeId, t: f64) -> Option<V3> {
+        let h = self.config.max_extrapolation_s;
         let m = self.motions.motion(lattice, n)?;
-        let (x, _) = m.eval(t, self.config.max_extrapolation_s);
+        if let Some(next) = self.next.as_mut()
+            && t > m.t0
+            && let Some((x1, v1)) = next.state(lattice, n)
+        {
+            let t1 = next.sim_time;
+            if t >= t1 {
+                return Some(x1 + v1 * (t - t1).min(h));
+            }
+            let e = x1 - m.eval(t1, h).0;
+            let gap = t1 - m.t0;
+            let tail = next.tail.unwrap_or_else(|| {
+                let speed = v1.norm();
+                if speed > 1e-9 {
+                    (e.norm() / speed).min(gap)
+                } else {
+                    gap
+                }
+            });
+            let w = if tail > 0.0 {
+                ((t - (t1 - tail)) / tail).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            return Some(m.eval(t, h).0 + e * w);
+        }
+        Some(m.eval(t, h).0)
+    }
+
+    /// Shown position of a node at time `t` (m): interpolation or extrapolation plus the
+    /// decayed offset.
+    fn shown(&mut self, lattice: &Lattice, n: NodeId, t: f64) -> Option<V3> {
+        let x = self.motion_at(lattice, n, t)?;
         let g = lattice.node_grid(n);
         let off = match self.offsets.get(&g) {
             Some(o) => *o,
@@ -1438,6 +1607,18 @@ impl SiteSync {
                 vec![SyncFrame::Keyframe(encode_full_state(sim, &self.map, id))]
             }
             SyncStrategy::InputOnly => Vec::new(),
+        }
+    }
+
+    /// Holds the next keyframe of a remote region before this site's clock reaches it
+    /// ([`RemoteRegion::hold_next`]); returns whether it is held.
+    pub fn hold_next(&mut self, sim: &Simulation, kf: &RegionKeyframe) -> bool {
+        if self.strategy != SyncStrategy::Keyframe || self.policy.is_owned(kf.region) {
+            return false;
+        }
+        match self.remote.get_mut(&kf.region) {
+            Some(r) => r.hold_next(sim, &self.map, kf),
+            None => false,
         }
     }
 

@@ -294,6 +294,205 @@ fn second_order_extrapolation_is_exact_for_constant_acceleration() {
     }
 }
 
+/// Keyframes of a linear motion `x = rest + u t` of the tip region's nodes.
+fn linear_keyframe(sim: &Simulation, map: &RegionMap, id: u64, t: f64, u: V3) -> RegionKeyframe {
+    accel_keyframe(sim, map, id, t, u, V3::zeros())
+}
+
+/// A receiver behind the owner holds the next keyframe before its clock reaches it. With
+/// a keyframe missing in between (ids 1 and 3), the region is interpolated between the
+/// applied and the held frame: a linear motion is reproduced exactly at intermediate
+/// times, where the extrapolation (stopped at its 60 ms horizon, as the site configures
+/// it) is not.
+#[test]
+fn held_next_keyframe_interpolates_a_linear_motion_exactly() {
+    let mut b = beam();
+    let map = beam_map(&b);
+    let cfg = SyncConfig {
+        max_extrapolation_s: 0.06,
+        ..snap()
+    };
+    let u = V3::new(0.02, -0.01, 0.03);
+    let mut remote = RemoteRegion::new(TIP, cfg);
+    let first = linear_keyframe(&b, &map, 1, 0.0, u);
+    remote.apply_keyframe(&mut b, &map, &first).unwrap();
+    assert!(remote.hold_next(&b, &map, &linear_keyframe(&b, &map, 3, 0.2, u)));
+    assert!(remote.holds_next());
+    // Not newer than the applied one, or of another tree state: not held.
+    let mut other = RemoteRegion::new(TIP, cfg);
+    assert!(!other.hold_next(&b, &map, &linear_keyframe(&b, &map, 1, 0.2, u)));
+    let nodes = map.canonical_nodes(b.lattice(), TIP);
+    for t in [0.05, 0.1, 0.15, 0.19] {
+        let mut worst_extrapolated: f64 = 0.0;
+        for &n in &nodes {
+            let exact = b.lattice().node_rest(n) + u * t;
+            let x = remote.motion_at(b.lattice(), n, t).unwrap();
+            assert!(
+                (x - exact).norm() <= 1e-12,
+                "t = {t}: {} m",
+                (x - exact).norm()
+            );
+            let (xe, _) = remote.extrapolated(&b.lattice().node_grid(n), t).unwrap();
+            worst_extrapolated = worst_extrapolated.max((xe - exact).norm());
+        }
+        if t > 0.06 {
+            assert!(worst_extrapolated > 1e-3, "t = {t}: {worst_extrapolated} m");
+        }
+    }
+    // Driving the simulation follows it too, up to the held keyframe's time.
+    for _ in 0..50 {
+        remote.drive(&mut b, &map);
+        b.step().unwrap();
+        let t = b.time();
+        for &n in &nodes {
+            let d = (b.positions()[n.0 as usize] - (b.lattice().node_rest(n) + u * t)).norm();
+            assert!(d <= 1e-9, "t = {t}: {d} m");
+        }
+    }
+}
+
+/// When the held keyframe directly follows the applied one, the owner kept the
+/// receivers' extrapolation within its drift threshold until the step before it: a
+/// sudden change (released tissue snapping back) is shown in that last step, as the
+/// owner saw it, not smeared over the interval (Hermite would also overshoot).
+#[test]
+fn consecutive_held_keyframe_shows_a_sudden_change_in_its_last_step() {
+    let mut b = beam();
+    let map = beam_map(&b);
+    let cfg = SyncConfig {
+        max_extrapolation_s: 0.06,
+        ..snap()
+    };
+    let dt = b.options().dt;
+    let t1 = 0.2;
+    let jump = V3::new(0.0, 0.0, -0.03);
+    let mut remote = RemoteRegion::new(TIP, cfg);
+    let rest = linear_keyframe(&b, &map, 1, 0.0, V3::zeros());
+    remote.apply_keyframe(&mut b, &map, &rest).unwrap();
+    let mut snapped = linear_keyframe(&b, &map, 2, t1, V3::zeros());
+    for (p, v) in snapped.positions.iter_mut().zip(&mut snapped.velocities) {
+        *p = (V3::from(*p) + jump).into();
+        *v = [0.0, 0.0, -1.0];
+    }
+    assert!(remote.hold_next(&b, &map, &snapped));
+    let nodes = map.canonical_nodes(b.lattice(), TIP);
+    for &n in &nodes {
+        let rest = b.lattice().node_rest(n);
+        for t in [0.05, 0.1, t1 - dt] {
+            let x = remote.motion_at(b.lattice(), n, t).unwrap();
+            assert!(
+                (x - rest).norm() <= 1e-12,
+                "t = {t}: moved {} m",
+                (x - rest).norm()
+            );
+        }
+        let x = remote.motion_at(b.lattice(), n, t1).unwrap();
+        assert!((x - (rest + jump)).norm() <= 1e-12);
+    }
+    // With a keyframe missing in between, the tail is estimated from the held velocity
+    // (30 mm at 1 m/s: the last 30 ms), and the snapping velocity never makes the
+    // interpolation overshoot the two positions.
+    let mut gap = RemoteRegion::new(TIP, cfg);
+    gap.apply_keyframe(&mut b, &map, &rest).unwrap();
+    snapped.keyframe_id = 3;
+    assert!(gap.hold_next(&b, &map, &snapped));
+    for &n in &nodes {
+        let z0 = b.lattice().node_rest(n).z;
+        for k in 1..50 {
+            let t = t1 * k as f64 / 50.0;
+            let z = gap.motion_at(b.lattice(), n, t).unwrap().z;
+            assert!(
+                z <= z0 + 1e-12 && z >= z0 + jump.z - 1e-12,
+                "overshoot: {z} vs {z0}"
+            );
+            if t < t1 - 0.03 - 1e-9 {
+                assert!((z - z0).abs() <= 1e-12, "t = {t}: moved before the snap");
+            }
+        }
+    }
+}
+
+/// A receiver that runs `LAG` steps behind the owner, holds keyframes until its clock
+/// reaches them (applying each at its own simulated time) and interpolates towards the
+/// next one, tracks the owner at the same simulated time several times closer than a
+/// receiver at the owner's time that extrapolates from delayed keyframes.
+#[test]
+fn lagging_receiver_tracks_the_owner_closer_than_extrapolation() {
+    const DELAY: usize = 10; // 20 ms
+    const LAG: usize = 20; // 40 ms: more than the delay plus a keyframe interval
+    let mut a = beam();
+    let mut lagging = beam();
+    let mut level = beam();
+    let map = beam_map(&a);
+    let loaded = tip_nodes(&a, &map, 0.37);
+    let cfg = SyncConfig {
+        max_extrapolation_s: 0.06,
+        min_interval_s: 0.01,
+        ..SyncConfig::default()
+    };
+    let mut owner = SiteSync::new(SyncStrategy::Keyframe, map.clone(), cfg);
+    let mut recv_lag = SiteSync::new(SyncStrategy::Keyframe, map.clone(), cfg);
+    let mut recv_level = SiteSync::new(SyncStrategy::Keyframe, map.clone(), cfg);
+    owner.on_grant(TIP);
+    // Frames on the wire: (arrival step of the owner, frame).
+    let mut wire: VecDeque<(usize, SyncFrame)> = VecDeque::new();
+    // Frames the lagging receiver holds until its clock reaches them.
+    let mut held: Vec<SyncFrame> = Vec::new();
+    let mut owner_surface: Vec<Vec<V3>> = Vec::new();
+    let (mut max_lag, mut max_level): (f64, f64) = (0.0, 0.0);
+    let frame_time = |f: &SyncFrame| match f {
+        SyncFrame::Keyframe(k) => k.sim_time,
+        SyncFrame::TreeDelta(d) => d.sim_time,
+    };
+    for k in 0..400 {
+        let t = a.time();
+        // A pull that ramps up, then is let go at once at 0.3 s (the tip springs back).
+        let f = if t < 0.3 { 100.0 * t } else { 0.0 };
+        for &n in &loaded {
+            a.add_force(n, V3::new(0.0, f, 0.0) / loaded.len() as f64);
+        }
+        owner.before_step(&mut a);
+        a.step().unwrap();
+        owner_surface.push(a.surfaces()[0].deformed.clone());
+        for fr in owner.after_step(&a, |_| None) {
+            wire.push_back((k + DELAY, fr));
+        }
+        while wire.front().is_some_and(|(due, _)| *due <= k) {
+            let fr = wire.pop_front().unwrap().1;
+            recv_level.on_frame(&mut level, &fr).unwrap();
+            held.push(fr);
+        }
+        // The level receiver steps with the owner.
+        recv_level.before_step(&mut level);
+        level.step().unwrap();
+        let (d, _) = surface_divergence(&owner_surface[k], &level.surfaces()[0].deformed);
+        max_level = max_level.max(d);
+        // The lagging one LAG steps behind.
+        if k >= LAG {
+            let now = lagging.time() + 0.5 * lagging.options().dt;
+            held.sort_by(|x, y| frame_time(x).total_cmp(&frame_time(y)));
+            while held.first().is_some_and(|f| frame_time(f) <= now) {
+                let fr = held.remove(0);
+                recv_lag.on_frame(&mut lagging, &fr).unwrap();
+            }
+            if let Some(SyncFrame::Keyframe(next)) = held.first() {
+                recv_lag.hold_next(&lagging, next);
+            }
+            recv_lag.before_step(&mut lagging);
+            lagging.step().unwrap();
+            let (d, _) =
+                surface_divergence(&owner_surface[k - LAG], &lagging.surfaces()[0].deformed);
+            max_lag = max_lag.max(d);
+        }
+    }
+    eprintln!("same-time divergence: lagging {max_lag:.2e} m, level {max_level:.2e} m");
+    assert!(max_level > 1e-3, "the motion must matter ({max_level} m)");
+    assert!(
+        max_lag < 0.25 * max_level,
+        "lagging {max_lag} m vs level {max_level} m"
+    );
+}
+
 /// A keyframe whose state differs from the receiver's: the correction blends out linearly,
 /// never moving a node by more than |correction| · dt / window per step beyond the
 /// extrapolation, and is gone after the window.

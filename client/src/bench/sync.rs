@@ -50,6 +50,10 @@ pub struct SyncArgs {
     /// Impairment seed.
     #[arg(long, default_value_t = 11)]
     pub seed: u64,
+    /// Playout lag of every site (`cosurg join --playout-lag`): `auto` or milliseconds
+    /// (0: followers run at the owner's simulated time and extrapolate).
+    #[arg(long, default_value = "auto")]
+    pub playout_lag: crate::site::PlayoutLag,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -69,6 +73,9 @@ pub struct SyncRow {
     pub keyframes_per_s: f64,
     /// Receiving sites' CPU time per applied keyframe (µs).
     pub apply_us_per_keyframe: f64,
+    /// Display delay: receiving sites' mean simulated-time lag behind the owner while
+    /// following it (ms): the cost of the playout lag.
+    pub display_delay_ms: f64,
 }
 
 #[derive(Debug, Serialize)]
@@ -118,7 +125,7 @@ pub fn run(args: SyncArgs) -> Result<()> {
             vtu_interval: 0.0,
             progress: false,
             dt: Some(0.004),
-            extra: Vec::new(),
+            extra: vec!["--playout-lag".into(), args.playout_lag.to_string()],
         };
         let (reports, series) = run_session(&run)?;
         let receivers: Vec<_> = reports
@@ -156,6 +163,7 @@ pub fn run(args: SyncArgs) -> Result<()> {
             up_bytes_per_s: reports.iter().map(|r| r.up_bytes_per_s).sum::<f64>() / n,
             down_bytes_per_s: reports.iter().map(|r| r.down_bytes_per_s).sum::<f64>() / n,
             keyframes_per_s: reports.iter().map(|r| r.keyframes_sent).sum::<u64>() as f64 / wall,
+            display_delay_ms: mean(receivers.iter().map(|r| r.playout_lag_ms)),
             apply_us_per_keyframe: if applied == 0 {
                 0.0
             } else {
@@ -183,7 +191,7 @@ pub fn run(args: SyncArgs) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&bench)?);
     } else {
         println!(
-            "{:<11} {:<17} {:>4} {:>10} {:>10} {:>12} {:>11} {:>11} {:>8} {:>9}",
+            "{:<11} {:<17} {:>4} {:>10} {:>10} {:>12} {:>11} {:>11} {:>8} {:>9} {:>9}",
             "strategy",
             "preset",
             "slow",
@@ -193,11 +201,12 @@ pub fn run(args: SyncArgs) -> Result<()> {
             "up B/s",
             "down B/s",
             "kf/s",
-            "apply µs"
+            "apply µs",
+            "delay ms"
         );
         for r in &bench.rows {
             println!(
-                "{:<11} {:<17} {:>4} {:>7.2} mm {:>7.2} mm {:>9.2} mm {:>11.0} {:>11.0} {:>8.1} {:>9.1}",
+                "{:<11} {:<17} {:>4} {:>7.2} mm {:>7.2} mm {:>9.2} mm {:>11.0} {:>11.0} {:>8.1} {:>9.1} {:>9.0}",
                 r.strategy,
                 r.preset,
                 r.slowdown,
@@ -207,7 +216,8 @@ pub fn run(args: SyncArgs) -> Result<()> {
                 r.up_bytes_per_s,
                 r.down_bytes_per_s,
                 r.keyframes_per_s,
-                r.apply_us_per_keyframe
+                r.apply_us_per_keyframe,
+                r.display_delay_ms
             );
         }
         println!(
@@ -216,6 +226,12 @@ pub fn run(args: SyncArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// Mean of the values (0 for none).
+fn mean(v: impl Iterator<Item = f64>) -> f64 {
+    let (sum, n) = v.fold((0.0, 0usize), |(s, n), x| (s + x, n + 1));
+    if n == 0 { 0.0 } else { sum / n as f64 }
 }
 
 /// One-way delay (ms) of each preset, for the x axis.

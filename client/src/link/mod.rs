@@ -13,9 +13,11 @@
 //!   message larger than `min(1100, max_datagram_size())` bytes goes on the control stream),
 //!   plus the link's own clock pings and heartbeats.
 //! * **unidirectional streams** — one per keyframe ([`Link::send_keyframe`]), at a lower
-//!   priority than the control stream; a newer keyframe of the same region resets
-//!   (`stream_code::SUPERSEDED`) the stream of an older one that is still unacknowledged.
-//!   Keyframes and snapshots from the coordinator arrive the same way.
+//!   priority than the control stream; up to eight per region in flight, newest wins: a
+//!   newer keyframe waits only while eight are busy (replacing any older one waiting),
+//!   and a stream stalled for four round trips with a newer one behind it is reset
+//!   (`stream_code::SUPERSEDED`). Keyframes and snapshots from the coordinator arrive the
+//!   same way.
 //!
 //! ## Life cycle
 //! connect (ALPN `cosurg/1`, pinned certificate or CA) → open the control stream → `Join` →
@@ -550,8 +552,8 @@ impl Link {
     }
 
     /// Send a region keyframe on its own unidirectional stream (lower priority than
-    /// control). A queued older keyframe of the same region is replaced; one still being
-    /// sent is reset.
+    /// control). A queued older keyframe of the same region is replaced; ones still being
+    /// sent go on (up to eight per region) unless stalled (see the module documentation).
     pub fn send_keyframe(&self, kf: RegionKeyframe) {
         {
             let mut o = self.shared.outbox();

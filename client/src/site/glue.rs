@@ -3,7 +3,7 @@
 //! to and from `proto` messages and its pacing by simulated time, and the surface
 //! recorder.
 
-use std::collections::{BTreeSet, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::path::Path;
 
 use anyhow::{Context, Result};
@@ -30,7 +30,10 @@ pub struct Tools {
     interaction: Interaction,
     local: Option<usize>,
     remote_contact: bool,
-    /// Latest pose of each tool from another site.
+    /// Poses of each tool from other sites, by their simulation time.
+    remote_track: Vec<PoseTrack>,
+    /// Each remote pose sampled at this step's simulation time (what is simulated and
+    /// drawn).
     remote: Vec<Option<ToolInput>>,
     /// Whether the local tool is being driven this step (its script is running).
     local_active: bool,
@@ -52,6 +55,7 @@ impl Tools {
         };
         Ok(Tools {
             remote: vec![None; interaction.tools.len()],
+            remote_track: vec![PoseTrack::default(); interaction.tools.len()],
             interaction,
             local,
             remote_contact: strategy == Strategy::InputOnly,
@@ -82,6 +86,13 @@ impl Tools {
         sync: &SyncState,
     ) -> Result<Vec<u32>> {
         self.local_active = local.is_some();
+        // A pose stamped t + dt is the input its site used for the step from t: sample
+        // the remote tracks there, so that a follower behind the owner in simulated time
+        // replays the owner's tool as it was then rather than its latest pose.
+        let at = sim.time() + sim.options().dt;
+        for (slot, track) in self.remote.iter_mut().zip(&self.remote_track) {
+            *slot = track.sample(at);
+        }
         let inputs: Vec<ToolInput> = self
             .interaction
             .tools
@@ -134,19 +145,28 @@ impl Tools {
         Ok(sync.regions_near(sim, &centre, radius))
     }
 
+    /// A pose of a tool from another site (held until our simulation time reaches it).
     pub fn remote_pose(&mut self, p: &proto::ToolPose) {
-        if let Some(slot) = self.remote.get_mut(p.tool as usize) {
+        if let Some(track) = self.remote_track.get_mut(p.tool as usize) {
             let q = p.orientation.map(f64::from);
-            *slot = Some(ToolInput::new(
-                V3::new(
-                    p.position[0].into(),
-                    p.position[1].into(),
-                    p.position[2].into(),
+            track.insert(
+                p.sim_time_s,
+                ToolInput::new(
+                    V3::new(
+                        p.position[0].into(),
+                        p.position[1].into(),
+                        p.position[2].into(),
+                    ),
+                    sim_core::sim_scene::script::quat_wxyz(q),
+                    p.jaw_rad.into(),
                 ),
-                sim_core::sim_scene::script::quat_wxyz(q),
-                p.jaw_rad.into(),
-            ));
+            );
         }
+    }
+
+    /// Whether the local tool was driven in the last step (its site then leads).
+    pub fn local_active(&self) -> bool {
+        self.local_active
     }
 
     /// Force of the tissue on the local tool (N).
@@ -220,7 +240,7 @@ impl Tools {
     }
 
     /// Every tool as drawn: local and contacting tools at their simulated pose, remote
-    /// tools at their owners' last pose.
+    /// tools at their owners' pose for our simulated time (sampled in `before_step`).
     pub fn frames(&self) -> Vec<ToolFrame> {
         let st = self.interaction.state();
         self.interaction
@@ -250,6 +270,67 @@ impl Tools {
     }
 }
 
+/// Poses of one remote tool by simulation time, sampled by linear interpolation (slerp
+/// for the orientation); before the first or after the newest pose, the nearest one.
+#[derive(Clone, Debug, Default)]
+struct PoseTrack {
+    poses: VecDeque<(f64, ToolInput)>,
+}
+
+impl PoseTrack {
+    /// Simulated seconds of poses kept behind the newest (covers any playout lag).
+    const KEEP_S: f64 = 2.0;
+
+    fn insert(&mut self, t: f64, input: ToolInput) {
+        // Datagrams may be reordered: keep the track sorted by time.
+        let i = self.poses.partition_point(|(pt, _)| *pt < t);
+        match self.poses.get_mut(i) {
+            Some(slot) if slot.0 == t => slot.1 = input,
+            _ => self.poses.insert(i, (t, input)),
+        }
+        let newest = self.poses.back().map_or(t, |p| p.0);
+        while self.poses.len() > 2
+            && self
+                .poses
+                .front()
+                .is_some_and(|p| newest - p.0 > Self::KEEP_S)
+        {
+            self.poses.pop_front();
+        }
+    }
+
+    fn sample(&self, t: f64) -> Option<ToolInput> {
+        let (first, last) = (self.poses.front()?, self.poses.back()?);
+        if t <= first.0 {
+            return Some(first.1);
+        }
+        if t >= last.0 {
+            return Some(last.1);
+        }
+        let i = self.poses.partition_point(|(pt, _)| *pt <= t);
+        let ((t0, a), (t1, b)) = (self.poses[i - 1], self.poses[i]);
+        let s = ((t - t0) / (t1 - t0)).clamp(0.0, 1.0);
+        let position = a
+            .pose
+            .translation
+            .vector
+            .lerp(&b.pose.translation.vector, s);
+        let rotation = a
+            .pose
+            .rotation
+            .try_slerp(&b.pose.rotation, s, 1e-9)
+            .unwrap_or(if s < 0.5 {
+                a.pose.rotation
+            } else {
+                b.pose.rotation
+            });
+        Some(ToolInput {
+            pose: nalgebra::Isometry3::from_parts(position.into(), rotation),
+            jaw: a.jaw + (b.jaw - a.jaw) * s,
+        })
+    }
+}
+
 /// The site's sync state (sim-core's [`SiteSync`]) and its conversion to and from the
 /// wire messages of `proto`.
 pub struct SyncState {
@@ -261,8 +342,10 @@ pub struct SyncState {
     me: u16,
     /// Keyframes from sites ahead of us in simulated time, waiting for our clock.
     pending: Vec<SyncFrame>,
-    /// Regions released by their owner whose last frames are still pending.
-    deferred_release: BTreeSet<u32>,
+    /// Regions released by their owner, and the simulated time of the release: the
+    /// release takes effect once our clock reaches it and the owner's last frames are
+    /// played.
+    deferred_release: BTreeMap<u32, f64>,
 }
 
 impl SyncState {
@@ -285,7 +368,7 @@ impl SyncState {
         SyncState {
             sync: SiteSync::new(strategy, RegionMap::for_simulation(sim), config),
             pending: Vec::new(),
-            deferred_release: BTreeSet::new(),
+            deferred_release: BTreeMap::new(),
             acked: HashMap::new(),
             receivers: BTreeSet::new(),
             me: 0,
@@ -337,9 +420,11 @@ impl SyncState {
         self.apply_due(sim)
     }
 
-    /// Applies the pending frames that our simulated time has reached, oldest first.
+    /// Applies the pending frames that our simulated time has reached, oldest first, and
+    /// the releases whose time has come; then holds each region's next pending keyframe
+    /// for interpolation.
     pub fn apply_due(&mut self, sim: &mut Simulation) -> Vec<(u32, u64)> {
-        if self.pending.is_empty() {
+        if self.pending.is_empty() && self.deferred_release.is_empty() {
             return Vec::new();
         }
         let now = sim.time() + 0.5 * sim.options().dt;
@@ -372,14 +457,36 @@ impl SyncState {
         let done: Vec<u32> = self
             .deferred_release
             .iter()
-            .copied()
-            .filter(|r| !self.pending.iter().any(|f| f.region() == *r))
+            .filter(|&(r, at)| *at <= now && !self.pending.iter().any(|f| f.region() == *r))
+            .map(|(r, _)| *r)
             .collect();
         for r in done {
             self.deferred_release.remove(&r);
             self.sync.on_remote_release(r);
         }
+        self.hold_next_keyframes(sim);
         applied
+    }
+
+    /// Offers each region's earliest pending frame, if it is a keyframe, to sim-core as
+    /// the next keyframe to interpolate towards (a tree delta first changes the nodes).
+    fn hold_next_keyframes(&mut self, sim: &Simulation) {
+        let mut earliest: BTreeMap<u32, &SyncFrame> = BTreeMap::new();
+        for f in &self.pending {
+            let t = |f: &SyncFrame| match f {
+                SyncFrame::Keyframe(k) => k.sim_time,
+                SyncFrame::TreeDelta(d) => d.sim_time,
+            };
+            let e = earliest.entry(f.region()).or_insert(f);
+            if t(f) < t(e) {
+                *e = f;
+            }
+        }
+        for f in earliest.into_values() {
+            if let SyncFrame::Keyframe(kf) = f {
+                self.sync.hold_next(sim, kf);
+            }
+        }
     }
 
     /// A receiver acknowledged one of our keyframes.
@@ -399,16 +506,20 @@ impl SyncState {
         match owner {
             Some(o) if Some(o) == me => self.sync.on_grant(region),
             Some(_) => self.sync.on_remote_grant(region),
-            // A release takes effect after the owner's last frames, which may still be
-            // waiting for our clock (see `apply_due`).
-            None if self.pending.iter().any(|f| f.region() == region) => {
-                self.deferred_release.insert(region);
-            }
-            None => self.sync.on_remote_release(region),
+            None => self.release_remote(region, None, me),
         }
         if owner.is_some() {
             self.deferred_release.remove(&region);
         }
+    }
+
+    /// Another site released `region` at about its simulated time `at` (s; `None`:
+    /// unknown). The release takes effect, in `apply_due`, once our clock reaches `at`
+    /// and the owner's last frames, which may still be waiting for our clock, are played.
+    pub fn release_remote(&mut self, region: u32, at: Option<f64>, me: Option<u16>) {
+        tracing::debug!(region, ?at, ?me, "remote release");
+        self.deferred_release
+            .insert(region, at.unwrap_or(f64::NEG_INFINITY));
     }
 
     /// We release `region`: the final keyframe, if the strategy sends one.
@@ -505,3 +616,35 @@ impl Recorder {
 
 /// The site's 1 kHz haptic loop, its device and teaching mode (`site/haptics.rs`).
 pub use super::haptics::{DeviceSpec, HapticLoop, HapticSummary, Teaching};
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn input(x: f64, jaw: f64) -> ToolInput {
+        ToolInput::new(
+            V3::new(x, 0.0, 0.0),
+            nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, x),
+            jaw,
+        )
+    }
+
+    #[test]
+    fn pose_track_samples_by_simulated_time() {
+        let mut track = PoseTrack::default();
+        assert!(track.sample(0.0).is_none());
+        // Out of order, as datagrams may arrive.
+        track.insert(0.2, input(0.2, 0.4));
+        track.insert(0.1, input(0.1, 0.2));
+        let mid = track.sample(0.15).unwrap();
+        assert!((mid.pose.translation.vector.x - 0.15).abs() < 1e-12);
+        assert!((mid.jaw - 0.3).abs() < 1e-12);
+        assert!((mid.pose.rotation.angle() - 0.15).abs() < 1e-9);
+        // Before the first and after the newest pose: the nearest one (hold).
+        assert_eq!(track.sample(0.0).unwrap().jaw, 0.2);
+        assert_eq!(track.sample(9.0).unwrap().jaw, 0.4);
+        // Old poses are dropped beyond the kept window.
+        track.insert(5.0, input(5.0, 1.0));
+        assert_eq!(track.poses.len(), 2);
+    }
+}

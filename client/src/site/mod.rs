@@ -4,6 +4,8 @@
 
 pub mod glue;
 mod haptics;
+pub mod pacing;
 mod runtime;
 
+pub use pacing::PlayoutLag;
 pub use runtime::{SiteConfig, SiteReport, Strategy, run_site};

@@ -14,6 +14,7 @@ use sim_core::sim_scene::{LoadedScene, ToolScript};
 use sim_core::{SimOptions, Simulation};
 
 use super::glue::{self, Outgoing, SyncState};
+use super::pacing::{PeerClocks, PlayoutLag};
 use crate::cli::Refused;
 use crate::link::{Link, LinkConfig, LinkEvent};
 use crate::output::{Frame, SeriesWriter};
@@ -72,6 +73,9 @@ pub struct SiteConfig {
     pub expect_sites: usize,
     /// Pace steps to wall-clock time (true) or run as fast as possible (false).
     pub realtime: bool,
+    /// How far a site that follows another site's regions or tool keeps its simulation
+    /// time behind that site's (`site::pacing`).
+    pub playout_lag: PlayoutLag,
     /// Run the 1 kHz haptic loop beside the simulation.
     pub haptics: bool,
     /// Where the local tool's input comes from: the script, or a real device over UDP
@@ -148,6 +152,13 @@ pub struct SiteReport {
     /// Wall time spent waiting so as not to run ahead of the owners' clocks (s).
     #[serde(default)]
     pub paced_seconds: f64,
+    /// Display delay: mean simulation-time lag behind the sites followed (ms), over the
+    /// steps this site followed another without leading itself; 0 if it never did.
+    #[serde(default)]
+    pub playout_lag_ms: f64,
+    /// The playout lag aimed at at the end of the run (ms).
+    #[serde(default)]
+    pub playout_target_ms: f64,
 }
 
 /// Simulated time between surface recordings (s).
@@ -299,7 +310,15 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     let mut next_simtime_stamp = 0.0;
     let mut next_vtu = 0.0;
     let mut next_progress = 0.0;
-    let mut clocks = PeerClocks::default();
+    let mut clocks = PeerClocks::new(cfg.playout_lag);
+    // Until the first time stamps arrive: a round trip to the coordinator is about two
+    // one-way hops, owner → coordinator → us.
+    if let Some(rtt) = link.as_ref().and_then(|l| l.clock().rtt_us) {
+        clocks.seed_delay(rtt as f64 / 1e6);
+    }
+    // Display delay: sum and count of per-step lags while following.
+    let (mut behind_sum, mut behind_steps) = (0.0f64, 0u64);
+    let mut next_due = start;
     let mut next_pose = 0.0;
     let vtu_interval = cfg.vtu_interval.unwrap_or(f64::INFINITY);
 
@@ -336,8 +355,12 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         }
         for m in inbox {
             match m {
-                Message::ToolPose(p) if Some(p.site) != me => tools.remote_pose(&p),
+                Message::ToolPose(p) if Some(p.site) != me => {
+                    clocks.tool_heard(p.site, wall(start));
+                    tools.remote_pose(&p);
+                }
                 Message::Keyframe(kf) if Some(kf.owner) != me => {
+                    clocks.keyframe_arrived(kf.owner, kf.sim_time_s, wall(start));
                     let t0 = Instant::now();
                     let applied = sync.receive(&mut sim, kf);
                     acknowledge(&link, &applied, me, &mut report, &mut apply_us, t0);
@@ -371,9 +394,16 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                         report.owned.push((g.region, since, t));
                     }
                 }
-                Message::SimTime(s) if Some(s.site) != me => clocks.heard(s.site, s.sim_time_s),
+                Message::SimTime(s) if Some(s.site) != me => {
+                    let transit = link.as_ref().and_then(|l| stamp_transit(l, s.wall_send_us));
+                    clocks.heard(s.site, s.sim_time_s, wall(start), transit);
+                }
                 Message::OwnershipRelease(r) => {
-                    sync.set_owner(r.region, None, me);
+                    // The release takes effect when our clock reaches the owner's time
+                    // of release (as heard now), not on arrival: a lagging follower
+                    // still has the owner's last frames to play.
+                    let at = clocks.release_time(r.site, wall(start));
+                    sync.release_remote(r.region, at, me);
                     clocks.owners.remove(&r.region);
                     if let Some(since) = owned.remove(&r.region) {
                         report.owned.push((r.region, since, t));
@@ -531,24 +561,37 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
             );
         }
 
-        // 7. Real-time pacing: step k+1 is due at (k+1)·dt of wall time.
+        // 7. Pacing. A leading site (it owns or claims a region, or drives its tool)
+        // runs level with the other leaders; a follower keeps the playout lag behind the
+        // sites it follows, by slewing its step rate (`site::pacing`).
+        let leading = !owned.is_empty() || !requested.is_empty() || tools.local_active();
+        let pace = clocks.pace(sim.time(), wall(start), leading, cfg.realtime);
+        if let Some(b) = pace.behind {
+            behind_sum += b;
+            behind_steps += 1;
+        }
         if cfg.realtime {
-            let due = start + Duration::from_secs_f64(k as f64 * dt);
+            // The next step is due dt / rate of wall time after this one was.
+            next_due += Duration::from_secs_f64(dt / pace.rate);
             let now = Instant::now();
-            if due > now {
-                std::thread::sleep(due - now);
+            if next_due > now {
+                std::thread::sleep(next_due - now);
             }
         }
-        // A site never runs ahead of the owners whose regions it shows: their keyframes
-        // would arrive from its past. The simulation-time difference (from the owners'
-        // time stamps and their measured rates) sets how long to wait.
-        let ahead = clocks.ahead_of_owners(sim.time());
-        if ahead > MAX_LEAD {
-            let wait = (ahead - MAX_LEAD).min(0.02);
-            report.paced_seconds += wait;
-            std::thread::sleep(Duration::from_secs_f64(wait));
+        // Never run ahead of the owners whose regions we show (their keyframes would
+        // arrive from our past).
+        if pace.hold > 0.0 {
+            report.paced_seconds += pace.hold;
+            std::thread::sleep(Duration::from_secs_f64(pace.hold));
+            next_due += Duration::from_secs_f64(pace.hold);
         }
     }
+    report.playout_lag_ms = if behind_steps > 0 {
+        behind_sum / behind_steps as f64 * 1e3
+    } else {
+        0.0
+    };
+    report.playout_target_ms = clocks.target_lag() * 1e3;
     let wall = start.elapsed().as_secs_f64();
     for (region, since) in owned {
         report.owned.push((region, since, sim.time()));
@@ -610,42 +653,18 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
 /// Simulated time between tool-pose datagrams, except under input-only (s).
 const POSE_INTERVAL: f64 = 0.016;
 
-/// How far (s of simulated time) a site may run ahead of the owners it follows.
-const MAX_LEAD: f64 = 0.03;
-
-/// Other sites' simulation clocks, from their time stamps: last reported time, when it was
-/// heard, and the rate at which it advances (simulated s per wall s).
-#[derive(Default)]
-struct PeerClocks {
-    peers: HashMap<u16, (f64, Instant, f64)>,
-    /// Regions owned by other sites, and their owners.
-    owners: BTreeMap<u32, u16>,
+/// Wall seconds since `start` (the pacing's clock).
+fn wall(start: Instant) -> f64 {
+    start.elapsed().as_secs_f64()
 }
 
-impl PeerClocks {
-    fn heard(&mut self, site: u16, t: f64) {
-        let now = Instant::now();
-        let rate = match self.peers.get(&site) {
-            Some(&(t0, at, r)) if now > at && t > t0 => {
-                let measured = (t - t0) / (now - at).as_secs_f64();
-                // Smooth: stamps are 50 ms of simulated time apart and arrive with jitter.
-                (0.8 * r + 0.2 * measured).clamp(0.05, 2.0)
-            }
-            Some(&(_, _, r)) => r,
-            None => 1.0,
-        };
-        self.peers.insert(site, (t, now, rate));
-    }
-
-    /// How far `t` is ahead of the slowest owner we follow (s); ≤ 0 when behind or when
-    /// no other site owns anything.
-    fn ahead_of_owners(&self, t: f64) -> f64 {
-        self.owners
-            .values()
-            .filter_map(|s| self.peers.get(s))
-            .map(|&(t0, at, rate)| t - (t0 + rate * at.elapsed().as_secs_f64()))
-            .fold(f64::NEG_INFINITY, f64::max)
-    }
+/// One-way transit (s) of a time stamp sent at coordinator time `sent_us` (both clocks
+/// synchronised with the coordinator's); `None` while ours is not. A sender not yet
+/// synchronised gives an implausible value, which the pacing ignores.
+fn stamp_transit(link: &Link, sent_us: u64) -> Option<f64> {
+    link.clock().offset_us?;
+    let now = link.coordinator_time_us();
+    Some((now as f64 - sent_us as f64) / 1e6)
 }
 
 /// Counts applied keyframes (and their CPU time) and acknowledges them to their owner.

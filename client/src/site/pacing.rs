@@ -1,0 +1,467 @@
+//! Pacing a site's simulation clock against the sites it follows: the playout lag.
+//!
+//! A site that shows regions owned by another site (or simulates another site's tool under
+//! input-only) receives that site's keyframes and poses one network delay after they were
+//! produced. Running at the owner's simulation time, it could only extrapolate from the
+//! past; at a grasp release (tissue springs back in 0.3 s) extrapolation is wrong by tens
+//! of millimetres. So a *follower* keeps its simulation time about `L` behind the owner's
+//! current simulation time — like entity interpolation in game networking or a jitter
+//! buffer — and frames arrive before its clock reaches them: each is applied at its exact
+//! simulation time and the region is interpolated between consecutive keyframes.
+//!
+//! * `L` is `--playout-lag auto` (smoothed one-way delay owner → coordinator → us, plus a
+//!   jitter margin of four mean deviations, plus one keyframe interval; capped at
+//!   [`MAX_AUTO_LAG`]) or a fixed value (`0`: no lag, the behaviour before playout lag).
+//! * The lag is reached and kept by slewing the step rate within
+//!   [`MIN_RATE`]–[`MAX_RATE`] of real time, never by jumps.
+//! * A *leading* site (it owns a region, has claimed one, or its own tool is being driven)
+//!   keeps no lag: it runs level with the other leaders it follows, so two owners
+//!   following each other never wait for each other. When ownership moves, the new leader
+//!   catches up and the old one falls back to the lag.
+//! * Independently of the lag, a site never runs more than [`MAX_LEAD`] ahead of an owner
+//!   it follows (owners' keyframes would arrive from its past); during a change of
+//!   leader that cap is relaxed by [`MAX_AUTO_LAG`] so that the change slews instead of
+//!   freezing the old leader.
+//!
+//! Sans-IO: every time is passed in (wall seconds since any fixed origin), so the pacing
+//! is unit-tested with a fake clock.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+
+/// How far (s of simulated time) a site may run ahead of the owners it follows.
+pub const MAX_LEAD: f64 = 0.03;
+/// Largest automatic playout lag (s).
+pub const MAX_AUTO_LAG: f64 = 0.6;
+/// One keyframe interval during motion (s): the owner sends at most every 30 ms
+/// (`SyncConfig::min_interval_s`), and interpolation needs the next keyframe in hand.
+pub const KEYFRAME_INTERVAL: f64 = 0.04;
+/// Slowest and fastest step rate while slewing towards the target lag (× real time).
+pub const MIN_RATE: f64 = 0.8;
+pub const MAX_RATE: f64 = 1.05;
+/// Rate change per second of lag error (1/s): an error of 0.1 s slews at 0.8× or 1.02×.
+const GAIN: f64 = 2.0;
+/// A remote tool counts as active (its site is followed) this long after its last pose
+/// (wall s).
+const TOOL_ACTIVE_FOR: f64 = 0.5;
+/// A site unheard for this long (wall s) is not assumed to advance any further.
+const SILENT_AFTER: f64 = 0.5;
+/// Transit samples outside 0..this (s) come from clocks not yet synchronised; ignored.
+const MAX_TRANSIT: f64 = 5.0;
+
+/// `--playout-lag`: `auto` or milliseconds.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum PlayoutLag {
+    /// From the measured delay and jitter (see the module documentation).
+    Auto,
+    /// Fixed lag (s); 0 disables the lag.
+    Fixed(f64),
+}
+
+impl PlayoutLag {
+    /// Whether followers keep any lag at all.
+    pub fn enabled(self) -> bool {
+        !matches!(self, PlayoutLag::Fixed(l) if l <= 0.0)
+    }
+}
+
+impl std::str::FromStr for PlayoutLag {
+    type Err = String;
+    /// `auto` or a number of milliseconds (`0`: no lag).
+    fn from_str(s: &str) -> Result<Self, String> {
+        if s.eq_ignore_ascii_case("auto") {
+            return Ok(PlayoutLag::Auto);
+        }
+        match s.trim_end_matches("ms").parse::<f64>() {
+            Ok(ms) if ms.is_finite() && ms >= 0.0 => Ok(PlayoutLag::Fixed(ms / 1e3)),
+            _ => Err(format!(
+                "--playout-lag {s:?}: expected `auto` or milliseconds ≥ 0"
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for PlayoutLag {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PlayoutLag::Auto => f.write_str("auto"),
+            PlayoutLag::Fixed(l) => write!(f, "{}", l * 1e3),
+        }
+    }
+}
+
+/// Smoothed delay and its mean deviation (RFC 6298's estimator, in seconds).
+#[derive(Clone, Copy, Debug, Default)]
+struct DelayFilter {
+    mean: Option<f64>,
+    dev: f64,
+}
+
+impl DelayFilter {
+    fn sample(&mut self, d: f64) {
+        match self.mean {
+            None => {
+                self.mean = Some(d);
+                self.dev = d / 2.0;
+            }
+            Some(m) => {
+                self.dev = 0.75 * self.dev + 0.25 * (d - m).abs();
+                self.mean = Some(0.875 * m + 0.125 * d);
+            }
+        }
+    }
+
+    /// Delay plus a jitter margin of four deviations (s).
+    fn with_margin(&self) -> Option<f64> {
+        self.mean.map(|m| m + 4.0 * self.dev)
+    }
+}
+
+/// Another site's simulation clock from its time stamps.
+#[derive(Clone, Copy, Debug)]
+struct PeerClock {
+    /// Simulation time of the last stamp (s) and when it was heard (wall s).
+    sim_time: f64,
+    heard_at: f64,
+    /// Simulated seconds per wall second.
+    rate: f64,
+    /// Smoothed one-way transit of its stamps to us (s), when measured.
+    transit: Option<f64>,
+}
+
+/// What the pacing asks of the next step.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Pace {
+    /// Step rate (× real time).
+    pub rate: f64,
+    /// How far our simulation time is behind the followed sites' estimated current time
+    /// (s), while following as a non-leader (the "display delay").
+    pub behind: Option<f64>,
+    /// Wall time to wait before the next step (s): hard cap on running ahead of an owner,
+    /// or (without real-time pacing) holding the lag.
+    pub hold: f64,
+}
+
+/// Other sites' simulation clocks, which of them this site follows, and the playout lag.
+#[derive(Clone, Debug)]
+pub struct PeerClocks {
+    peers: HashMap<u16, PeerClock>,
+    /// Regions owned by other sites, and their owners.
+    pub owners: BTreeMap<u32, u16>,
+    /// Sites whose tool poses we receive, and when the last one was heard (wall s).
+    tools: HashMap<u16, f64>,
+    /// One-way delay from the followed sites to us: stamp transits and keyframe ages.
+    delay: DelayFilter,
+    lag: PlayoutLag,
+}
+
+impl PeerClocks {
+    pub fn new(lag: PlayoutLag) -> Self {
+        PeerClocks {
+            peers: HashMap::new(),
+            owners: BTreeMap::new(),
+            tools: HashMap::new(),
+            delay: DelayFilter::default(),
+            lag,
+        }
+    }
+
+    /// A time stamp of `site`: simulation time `sim_time` (s) heard at `now` (wall s);
+    /// `transit` is its measured one-way transit (s) when both clocks are synchronised
+    /// with the coordinator's.
+    pub fn heard(&mut self, site: u16, sim_time: f64, now: f64, transit: Option<f64>) {
+        let transit = transit.filter(|d| (0.0..MAX_TRANSIT).contains(d));
+        let prev = self.peers.get(&site).copied();
+        let rate = match prev {
+            Some(p) if now > p.heard_at && sim_time > p.sim_time => {
+                let measured = (sim_time - p.sim_time) / (now - p.heard_at);
+                // Smooth: stamps are 50 ms of simulated time apart and arrive with jitter.
+                (0.8 * p.rate + 0.2 * measured).clamp(0.05, 2.0)
+            }
+            Some(p) => p.rate,
+            None => 1.0,
+        };
+        let smoothed = match (prev.and_then(|p| p.transit), transit) {
+            (Some(old), Some(d)) => Some(0.875 * old + 0.125 * d),
+            (old, d) => d.or(old),
+        };
+        if let Some(d) = transit {
+            self.delay.sample(d);
+        }
+        self.peers.insert(
+            site,
+            PeerClock {
+                sim_time,
+                heard_at: now,
+                rate,
+                transit: smoothed,
+            },
+        );
+    }
+
+    /// A tool pose of `site` arrived at `now` (wall s): its site is followed for a while.
+    pub fn tool_heard(&mut self, site: u16, now: f64) {
+        self.tools.insert(site, now);
+    }
+
+    /// A keyframe of `owner` with simulation time `sim_time` arrived at `now`: its age
+    /// (how long after its simulation time it arrived) is a delay sample that includes
+    /// stream retransmissions and the sender's queue.
+    pub fn keyframe_arrived(&mut self, owner: u16, sim_time: f64, now: f64) {
+        if let Some(est) = self.estimate_now(owner, now) {
+            let age = est - sim_time;
+            if (0.0..MAX_TRANSIT).contains(&age) {
+                self.delay.sample(age);
+            }
+        }
+    }
+
+    /// A delay estimate (s) to start from before any sample (e.g. the round trip to the
+    /// coordinator: two one-way hops).
+    pub fn seed_delay(&mut self, d: f64) {
+        if self.delay.mean.is_none() && d.is_finite() && d >= 0.0 {
+            self.delay.sample(d);
+        }
+    }
+
+    /// The sites this site follows now: owners of regions it shows and sites whose tool
+    /// poses are arriving.
+    fn followed(&self, now: f64) -> BTreeSet<u16> {
+        self.owners
+            .values()
+            .copied()
+            .chain(
+                self.tools
+                    .iter()
+                    .filter(|(_, at)| now - **at <= TOOL_ACTIVE_FOR)
+                    .map(|(s, _)| *s),
+            )
+            .collect()
+    }
+
+    /// Estimated current simulation time of `site` (s): its last stamp advanced by its
+    /// rate over the stamp's transit and the time since it was heard.
+    fn estimate_now(&self, site: u16, now: f64) -> Option<f64> {
+        let p = self.peers.get(&site)?;
+        let transit = p.transit.or(self.delay.mean).unwrap_or(0.0);
+        Some(p.sim_time + p.rate * (now - p.heard_at + transit))
+    }
+
+    /// Simulation time of `site` as last heard, advanced by its rate (s): the time of the
+    /// messages arriving from it now.
+    fn heard_time(&self, site: u16, now: f64) -> Option<f64> {
+        let p = self.peers.get(&site)?;
+        Some(p.sim_time + p.rate * (now - p.heard_at))
+    }
+
+    /// Simulation time (s) at which a release by `site` heard at `now` took effect there:
+    /// its time as heard, but not advanced past [`SILENT_AFTER`] of silence (a site that
+    /// dropped out is released by the coordinator long after its last stamp).
+    pub fn release_time(&self, site: u16, now: f64) -> Option<f64> {
+        let p = self.peers.get(&site)?;
+        Some(p.sim_time + p.rate * (now - p.heard_at).min(SILENT_AFTER))
+    }
+
+    /// How far `t` is ahead of the slowest owner we follow (s), measured against the
+    /// owners' time as last heard (the time of the frames arriving now); −∞ when no other
+    /// site owns anything.
+    fn ahead_of_owners(&self, t: f64, now: f64) -> f64 {
+        self.owners
+            .values()
+            .filter_map(|s| self.heard_time(*s, now))
+            .map(|heard| t - heard)
+            .fold(f64::NEG_INFINITY, f64::max)
+    }
+
+    /// The lag a non-leading follower keeps behind the sites it follows (s).
+    pub fn target_lag(&self) -> f64 {
+        match self.lag {
+            PlayoutLag::Fixed(l) => l.max(0.0),
+            PlayoutLag::Auto => {
+                let delay = self.delay.with_margin().unwrap_or(0.1);
+                (delay + KEYFRAME_INTERVAL).min(MAX_AUTO_LAG)
+            }
+        }
+    }
+
+    /// The pace of the next step for a site at simulation time `t` (s) at wall time
+    /// `now` (s); `leading`: it owns or claims a region or drives its own tool.
+    pub fn pace(&self, t: f64, now: f64, leading: bool, realtime: bool) -> Pace {
+        let lead = self
+            .followed(now)
+            .into_iter()
+            .filter_map(|s| self.estimate_now(s, now))
+            .reduce(f64::min);
+        let mut pace = Pace {
+            rate: 1.0,
+            behind: None,
+            hold: 0.0,
+        };
+        if let Some(lead) = lead {
+            let behind = lead - t;
+            if !leading {
+                pace.behind = Some(behind);
+            }
+            if self.lag.enabled() {
+                let target = if leading { 0.0 } else { self.target_lag() };
+                let error = behind - target;
+                pace.rate = (1.0 + GAIN * error).clamp(MIN_RATE, MAX_RATE);
+                if !realtime && error < 0.0 {
+                    pace.hold = (-error).min(0.02);
+                }
+            }
+        }
+        // Never run ahead of an owner's frames. A leader may be ahead of a new leader by
+        // up to the largest lag while the two slew level.
+        let cap = if leading && self.lag.enabled() {
+            MAX_LEAD + MAX_AUTO_LAG
+        } else {
+            MAX_LEAD
+        };
+        let ahead = self.ahead_of_owners(t, now);
+        if ahead > cap {
+            pace.hold = pace.hold.max((ahead - cap).min(0.02));
+        }
+        pace
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A fake site: its simulation time advances by `rate` per wall second as asked.
+    struct FakeSite {
+        id: u16,
+        t: f64,
+        clocks: PeerClocks,
+        leading: bool,
+    }
+
+    /// Advances every site by `dt` of wall time in small steps, exchanging time stamps
+    /// every 50 ms of wall time with a one-way `transit` (s) and returns the final times.
+    fn run(sites: &mut [FakeSite], seconds: f64, transit: f64) {
+        let dt = 0.004;
+        let mut now = 0.0;
+        let mut next_stamp = 0.0;
+        // Stamps in flight: (deliver at, from, sim time).
+        let mut wire: Vec<(f64, u16, f64)> = Vec::new();
+        while now < seconds {
+            if now >= next_stamp {
+                next_stamp += 0.05;
+                for s in sites.iter() {
+                    wire.push((now + transit, s.id, s.t));
+                }
+            }
+            let (due, later): (Vec<_>, Vec<_>) = wire.into_iter().partition(|w| w.0 <= now);
+            wire = later;
+            for (_, from, t) in due {
+                for s in sites.iter_mut().filter(|s| s.id != from) {
+                    s.clocks.heard(from, t, now, Some(transit));
+                }
+            }
+            for s in sites.iter_mut() {
+                let pace = s.clocks.pace(s.t, now, s.leading, true);
+                if pace.hold <= 0.0 {
+                    s.t += dt * pace.rate;
+                }
+            }
+            now += dt;
+        }
+    }
+
+    fn site(id: u16, lag: PlayoutLag, leading: bool) -> FakeSite {
+        FakeSite {
+            id,
+            t: 0.0,
+            clocks: PeerClocks::new(lag),
+            leading,
+        }
+    }
+
+    #[test]
+    fn follower_converges_to_the_target_lag_and_owner_keeps_real_time() {
+        let mut sites = [
+            site(1, PlayoutLag::Fixed(0.0), true),
+            site(2, PlayoutLag::Fixed(0.25), false),
+        ];
+        sites[1].clocks.owners.insert(7, 1);
+        run(&mut sites, 6.0, 0.08);
+        let (owner, follower) = (sites[0].t, sites[1].t);
+        // The owner follows nobody and runs at real time.
+        assert!((owner - 6.0).abs() < 0.01, "owner at {owner}");
+        let lag = owner - follower;
+        assert!(
+            (lag - 0.25).abs() < 0.02,
+            "follower lags {lag} s, want 0.25"
+        );
+        // It got there gently: never slower than MIN_RATE over the run.
+        assert!(follower >= 6.0 * MIN_RATE);
+        let pace = sites[1].clocks.pace(follower, 6.0, false, true);
+        assert!((pace.rate - 1.0).abs() < 0.05, "rate {}", pace.rate);
+        assert!((pace.behind.unwrap() - 0.25).abs() < 0.02);
+    }
+
+    #[test]
+    fn auto_lag_covers_delay_jitter_and_one_keyframe_interval_within_the_cap() {
+        let mut c = PeerClocks::new(PlayoutLag::Auto);
+        for i in 0..200 {
+            let d = if i % 2 == 0 { 0.09 } else { 0.11 };
+            c.heard(1, i as f64 * 0.05, i as f64 * 0.05 + d, Some(d));
+        }
+        let l = c.target_lag();
+        assert!(
+            l > 0.1 + KEYFRAME_INTERVAL && l < 0.1 + KEYFRAME_INTERVAL + 0.1,
+            "{l}"
+        );
+        let mut slow = PeerClocks::new(PlayoutLag::Auto);
+        slow.heard(1, 0.0, 2.0, Some(2.0));
+        assert_eq!(slow.target_lag(), MAX_AUTO_LAG);
+    }
+
+    #[test]
+    fn two_owners_following_each_other_do_not_deadlock() {
+        let mut sites = [
+            site(1, PlayoutLag::Fixed(0.3), true),
+            site(2, PlayoutLag::Fixed(0.3), true),
+        ];
+        sites[0].clocks.owners.insert(1, 2);
+        sites[1].clocks.owners.insert(2, 1);
+        // Site 2 starts 0.2 s behind (it was a follower until it took a region).
+        sites[1].t = -0.2;
+        run(&mut sites, 8.0, 0.05);
+        let (a, b) = (sites[0].t, sites[1].t);
+        // Both keep (close to) real time and end level, neither waiting for the other.
+        assert!(a > 8.0 * 0.95 && b > 8.0 * 0.95, "{a} {b}");
+        assert!((a - b).abs() < 0.03, "{a} {b}");
+    }
+
+    #[test]
+    fn zero_lag_keeps_real_time_and_only_the_hard_cap() {
+        let mut sites = [
+            site(1, PlayoutLag::Fixed(0.0), true),
+            site(2, PlayoutLag::Fixed(0.0), false),
+        ];
+        sites[1].clocks.owners.insert(7, 1);
+        run(&mut sites, 3.0, 0.04);
+        assert!((sites[0].t - sites[1].t).abs() < 0.05);
+        assert_eq!(sites[1].clocks.pace(sites[1].t, 3.0, false, true).rate, 1.0);
+    }
+
+    #[test]
+    fn release_of_a_silent_site_is_not_pushed_into_the_future() {
+        let mut c = PeerClocks::new(PlayoutLag::Auto);
+        c.heard(4, 2.0, 10.0, Some(0.05));
+        assert!((c.release_time(4, 10.2).unwrap() - 2.2).abs() < 1e-9);
+        // Ten seconds of silence (the site dropped out): at most SILENT_AFTER later.
+        assert!((c.release_time(4, 20.0).unwrap() - (2.0 + SILENT_AFTER)).abs() < 1e-9);
+        assert_eq!(c.release_time(5, 20.0), None);
+    }
+
+    #[test]
+    fn parses_auto_and_milliseconds() {
+        assert_eq!("auto".parse::<PlayoutLag>(), Ok(PlayoutLag::Auto));
+        assert_eq!("250".parse::<PlayoutLag>(), Ok(PlayoutLag::Fixed(0.25)));
+        assert!(!"0".parse::<PlayoutLag>().unwrap().enabled());
+        assert!("-3".parse::<PlayoutLag>().is_err());
+    }
+}
