@@ -69,6 +69,8 @@ pub struct DemoSite {
     pub tool: Option<&'static str>,
     pub script_start: f64,
     pub slowdown: f64,
+    /// Further `cosurg join` arguments for this site only (e.g. its own solver budget).
+    pub extra: Vec<String>,
 }
 
 /// The demo's cast for `n` sites.
@@ -81,6 +83,7 @@ pub fn cast(n: usize, slowdown: f64) -> Vec<DemoSite> {
                 tool: Some("forceps"),
                 script_start: 0.5,
                 slowdown: 1.0,
+                extra: Vec::new(),
             },
             1 => DemoSite {
                 name: "trainee-a".into(),
@@ -88,6 +91,7 @@ pub fn cast(n: usize, slowdown: f64) -> Vec<DemoSite> {
                 tool: Some("forceps"),
                 script_start: 12.5,
                 slowdown: 1.0,
+                extra: Vec::new(),
             },
             2 => DemoSite {
                 name: "trainee-b".into(),
@@ -95,6 +99,7 @@ pub fn cast(n: usize, slowdown: f64) -> Vec<DemoSite> {
                 tool: Some("probe"),
                 script_start: 7.0,
                 slowdown,
+                extra: Vec::new(),
             },
             k => DemoSite {
                 name: format!("observer-{}", k - 2),
@@ -102,6 +107,7 @@ pub fn cast(n: usize, slowdown: f64) -> Vec<DemoSite> {
                 tool: None,
                 script_start: 0.0,
                 slowdown: 1.0,
+                extra: Vec::new(),
             },
         })
         .collect()
@@ -221,6 +227,7 @@ pub fn run_session(run: &SessionRun) -> Result<(Vec<SiteReport>, Vec<Series>)> {
             cmd.args(["--dt", &dt.to_string()]);
         }
         cmd.args(&run.extra);
+        cmd.args(&site.extra);
         let mut child = cmd
             .spawn()
             .with_context(|| format!("starting site {}", site.name))?;

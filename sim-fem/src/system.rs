@@ -1961,6 +1961,12 @@ struct SysOp<'a> {
     assembled: Option<Vec<Matrix3<f64>>>,
 }
 
+/// Smallest mesh (nodes) whose sparse products are split over threads: on 2 cores the
+/// coarse cantilever beam (425 nodes, about 4 µs per product) stepped 25 % slower with
+/// a split product at dt = 10 ms (50 CG iterations), the 12,288-tet one (2,673 nodes)
+/// 1.5× faster (`examples/step_cost.rs`).
+const PARALLEL_PRODUCT_MIN_NODES: usize = 1000;
+
 /// The 16 3×3 blocks (index `4a + b`) of `R K Rᵀ` for a symmetric 12×12 `K` (`r = None`:
 /// `K` itself). Only the 10 blocks with `a ≤ b` are rotated; the others are their
 /// transposes.
@@ -2167,8 +2173,12 @@ impl LinearOperator for SysOp<'_> {
         if let Some(blocks) = &self.assembled {
             let pat = self.sys.pattern.as_ref().expect("pattern");
             match (&self.elem, &self.sys.partition) {
+                // Below PARALLEL_PRODUCT_MIN_NODES a product is a few µs of work, less than
+                // forking and joining costs: one thread does it.
                 (ElemMats::Rotated { .. }, Some(part))
-                    if self.sys.threads > 1 && part.threads == self.sys.threads =>
+                    if self.sys.threads > 1
+                        && part.threads == self.sys.threads
+                        && out.len() >= PARALLEL_PRODUCT_MIN_NODES =>
                 {
                     multiply_upper_parts(pat, blocks, p, out, part)
                 }

@@ -108,6 +108,11 @@ pub struct PeerRow {
     pub cosurg_corot_p50_ms: Option<f64>,
     /// The same on two threads (ms).
     pub cosurg_corot_2_threads_p50_ms: Option<f64>,
+    /// Our co-rotational all-on step run alone like the peer (not interleaved with other
+    /// runs, whose steps evict it from the caches between its steps), 2 s or at most
+    /// 1,000 steps: p50 on one thread and on two (ms).
+    pub cosurg_corot_solo_p50_ms: f64,
+    pub cosurg_corot_solo_2_threads_p50_ms: f64,
     pub note: String,
 }
 
@@ -505,6 +510,15 @@ fn run_peers(
             let text = std::fs::read_to_string(&file)
                 .with_context(|| format!("reading {}", file.display()))?;
             let v: serde_json::Value = serde_json::from_str(&text)?;
+            let solo = |threads: usize| -> Result<f64> {
+                let scene = cantilever_with(1e5, cell)?;
+                let rc =
+                    RunConfig::all_on(Model::Corotational).with("solo", |c| c.threads = threads);
+                let (sim, _) = build(&scene, &rc, dt)?;
+                let steps = ((t_end / dt).round() as usize).min(1000);
+                let (t, _) = simulate(sim, steps, steps, &ProgressBar::hidden())?;
+                Ok(t.p50())
+            };
             let ours = |variant: &str| {
                 rows.iter()
                     .find(|r| {
@@ -525,6 +539,8 @@ fn run_peers(
                 tip_z_disp_m: v["tip_z_disp_m"].as_f64().unwrap_or(f64::NAN),
                 cosurg_corot_p50_ms: ours("all-on"),
                 cosurg_corot_2_threads_p50_ms: ours(TWO_THREADS),
+                cosurg_corot_solo_p50_ms: solo(1)?,
+                cosurg_corot_solo_2_threads_p50_ms: solo(2)?,
                 note: "StVK flex, implicit (discrete), Rayleigh β = 0.3 s; cosurg runs undamped"
                     .into(),
             });
@@ -662,7 +678,7 @@ fn print_table(r: &CantileverReport) {
     }
     for p in &r.peers {
         println!(
-            "peer {} {} ({} tets) dt {} ms: median {:.3} ms/step, tip dz {:.4} m; cosurg corotational all-on p50 {} ms, on 2 threads {} ms ({})",
+            "peer {} {} ({} tets) dt {} ms: median {:.3} ms/step, tip dz {:.4} m; cosurg corotational all-on p50 {} ms, on 2 threads {} ms (interleaved); alone {:.3} ms, on 2 threads {:.3} ms ({})",
             p.peer,
             p.mesh,
             p.tets,
@@ -673,6 +689,8 @@ fn print_table(r: &CantileverReport) {
                 .map_or("-".into(), |v| format!("{v:.3}")),
             p.cosurg_corot_2_threads_p50_ms
                 .map_or("-".into(), |v| format!("{v:.3}")),
+            p.cosurg_corot_solo_p50_ms,
+            p.cosurg_corot_solo_2_threads_p50_ms,
             p.note
         );
     }

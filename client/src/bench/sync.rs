@@ -47,6 +47,11 @@ pub struct SyncArgs {
     /// Slowdown of trainee B in the extra "unequal machines" row (1: no such row).
     #[arg(long, default_value_t = 3.0)]
     pub slowdown: f64,
+    /// CG budget of trainee B in the extra "unequal fidelity" rows (keyframe and
+    /// input-only over lan and good): a slower machine that cuts its solver budget to keep
+    /// up, so that its simulation is no longer the owner's (0: no such rows).
+    #[arg(long, default_value_t = 5)]
+    pub reduced_cg: usize,
     /// Impairment seed.
     #[arg(long, default_value_t = 11)]
     pub seed: u64,
@@ -61,6 +66,9 @@ pub struct SyncRow {
     pub strategy: String,
     pub preset: String,
     pub slowdown: f64,
+    /// Trainee B's CG budget in the "unequal fidelity" rows (null: the scene's, as every
+    /// other site).
+    pub receiver_cg_iterations: Option<usize>,
     /// Max / RMS over the run and over receiving sites (mm).
     pub divergence_max_mm: f64,
     pub divergence_rms_mm: f64,
@@ -87,41 +95,52 @@ pub struct SyncBench {
 
 /// The bench's cast: the instructor lifts the gallbladder; both trainees receive (trainee
 /// B on the slowed machine in the unequal-machines row).
-fn cast(slowdown: f64) -> Vec<DemoSite> {
+fn cast(slowdown: f64, receiver_cg: Option<usize>) -> Vec<DemoSite> {
     let mut c = crate::demo::cast(3, slowdown);
     c[1].tool = None;
     c[2].tool = None;
+    if let Some(n) = receiver_cg {
+        c[2].extra = vec!["--cg-iterations".into(), n.to_string()];
+    }
     c
 }
 
 pub fn run(args: SyncArgs) -> Result<()> {
     let out = out_dir(&args.out, "bench-sync");
     let scene = sim_core::sim_scene::builtin::cholecystectomy();
-    let mut cases: Vec<(Strategy, String, f64)> = Vec::new();
+    let mut cases: Vec<(Strategy, String, f64, Option<usize>)> = Vec::new();
     for s in &args.strategies {
         for p in &args.presets {
-            cases.push((*s, p.clone(), 1.0));
+            cases.push((*s, p.clone(), 1.0, None));
         }
     }
     if args.slowdown > 1.0 {
-        cases.push((Strategy::Keyframe, "metro".into(), args.slowdown));
+        cases.push((Strategy::Keyframe, "metro".into(), args.slowdown, None));
+    }
+    if args.reduced_cg > 0 {
+        for s in [Strategy::Keyframe, Strategy::InputOnly] {
+            for p in ["lan", "good"] {
+                cases.push((s, p.into(), 1.0, Some(args.reduced_cg)));
+            }
+        }
     }
     let bar = ProgressBar::new(cases.len() as u64).with_style(
         ProgressStyle::with_template("{bar:30} {pos}/{len} runs  {msg}").expect("template"),
     );
     let mut rows = Vec::new();
-    for (i, (strategy, preset, slowdown)) in cases.iter().enumerate() {
+    for (i, (strategy, preset, slowdown, receiver_cg)) in cases.iter().enumerate() {
         bar.set_message(format!(
             "{} over {preset}, slowdown {slowdown}",
             strategy.name()
         ));
+        let tag = receiver_cg.map_or(String::new(), |n| format!("-cg{n}"));
         let run = SessionRun {
-            cast: cast(*slowdown),
+            cast: cast(*slowdown, *receiver_cg),
             seconds: args.seconds,
             strategy: *strategy,
             preset: Some(preset.clone()),
             seed: args.seed + i as u64,
-            out: out.join(format!("{}-{preset}-x{slowdown}", strategy.name())),
+            out: out.join(format!("{}-{preset}-x{slowdown}{tag}", strategy.name())),
             vtu_interval: 0.0,
             progress: false,
             dt: Some(0.004),
@@ -148,6 +167,7 @@ pub fn run(args: SyncArgs) -> Result<()> {
             strategy: strategy.name().into(),
             preset: preset.clone(),
             slowdown: *slowdown,
+            receiver_cg_iterations: *receiver_cg,
             divergence_max_mm: receivers
                 .iter()
                 .filter_map(|r| r.divergence_max_mm)
@@ -191,10 +211,11 @@ pub fn run(args: SyncArgs) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&bench)?);
     } else {
         println!(
-            "{:<11} {:<17} {:>4} {:>10} {:>10} {:>12} {:>11} {:>11} {:>8} {:>9} {:>9}",
+            "{:<11} {:<17} {:>4} {:>4} {:>10} {:>10} {:>12} {:>11} {:>11} {:>8} {:>9} {:>9}",
             "strategy",
             "preset",
             "slow",
+            "B cg",
             "div max",
             "div rms",
             "settled max",
@@ -206,10 +227,12 @@ pub fn run(args: SyncArgs) -> Result<()> {
         );
         for r in &bench.rows {
             println!(
-                "{:<11} {:<17} {:>4} {:>7.2} mm {:>7.2} mm {:>9.2} mm {:>11.0} {:>11.0} {:>8.1} {:>9.1} {:>9.0}",
+                "{:<11} {:<17} {:>4} {:>4} {:>7.2} mm {:>7.2} mm {:>9.2} mm {:>11.0} {:>11.0} {:>8.1} {:>9.1} {:>9.0}",
                 r.strategy,
                 r.preset,
                 r.slowdown,
+                r.receiver_cg_iterations
+                    .map_or("-".to_string(), |n| n.to_string()),
                 r.divergence_max_mm,
                 r.divergence_rms_mm,
                 r.settled_divergence_max_mm,
@@ -245,7 +268,7 @@ fn write_plots(out: &std::path::Path, rows: &[SyncRow]) -> Result<()> {
     for s in ["keyframe", "full-state", "input-only"] {
         let mut pts: Vec<(f64, f64)> = rows
             .iter()
-            .filter(|r| r.strategy == s && r.slowdown == 1.0)
+            .filter(|r| r.strategy == s && r.slowdown == 1.0 && r.receiver_cg_iterations.is_none())
             .map(|r| {
                 (
                     preset_delay_ms(&r.preset).max(0.1),
@@ -263,7 +286,7 @@ fn write_plots(out: &std::path::Path, rows: &[SyncRow]) -> Result<()> {
         });
         let mut b: Vec<(f64, f64)> = rows
             .iter()
-            .filter(|r| r.strategy == s && r.slowdown == 1.0)
+            .filter(|r| r.strategy == s && r.slowdown == 1.0 && r.receiver_cg_iterations.is_none())
             .map(|r| {
                 (
                     preset_delay_ms(&r.preset).max(0.1),
