@@ -221,7 +221,10 @@ fn threaded_steps_with_sharing_match_sequential() {
 fn assembled_operator_matches_matrix_free_with_shared_rotations() {
     // The assembled operator forms R C Rᵀ once per (shared source, template) and scales it
     // per element; the matrix-free one rotates each element's displacements: the same
-    // linear system, so the same steps, for both stiffness kernels.
+    // linear system, so the same steps, for both stiffness kernels. Tolerance 10 nm: the
+    // assembled blocks come from each element's own geometry, the matrix-free template
+    // from the shape's table (they agree to 1e-9 relative, checked when the system is
+    // built), and the truncated CG carries that difference (0.14 nm seen).
     for template in [true, false] {
         let mut a = sim(Some(5.0), true, 0.01);
         let mut m = sim(Some(5.0), true, 0.01);
@@ -244,7 +247,7 @@ fn assembled_operator_matches_matrix_free_with_shared_rotations() {
                 .zip(m.positions())
                 .map(|(p, q)| (p - q).norm())
                 .fold(0.0, f64::max);
-            assert!(d < 1e-10, "template {template}, step {k}: {d} m apart");
+            assert!(d < 1e-8, "template {template}, step {k}: {d} m apart");
         }
         assert!(shared > 0);
     }
