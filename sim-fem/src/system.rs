@@ -808,15 +808,7 @@ impl FemSystem {
         if p.model == Model::Corotational {
             self.update_rotations(x, &p.polar, 0.0);
         }
-        let n = self.rest.len();
-        let mass_coef: Vec<f64> = (0..n)
-            .map(|i| self.mass[i] + dt * self.mass_damping[i])
-            .collect();
-        let coef: Vec<f64> = self
-            .elements
-            .iter()
-            .map(|e| dt * self.materials[e.material].beta + dt * dt)
-            .collect();
+        let (mass_coef, coef) = self.linearised_coefficients(dt);
         let fixed = self.fixed.clone();
         let rotated = p.model == Model::Corotational;
         let op = self.build_operator(
@@ -842,6 +834,57 @@ impl FemSystem {
             }
         }
         Ok(out)
+    }
+
+    /// Coefficients of the linearised step's matrix: per node `m_i + dt α m_i` (lumped mass
+    /// and mass damping) and per element `β_e dt + dt²` (stiffness damping and stiffness).
+    fn linearised_coefficients(&self, dt: f64) -> (Vec<f64>, Vec<f64>) {
+        let mass_coef = (0..self.rest.len())
+            .map(|i| self.mass[i] + dt * self.mass_damping[i])
+            .collect();
+        let coef = self
+            .elements
+            .iter()
+            .map(|e| dt * self.materials[e.material].beta + dt * dt)
+            .collect();
+        (mass_coef, coef)
+    }
+
+    /// Elastic (given) + kinetic + gravitational energy (J).
+    fn total_energy(&self, elastic: f64, x: &[V3], v: &[V3], gravity: &V3) -> f64 {
+        elastic + self.kinetic_energy(v) + self.gravity_energy(x, gravity)
+    }
+
+    /// The Newton fallback of a linearised step, from the state it started at (rotations
+    /// already extracted there), with the statistics of the linearised attempt added.
+    fn fallback_step(
+        &mut self,
+        x: &mut [V3],
+        v: &mut [V3],
+        f_ext: &[V3],
+        dt: f64,
+        p: &StepParams,
+        attempt: &StepStats,
+    ) -> Result<StepStats, FemError> {
+        let q = StepParams {
+            newton: Some(FALLBACK_NEWTON),
+            ..*p
+        };
+        let mut s = self.step_newton(x, v, f_ext, dt, &q, true)?;
+        s.rotations_extracted += attempt.rotations_extracted;
+        s.polar_iterations += attempt.polar_iterations;
+        s.cg_iterations += attempt.cg_iterations;
+        s.inverted = attempt.inverted;
+        s.max_rotation_change_sq = attempt.max_rotation_change_sq;
+        s.fallback = true;
+        Ok(s)
+    }
+
+    /// The partition, when the step in progress runs on several threads.
+    fn active_partition(&self) -> Option<&Partition> {
+        self.partition
+            .as_ref()
+            .filter(|part| self.threads > 1 && part.threads == self.threads)
     }
 
     /// Whether some element has `det F ≤ 0` at `x`.
@@ -1021,8 +1064,8 @@ impl FemSystem {
             }
             energy
         };
-        match &self.partition {
-            Some(part) if self.threads > 1 && part.threads == self.threads => {
+        match self.active_partition() {
+            Some(part) => {
                 use rayon::prelude::*;
                 let inner: f64 = split_ranges(out, &part.node_start)
                     .into_par_iter()
@@ -1396,16 +1439,7 @@ impl FemSystem {
                 && stats.max_rotation_change_sq
                     > crate::polar::rotation_threshold_sq(p.fallback_angle_deg.to_radians())
             {
-                let q = StepParams {
-                    newton: Some(FALLBACK_NEWTON),
-                    ..*p
-                };
-                let mut s = self.step_newton(x, v, f_ext, dt, &q, true)?;
-                s.rotations_extracted += stats.rotations_extracted;
-                s.polar_iterations += stats.polar_iterations;
-                s.fallback = true;
-                s.max_rotation_change_sq = stats.max_rotation_change_sq;
-                return Ok(s);
+                return self.fallback_step(x, v, f_ext, dt, p, &stats);
             }
         }
         if self.threads > 1 {
@@ -1426,22 +1460,11 @@ impl FemSystem {
                 .zip(v.iter())
                 .any(|(f, vi)| *f && *vi != V3::zeros()))
         .then(|| {
-            let energy = elastic_n + self.kinetic_energy(v) + self.gravity_energy(x, &p.gravity);
-            (
-                x.to_vec(),
-                v.to_vec(),
-                energy,
-                elastic_n + self.kinetic_energy(v),
-            )
+            let energy = self.total_energy(elastic_n, x, v, &p.gravity);
+            let scale = elastic_n + self.kinetic_energy(v);
+            (x.to_vec(), v.to_vec(), energy, scale)
         });
-        let mass_coef: Vec<f64> = (0..n)
-            .map(|i| self.mass[i] + dt * self.mass_damping[i])
-            .collect();
-        let coef: Vec<f64> = self
-            .elements
-            .iter()
-            .map(|e| dt * self.materials[e.material].beta + dt * dt)
-            .collect();
+        let (mass_coef, coef) = self.linearised_coefficients(dt);
         let warm = std::mem::take(&mut self.warm_dv);
         let (mass, mass_damping) = (self.mass.clone(), self.mass_damping.clone());
         let fixed = self.fixed.clone();
@@ -1490,7 +1513,7 @@ impl FemSystem {
             // Energy at x_{n+1} with its own rotations (stored state untouched).
             let rotations = self.compute_rotations(x, &p.polar);
             let elastic = self.elastic(x, p.model, p.stiffness, Some(&rotations), None);
-            let energy = elastic + self.kinetic_energy(v) + self.gravity_energy(x, &p.gravity);
+            let energy = self.total_energy(elastic, x, v, &p.gravity);
             let work: f64 = (0..n)
                 .filter(|&i| !fixed[i])
                 .map(|i| f_ext[i].dot(&(x[i] - x0[i])))
@@ -1506,18 +1529,8 @@ impl FemSystem {
                 v.copy_from_slice(&v0);
                 // The rejected step's Δv is no guess for the next one.
                 self.warm_dv = vec![V3::zeros(); n];
-                let q = StepParams {
-                    newton: Some(FALLBACK_NEWTON),
-                    ..*p
-                };
-                let mut s = self.step_newton(x, v, f_ext, dt, &q, true)?;
-                s.rotations_extracted += stats.rotations_extracted;
-                s.polar_iterations += stats.polar_iterations;
-                s.cg_iterations += stats.cg_iterations;
-                s.inverted = stats.inverted;
-                s.fallback = true;
+                let mut s = self.fallback_step(x, v, f_ext, dt, p, &stats)?;
                 s.energy_guard = true;
-                s.max_rotation_change_sq = stats.max_rotation_change_sq;
                 return Ok(s);
             }
         }
@@ -2137,8 +2150,8 @@ impl SysOp<'_> {
                     }
                 }
             }
-            ElemMats::Rotated { coef, rotated } => match &sys.partition {
-                Some(part) if sys.threads > 1 && part.threads == sys.threads => {
+            ElemMats::Rotated { coef, rotated } => match sys.active_partition() {
+                Some(part) => {
                     use rayon::prelude::*;
                     // A part's elements only touch its nodes' rows: a contiguous block range.
                     let bounds: Vec<usize> = part
@@ -2172,13 +2185,11 @@ impl LinearOperator for SysOp<'_> {
     fn apply(&self, p: &[V3], out: &mut [V3]) {
         if let Some(blocks) = &self.assembled {
             let pat = self.sys.pattern.as_ref().expect("pattern");
-            match (&self.elem, &self.sys.partition) {
+            match (&self.elem, self.sys.active_partition()) {
                 // Below PARALLEL_PRODUCT_MIN_NODES a product is a few µs of work, less than
                 // forking and joining costs: one thread does it.
                 (ElemMats::Rotated { .. }, Some(part))
-                    if self.sys.threads > 1
-                        && part.threads == self.sys.threads
-                        && out.len() >= PARALLEL_PRODUCT_MIN_NODES =>
+                    if out.len() >= PARALLEL_PRODUCT_MIN_NODES =>
                 {
                     multiply_upper_parts(pat, blocks, p, out, part)
                 }
