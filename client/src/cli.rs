@@ -1,38 +1,11 @@
-//! The command-line surface of `cosurg`.
+//! Arguments and helpers shared by the `cosurg` commands of this library (the command
+//! enum and its dispatch live in the `cosurg-cli` package, beside `cosurg bench`).
 
 use std::path::PathBuf;
 
-use anyhow::Result;
-use clap::{Args, Parser, Subcommand, ValueEnum};
+use clap::{Args, ValueEnum};
 use sim_core::SimOptions;
 use sim_core::sim_fem::Model;
-
-/// cosurg: multi-site surgical training on one shared soft-tissue simulation.
-#[derive(Debug, Parser)]
-#[command(name = "cosurg", version, about, long_about = None)]
-pub struct Cli {
-    /// More logging (-v info, -vv debug, -vvv trace); COSURG_LOG overrides.
-    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
-    pub verbose: u8,
-    #[command(subcommand)]
-    pub command: Command,
-}
-
-#[derive(Debug, Subcommand)]
-pub enum Command {
-    /// The multi-site demo: a coordinator and N sites on loopback over QUIC/TLS.
-    Demo(crate::demo::DemoArgs),
-    /// Join a session as one site.
-    Join(Box<crate::join::JoinArgs>),
-    /// Simulate a scene on this machine alone and write VTU/PVD + OBJ results.
-    Run(crate::run::RunArgs),
-    /// Static equilibrium of a scene under its loads and gravity.
-    Solve(crate::solve::SolveArgs),
-    /// Benchmarks: cantilever, sweep, stress, sync.
-    Bench(crate::bench::BenchArgs),
-    /// User-space network impairment relay (UDP) between sites and a coordinator.
-    Netem(netem::NetemArgs),
-}
 
 /// Deformation models on the command line.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -129,20 +102,5 @@ pub fn exit_code(e: &anyhow::Error) -> i32 {
         3
     } else {
         1
-    }
-}
-
-pub fn dispatch(cli: Cli) -> Result<()> {
-    match cli.command {
-        Command::Demo(a) => crate::demo::demo(a),
-        Command::Join(a) => crate::join::join(*a),
-        Command::Run(a) => crate::run::run(a),
-        Command::Solve(a) => crate::solve::solve(a),
-        Command::Bench(a) => crate::bench::run(a),
-        Command::Netem(a) => tokio::runtime::Builder::new_multi_thread()
-            .enable_all()
-            .build()
-            .map_err(|e| anyhow::anyhow!("starting the tokio runtime: {e}"))?
-            .block_on(netem::run_cli(a)),
     }
 }

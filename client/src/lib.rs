@@ -1,7 +1,7 @@
 //! The cosurg site: simulation thread, haptic loop, tools, QUIC link to the coordinator,
-//! and the commands of the `cosurg` command line (see `main.rs`).
+//! and the product's commands of the `cosurg` command line (the binary and `cosurg bench`
+//! live in the packages cosurg-cli and cosurg-bench).
 
-pub mod bench;
 pub mod cli;
 pub mod demo;
 pub mod divergence;

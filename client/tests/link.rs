@@ -659,7 +659,10 @@ async fn malformed_input_is_counted_not_fatal() {
         let conn = ep.accept().await.unwrap().await.unwrap();
         let (mut send, mut recv) = conn.accept_bi().await.unwrap();
         let mut dec = proto::FrameDecoder::default();
-        match server::link::read_frame(&mut recv, &mut dec).await.unwrap() {
+        match test_support::link::read_frame(&mut recv, &mut dec)
+            .await
+            .unwrap()
+        {
             Some(Message::Join(j)) => assert_eq!(j.site_name, "victim"),
             other => panic!("expected Join, got {other:?}"),
         }
@@ -675,7 +678,7 @@ async fn malformed_input_is_counted_not_fatal() {
             sites: vec![],
             coordinator_time_us: 0,
         };
-        server::link::write_frame(&mut send, &Message::Welcome(welcome))
+        test_support::link::write_frame(&mut send, &Message::Welcome(welcome))
             .await
             .unwrap();
         assert_eq!(welcome_site(&link).await, 4);
@@ -699,11 +702,11 @@ async fn malformed_input_is_counted_not_fatal() {
             s.finish().unwrap();
         }
         // Valid traffic still gets through on every channel afterwards.
-        server::link::send_datagram(&conn, &pose(0.5)).unwrap();
-        server::link::send_uni(&conn, &Message::Keyframe(keyframe(2, 1, 10)), 0)
+        test_support::link::send_datagram(&conn, &pose(0.5)).unwrap();
+        test_support::link::send_uni(&conn, &Message::Keyframe(keyframe(2, 1, 10)), 0)
             .await
             .unwrap();
-        server::link::write_frame(
+        test_support::link::write_frame(
             &mut send,
             &Message::Leave(proto::Leave {
                 site: 9,

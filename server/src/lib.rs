@@ -5,12 +5,10 @@
 //! * [`coordinator`] — the async shell: [`Coordinator::bind`] → ([`CoordinatorHandle`], address);
 //! * [`tls`] — certificates, fingerprints, QUIC/TLS configs for both sides
 //!   ([`tls::client_config_pinned`], [`tls::client_config_ca`]);
-//! * [`link`] — site-side helpers: connect, join, frames, datagrams, streams;
-//! * [`cli`] — the `cosurg-server` command line ([`cli::main`]).
+//! * [`cli`] — the `cosurg-server` command line ([`cli::main`]); the binary is `src/main.rs`.
 
 pub mod cli;
 pub mod coordinator;
-pub mod link;
 pub mod session;
 pub mod tls;
 

@@ -5,10 +5,10 @@ use std::net::SocketAddr;
 use std::time::Duration;
 
 use bytes::Bytes;
-use cosurg_server::link::{self, LinkError, SiteLink};
 use cosurg_server::{Coordinator, CoordinatorConfig, CoordinatorHandle, tls};
 use proto::*;
 use quinn::Endpoint;
+use test_support::link::{self, LinkError, SiteLink};
 
 const SCENE: &str = "5e3c0a1b";
 const T: Duration = Duration::from_secs(20);

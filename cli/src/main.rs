@@ -4,15 +4,16 @@
 //! (the reason is printed).
 
 use clap::Parser;
-use cosurg::cli;
+
+mod command;
 
 fn main() {
-    let cli = cli::Cli::parse();
+    let cli = command::Cli::parse();
     init_tracing(cli.verbose);
-    let code = match cli::dispatch(cli) {
+    let code = match command::dispatch(cli) {
         Ok(()) => 0,
         Err(e) => {
-            let code = cli::exit_code(&e);
+            let code = cosurg::cli::exit_code(&e);
             eprintln!("error: {e:#}");
             code
         }

@@ -57,7 +57,7 @@ fn aioquic_client_through_netem() {
         println!("skipped: aioquic not installed");
         return;
     }
-    let server = Path::new(env!("CARGO_BIN_EXE_cosurg-server"));
+    let server = test_support::exe::sibling_exe(env!("CARGO_BIN_EXE_cosurg"), "cosurg-server");
     let bin_dir = Path::new(env!("CARGO_BIN_EXE_cosurg")).parent().unwrap();
     assert_eq!(server.parent().unwrap(), bin_dir);
     let out = Command::new("bash")

@@ -1,9 +1,10 @@
 //! Site-side helpers to talk to a coordinator: connect, join, frames, datagrams, streams.
-//! Used by the tests, the demo and the `cosurg` client.
+//! A bare second site client for tests only; the product's site link is `cosurg::link`.
 //!
 //! ```no_run
 //! # async fn f() -> Result<(), Box<dyn std::error::Error>> {
-//! use cosurg_server::{link, tls};
+//! use cosurg_test_support::link;
+//! use server::tls;
 //! let cfg = tls::client_config_pinned("AB:CD:...")?;
 //! let endpoint = link::client_endpoint(cfg)?;
 //! let join = link::join_message("kyoto", proto::Role::Trainee, "lap-chole", "s3cret", "<scene sha-256>");

@@ -19,8 +19,8 @@ use sim_core::sim_fem::Model;
 use sim_core::sim_scene::builtin::cantilever_with;
 
 use super::beam::{Knobs, RunConfig, Runner, build, deviation, simulate};
-use crate::cli::out_dir;
-use crate::plot::{Chart, Series, write_chart};
+use cosurg::cli::out_dir;
+use cosurg::plot::{Chart, Series, write_chart};
 
 #[derive(Debug, Args)]
 pub struct SweepArgs {

@@ -11,7 +11,7 @@ use sim_core::sim_fem::{ByersXu, Model, MullerIterative, NewtonParams, PolarMeth
 use sim_core::sim_scene::LoadedScene;
 use sim_core::{NodeId, SimOptions, Simulation};
 
-use crate::stats::percentile;
+use cosurg::stats::percentile;
 
 type V3 = Vector3<f64>;
 

@@ -14,10 +14,10 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
-use crate::cli::out_dir;
-use crate::demo::{DemoSite, SessionRun, run_session};
-use crate::plot::{Chart, Series, write_chart};
-use crate::site::Strategy;
+use cosurg::cli::out_dir;
+use cosurg::demo::{DemoSite, SessionRun, run_session};
+use cosurg::plot::{Chart, Series, write_chart};
+use cosurg::site::Strategy;
 
 #[derive(Debug, Args)]
 pub struct SyncArgs {
@@ -58,7 +58,7 @@ pub struct SyncArgs {
     /// Playout lag of every site (`cosurg join --playout-lag`): `auto` or milliseconds
     /// (0: followers run at the owner's simulated time and extrapolate).
     #[arg(long, default_value = "auto")]
-    pub playout_lag: crate::site::PlayoutLag,
+    pub playout_lag: cosurg::site::PlayoutLag,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -96,7 +96,7 @@ pub struct SyncBench {
 /// The bench's cast: the instructor lifts the gallbladder; both trainees receive (trainee
 /// B on the slowed machine in the unequal-machines row).
 fn cast(slowdown: f64, receiver_cg: Option<usize>) -> Vec<DemoSite> {
-    let mut c = crate::demo::cast(3, slowdown);
+    let mut c = cosurg::demo::cast(3, slowdown);
     c[1].tool = None;
     c[2].tool = None;
     if let Some(n) = receiver_cg {

@@ -20,8 +20,8 @@ use sim_core::sim_fem::Model;
 use sim_core::sim_scene::builtin::{cantilever, cantilever_with};
 
 use super::beam::{Knobs, Polar, RunConfig, Runner, Trace, build, deviation, model_name, simulate};
-use crate::cli::out_dir;
-use crate::plot::{Chart, Series, write_chart};
+use cosurg::cli::out_dir;
+use cosurg::plot::{Chart, Series, write_chart};
 
 #[derive(Debug, Args)]
 pub struct CantileverArgs {
@@ -409,7 +409,7 @@ fn speedups(rows: &[RunRow]) -> Vec<Speedup> {
             let v: Vec<f64> = per_group.iter().map(|(_, s)| *s).collect();
             Some(Speedup {
                 technique: (*name).into(),
-                median: crate::stats::percentile(&v, 50.0),
+                median: cosurg::stats::percentile(&v, 50.0),
                 per_group,
             })
         })

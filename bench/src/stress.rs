@@ -27,8 +27,8 @@ use sim_core::sim_scene::builtin::cantilever_with;
 use sim_core::sim_scene::{Capsule, Inclusion, LoadedScene, Material};
 
 use super::beam::{RunConfig, build};
-use crate::cli::out_dir;
-use crate::plot::{Chart, Series};
+use cosurg::cli::out_dir;
+use cosurg::plot::{Chart, Series};
 
 type V3 = Vector3<f64>;
 
@@ -317,7 +317,7 @@ fn plot(dir: &std::path::Path, r: &StressReport) -> Result<Vec<PathBuf>> {
             }
         })
         .collect();
-    let mut out = crate::plot::write_chart(
+    let mut out = cosurg::plot::write_chart(
         dir,
         "stress_energy",
         &Chart {
@@ -330,7 +330,7 @@ fn plot(dir: &std::path::Path, r: &StressReport) -> Result<Vec<PathBuf>> {
         },
         &energy,
     )?;
-    out.extend(crate::plot::write_chart(
+    out.extend(cosurg::plot::write_chart(
         dir,
         "stress_speed",
         &Chart {

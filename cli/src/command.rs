@@ -1,0 +1,48 @@
+//! The command-line surface of `cosurg`: every sub-command and its dispatch. The product's
+//! commands live in the `cosurg` library, the benchmarks in `cosurg-bench`; this crate is the
+//! only one that sees both, so neither depends on the other's command line.
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+
+/// cosurg: multi-site surgical training on one shared soft-tissue simulation.
+#[derive(Debug, Parser)]
+#[command(name = "cosurg", version, about, long_about = None)]
+pub struct Cli {
+    /// More logging (-v info, -vv debug, -vvv trace); COSURG_LOG overrides.
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    pub verbose: u8,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// The multi-site demo: a coordinator and N sites on loopback over QUIC/TLS.
+    Demo(cosurg::demo::DemoArgs),
+    /// Join a session as one site.
+    Join(Box<cosurg::join::JoinArgs>),
+    /// Simulate a scene on this machine alone and write VTU/PVD + OBJ results.
+    Run(cosurg::run::RunArgs),
+    /// Static equilibrium of a scene under its loads and gravity.
+    Solve(cosurg::solve::SolveArgs),
+    /// Benchmarks: cantilever, sweep, stress, sync.
+    Bench(bench::BenchArgs),
+    /// User-space network impairment relay (UDP) between sites and a coordinator.
+    Netem(netem::NetemArgs),
+}
+
+pub fn dispatch(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Demo(a) => cosurg::demo::demo(a),
+        Command::Join(a) => cosurg::join::join(*a),
+        Command::Run(a) => cosurg::run::run(a),
+        Command::Solve(a) => cosurg::solve::solve(a),
+        Command::Bench(a) => bench::run(a),
+        Command::Netem(a) => tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| anyhow::anyhow!("starting the tokio runtime: {e}"))?
+            .block_on(netem::run_cli(a)),
+    }
+}

@@ -1,0 +1,8 @@
+//! Test support shared by the packages' integration tests; not part of any product crate.
+//!
+//! * [`link`] — a bare site client: connect, join, frames, datagrams, streams;
+//! * [`exe`] — locating a sibling executable that another package builds (`cosurg-server`
+//!   for the tests of the `cosurg` binary).
+
+pub mod exe;
+pub mod link;
