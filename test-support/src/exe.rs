@@ -25,3 +25,34 @@ pub fn sibling_exe(anchor: &str, name: &str) -> PathBuf {
     );
     path
 }
+
+#[cfg(test)]
+mod tests {
+    use super::sibling_exe;
+
+    #[test]
+    fn finds_an_executable_beside_the_anchor() {
+        let dir = tempfile::tempdir().unwrap();
+        let anchor = dir.path().join("anchor");
+        let name = "sibling";
+        let path = dir
+            .path()
+            .join(format!("{name}{}", std::env::consts::EXE_SUFFIX));
+        std::fs::write(&path, b"").unwrap();
+        assert_eq!(sibling_exe(anchor.to_str().unwrap(), name), path);
+    }
+
+    #[test]
+    fn a_missing_executable_names_the_command_that_builds_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let anchor = dir.path().join("anchor");
+        let panic = std::panic::catch_unwind(|| sibling_exe(anchor.to_str().unwrap(), "absent"))
+            .expect_err("must panic when the executable is missing");
+        let text = panic.downcast_ref::<String>().expect("formatted message");
+        assert!(text.contains("`absent` is not built"), "{text}");
+        assert!(
+            text.contains("cargo build --workspace --bin absent"),
+            "{text}"
+        );
+    }
+}
