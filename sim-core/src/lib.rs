@@ -23,6 +23,7 @@ pub mod adapt;
 pub mod contact;
 mod engine;
 mod error;
+mod interaction;
 mod options;
 mod sharing;
 pub mod sync;

@@ -7,7 +7,6 @@ use std::collections::VecDeque;
 use cosurg_sim_core::sync::*;
 use cosurg_sim_core::{NodeId, SimOptions, Simulation};
 use nalgebra::Vector3;
-use proptest::prelude::*;
 use sim_scene::surf::{SurfError, SurfaceRecording};
 
 type V3 = Vector3<f64>;
@@ -911,4 +910,52 @@ fn to64(v: &[[f32; 3]]) -> Vec<V3> {
     v.iter()
         .map(|p| V3::new(p[0].into(), p[1].into(), p[2].into()))
         .collect()
+}
+
+proptest::proptest! {
+    #![proptest_config(proptest::prelude::ProptestConfig {
+        cases: 48,
+        failure_persistence: None,
+        ..proptest::prelude::ProptestConfig::default()
+    })]
+
+    /// Frames from the wire carry encoded tree states; whatever bytes they hold, a receiver
+    /// answers with an error or applies a valid state, and never panics. A keyframe it
+    /// accepts leaves the region in exactly the frame's tree state.
+    #[test]
+    fn garbage_tree_bits_never_panic(
+        bytes in proptest::collection::vec(proptest::prelude::any::<u8>(), 0..96),
+        with_header in proptest::prelude::any::<bool>(),
+    ) {
+        let owner = beam();
+        let map = beam_map(&owner);
+        let first = encode_keyframe(&owner, &map, TIP, 1).unwrap();
+        let mut site = SiteSync::new(SyncStrategy::Keyframe, map.clone(), snap());
+        let mut b = beam();
+        proptest::prop_assert_eq!(
+            site.on_frame(&mut b, &SyncFrame::Keyframe(first.clone())).unwrap(),
+            Some(1)
+        );
+        let mut bits = if with_header { b"CSRS\x01".to_vec() } else { Vec::new() };
+        bits.extend_from_slice(&bytes);
+        let delta = RegionTreeDelta {
+            region: TIP,
+            sim_time: first.sim_time,
+            base_keyframe: 1,
+            xor_bits: bits.clone(),
+        };
+        let _ = site.on_frame(&mut b, &SyncFrame::TreeDelta(delta));
+        let mut kf = first.clone();
+        kf.keyframe_id = 2;
+        kf.tree_bits = bits.clone();
+        if let Ok(Some(_)) = site.on_frame(&mut b, &SyncFrame::Keyframe(kf.clone())) {
+            proptest::prop_assert_eq!(
+                map.state(b.lattice(), TIP).to_bytes(),
+                kf.tree_bits
+            );
+        }
+        let mut full = encode_full_state(&owner, &map, 1);
+        full.tree_bits = bits;
+        let _ = apply_full_state(&mut b, &map, &full);
+    }
 }
