@@ -8,7 +8,7 @@
 //! header
 //!   8 bytes   magic "CSURF01\n" (the version is the "01")
 //!   u32       scene hash length H (≤ 1024), then H bytes of UTF-8 scene hash
-//!             (the hex SHA-256 of the scene, see `scene_hash`)
+//!             (the hex SHA-256 of the scene, see [`crate::scene_hash`])
 //!   f64       mark interval (s of simulated time), positive and finite
 //!   u32       surface count S (≤ 4096), then S × u32 vertex counts, one per surface in
 //!             the scene's surface order; N = their sum (≤ 2^24)

@@ -3,9 +3,9 @@
 //! bench strategies, and surface recording (the `.surf` file format is
 //! [`sim_scene::surf`]'s).
 //!
-//! One file per part: [`config`](SyncConfig) (`config.rs`), the region map
-//! ([`RegionMap`], `regions.rs`), frames and their encoding ([`SyncFrame`], `frame.rs`),
-//! the motion model shared by owner and receiver (`motion.rs`), the receiver
+//! One file per part: configuration ([`SyncConfig`], [`SyncStrategy`], `config.rs`), the
+//! region map ([`RegionMap`], `regions.rs`), frames and their encoding ([`SyncFrame`],
+//! `frame.rs`), the motion model shared by owner and receiver (`motion.rs`), the receiver
 //! ([`RemoteRegion`], `receiver.rs`), the sender ([`SendPolicy`], `sender.rs`), surface
 //! recording ([`SurfaceRecorder`], `recorder.rs`), and here [`SiteSync`], which bundles
 //! them for a site.
