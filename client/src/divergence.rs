@@ -10,7 +10,8 @@
 use std::collections::HashMap;
 
 use anyhow::{Context, Result, bail};
-use sim_core::sync::{RegionMap, SurfaceRecording};
+use sim_core::sim_scene::surf::SurfaceRecording;
+use sim_core::sync::RegionMap;
 use sim_core::{SimOptions, Simulation};
 
 use crate::plot::Series;

@@ -14,8 +14,9 @@
 //!   ([`contact`]) and refinement following the tools ([`adapt`]): call
 //!   [`Interaction::before_step`] with the tool inputs before every [`Simulation::step`].
 //!
-//! No IO beyond what the scene already loaded, no threads, no async: for a given input
-//! sequence a simulation is deterministic.
+//! No IO beyond what the scene already loaded (surface recordings are collected in memory;
+//! their `.surf` file format is [`sim_scene::surf`]'s), no threads, no async: for a given
+//! input sequence a simulation is deterministic.
 //!
 //! Units: SI throughout (m, s, kg, N, Pa).
 
@@ -23,6 +24,7 @@ pub mod adapt;
 pub mod contact;
 mod engine;
 mod error;
+mod interaction;
 mod options;
 mod sharing;
 pub mod sync;

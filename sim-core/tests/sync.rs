@@ -1,12 +1,13 @@
 //! Sync state: regions, keyframe encode/apply, extrapolation and blending, dead reckoning,
-//! delayed keyframe tracking, `.surf` recordings.
+//! delayed keyframe tracking, surface recordings (the `.surf` format itself is tested in
+//! sim-scene).
 
 use std::collections::VecDeque;
 
 use cosurg_sim_core::sync::*;
 use cosurg_sim_core::{NodeId, SimOptions, Simulation};
 use nalgebra::Vector3;
-use proptest::prelude::*;
+use sim_scene::surf::{SurfError, SurfaceRecording};
 
 type V3 = Vector3<f64>;
 
@@ -899,11 +900,6 @@ fn surf_roundtrip_and_divergence() {
     let mut other = r.clone();
     other.scene_hash = "x".into();
     assert!(r.divergence(&other).is_err());
-    // Specific malformations.
-    assert_eq!(
-        SurfaceRecording::from_bytes(b"nope"),
-        Err(SurfError::BadMagic)
-    );
     assert!(matches!(
         SurfaceRecording::from_bytes(&bytes[..bytes.len() - 1]),
         Err(SurfError::PartialRecord { .. })
@@ -916,46 +912,50 @@ fn to64(v: &[[f32; 3]]) -> Vec<V3> {
         .collect()
 }
 
-fn small_recording() -> SurfaceRecording {
-    SurfaceRecording {
-        scene_hash: "abc".into(),
-        interval_s: 0.05,
-        surface_sizes: vec![2, 1],
-        records: (0..3)
-            .map(|k| SurfaceRecord {
-                time_s: 0.05 * k as f64,
-                vertices: vec![[k as f32, 1.0, 2.0], [3.0, 4.0, 5.0], [6.0, 7.0, 8.0]],
-            })
-            .collect(),
-    }
-}
+proptest::proptest! {
+    #![proptest_config(proptest::prelude::ProptestConfig {
+        cases: 48,
+        failure_persistence: None,
+        ..proptest::prelude::ProptestConfig::default()
+    })]
 
-proptest! {
-    #![proptest_config(ProptestConfig { failure_persistence: None, ..ProptestConfig::default() })]
-
+    /// Frames from the wire carry encoded tree states; whatever bytes they hold, a receiver
+    /// answers with an error or applies a valid state, and never panics. A keyframe it
+    /// accepts leaves the region in exactly the frame's tree state.
     #[test]
-    fn surf_reader_never_panics_on_garbage(bytes in proptest::collection::vec(any::<u8>(), 0..300)) {
-        let _ = SurfaceRecording::from_bytes(&bytes);
-        let mut with_magic = SURF_MAGIC.to_vec();
-        with_magic.extend_from_slice(&bytes);
-        let _ = SurfaceRecording::from_bytes(&with_magic);
-    }
-
-    #[test]
-    fn surf_reader_rejects_truncation_and_survives_corruption(cut in 0usize..200, flip in 0usize..200, bit in 0u8..8) {
-        let r = small_recording();
-        let bytes = r.to_bytes();
-        let header = bytes.len() - 3 * (8 + 12 * 3);
-        let cut = cut.min(bytes.len());
-        let res = SurfaceRecording::from_bytes(&bytes[..cut]);
-        let whole = cut >= header && (cut - header).is_multiple_of(8 + 12 * 3);
-        prop_assert_eq!(res.is_ok(), whole, "cut at {}: {:?}", cut, res);
-        if let Ok(t) = res {
-            prop_assert_eq!(&t.records[..], &r.records[..t.records.len()]);
+    fn garbage_tree_bits_never_panic(
+        bytes in proptest::collection::vec(proptest::prelude::any::<u8>(), 0..96),
+        with_header in proptest::prelude::any::<bool>(),
+    ) {
+        let owner = beam();
+        let map = beam_map(&owner);
+        let first = encode_keyframe(&owner, &map, TIP, 1).unwrap();
+        let mut site = SiteSync::new(SyncStrategy::Keyframe, map.clone(), snap());
+        let mut b = beam();
+        proptest::prop_assert_eq!(
+            site.on_frame(&mut b, &SyncFrame::Keyframe(first.clone())).unwrap(),
+            Some(1)
+        );
+        let mut bits = if with_header { b"CSRS\x01".to_vec() } else { Vec::new() };
+        bits.extend_from_slice(&bytes);
+        let delta = RegionTreeDelta {
+            region: TIP,
+            sim_time: first.sim_time,
+            base_keyframe: 1,
+            xor_bits: bits.clone(),
+        };
+        let _ = site.on_frame(&mut b, &SyncFrame::TreeDelta(delta));
+        let mut kf = first.clone();
+        kf.keyframe_id = 2;
+        kf.tree_bits = bits.clone();
+        if let Ok(Some(_)) = site.on_frame(&mut b, &SyncFrame::Keyframe(kf.clone())) {
+            proptest::prop_assert_eq!(
+                map.state(b.lattice(), TIP).to_bytes(),
+                kf.tree_bits
+            );
         }
-        let mut corrupt = bytes.clone();
-        let i = flip % corrupt.len();
-        corrupt[i] ^= 1 << bit;
-        let _ = SurfaceRecording::from_bytes(&corrupt);
+        let mut full = encode_full_state(&owner, &map, 1);
+        full.tree_bits = bits;
+        let _ = apply_full_state(&mut b, &map, &full);
     }
 }

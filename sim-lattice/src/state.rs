@@ -177,6 +177,28 @@ impl RegionState {
         RegionState(s)
     }
 
+    /// The state of `roots` in which exactly `tets` are split (any order, repeats
+    /// allowed). Tets of roots not in `roots` and heap indices that name no tet (0, or
+    /// 2^31 and above) are ignored; a root listed twice gets its tets at its first place
+    /// only. As with [`RegionState::from_bytes`], consistency with a lattice (`max_depth`,
+    /// ancestors split) is checked by [`Lattice::apply_state`].
+    pub fn from_split_tets(roots: &[u32], tets: impl IntoIterator<Item = TetId>) -> RegionState {
+        let mut per_root: HashMap<u32, Vec<u32>> = HashMap::new();
+        for t in tets {
+            if t.heap != 0 && t.heap >> 6 < MAX_WORD {
+                per_root.entry(t.root).or_default().push(t.heap);
+            }
+        }
+        let mut s = SplitBits::new();
+        for &root in roots {
+            let mut heaps = per_root.remove(&root).unwrap_or_default();
+            heaps.sort_unstable();
+            heaps.dedup();
+            s.push_root(root, heaps);
+        }
+        RegionState(s)
+    }
+
     /// Root indices of the region, in order.
     pub fn roots(&self) -> &[u32] {
         &self.0.roots

@@ -3,7 +3,7 @@
 mod common;
 
 use common::*;
-use cosurg_sim_lattice::{LatticeError, RegionState, StateDecodeError, TopologyEvent};
+use cosurg_sim_lattice::{LatticeError, RegionState, StateDecodeError, TetId, TopologyEvent};
 use proptest::prelude::*;
 
 #[test]
@@ -217,6 +217,47 @@ proptest! {
         prop_assert_eq!(stats.residual, 0);
         prop_assert_eq!(c.region_state(&region), sub);
         check_invariants(&c);
+    }
+
+    /// The constructor from split tets builds exactly the lattice's own state, whatever
+    /// the order and repetition of the tets; tets of other roots and heap 0 are ignored.
+    #[test]
+    fn state_from_split_tets_matches_region_state(ops in ops(), region_pick in any::<u32>()) {
+        let mut l = small_lattice(6);
+        let mut ev = vec![];
+        for (r, p) in ops { random_op(&mut l, r, p, &mut ev); }
+        let all = all_roots(&l);
+        let cell = (region_pick % (l.root_count() / 6)) * 6;
+        let region: Vec<u32> = (cell..cell + 6).collect();
+        for roots in [&all[..], &region[..]] {
+            let s = l.region_state(roots);
+            let mut tets: Vec<TetId> = l.region_state(&all).split_tets().collect();
+            tets.reverse();
+            tets.extend(s.split_tets());
+            tets.push(TetId { root: roots[0], heap: 0 });
+            let built = RegionState::from_split_tets(roots, tets);
+            prop_assert_eq!(built.to_bytes(), s.to_bytes());
+            prop_assert_eq!(built, s);
+        }
+    }
+
+    /// Corrupting one bit or truncating a real encoding: an error or a state that
+    /// re-encodes to itself, never a panic.
+    #[test]
+    fn region_state_decoder_survives_corruption(ops in ops(), flip in any::<usize>(), bit in 0u8..8, cut in any::<usize>()) {
+        let mut l = small_lattice(6);
+        let mut ev = vec![];
+        for (r, p) in ops { random_op(&mut l, r, p, &mut ev); }
+        let bytes = l.region_state(&all_roots(&l)).to_bytes();
+        let mut corrupt = bytes.clone();
+        let i = flip % corrupt.len();
+        corrupt[i] ^= 1 << bit;
+        let cut = cut % (bytes.len() + 1);
+        for input in [&corrupt[..], &bytes[..cut]] {
+            if let Ok(s) = RegionState::from_bytes(input) {
+                prop_assert_eq!(RegionState::from_bytes(&s.to_bytes()).unwrap(), s);
+            }
+        }
     }
 
     #[test]

@@ -5,6 +5,7 @@
 //!   referenced mesh and script ([`Scene::load`]) and the [`scene_hash`].
 //! * [`mesh`]: [`TriMesh`] with OBJ/STL/PLY loading, OBJ writing and geometric checks.
 //! * [`vtk`]: VTU / PVD / OBJ output writers.
+//! * [`surf`]: the `.surf` surface-recording file format (reader and writer).
 //! * [`script`]: timed tool poses (teaching mode, scripted runs) with interpolation.
 //! * [`builtin`]: the shipped scenes (`cantilever`, `cholecystectomy`), embedded in the
 //!   binary, and the generator of their organ meshes and tool scripts.
@@ -29,6 +30,7 @@ pub mod builtin;
 pub mod mesh;
 pub mod scene;
 pub mod script;
+pub mod surf;
 pub mod vtk;
 
 pub use mesh::{MeshError, MeshFormat, TriMesh};

@@ -1,0 +1,207 @@
+//! What an owner sends ([`SyncFrame`]: a [`RegionKeyframe`] or a [`RegionTreeDelta`]),
+//! how a region's state is encoded into one, and how a frame's tree state and node states
+//! are applied (full-state frames here, keyframes by the receiver).
+
+use std::collections::HashSet;
+
+use sim_lattice::{NodeId, RegionState, TetId};
+
+use super::{FULL_STATE_REGION, KeyframeId, RegionId, RegionMap, SyncError, V3};
+use crate::engine::Simulation;
+
+/// Full state of one region (field set of `proto::Message::Keyframe` minus what the client
+/// adds: owner, epoch; the wire's node `ids` are the canonical indices `0..n`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct RegionKeyframe {
+    pub region: RegionId,
+    pub keyframe_id: KeyframeId,
+    /// Owner's simulation time of the state (s).
+    pub sim_time: f64,
+    /// [`RegionState::to_bytes`] of the region's trees.
+    pub tree_bits: Vec<u8>,
+    /// Node positions (m) in canonical order.
+    pub positions: Vec<[f64; 3]>,
+    /// Node velocities (m/s) in canonical order.
+    pub velocities: Vec<[f64; 3]>,
+}
+
+/// Change of a region's tree state against a keyframe every receiver acknowledged (field
+/// set of `proto::Message::TreeDelta` minus site and epoch).
+#[derive(Clone, Debug, PartialEq)]
+pub struct RegionTreeDelta {
+    pub region: RegionId,
+    /// Owner's simulation time of the new tree state (s).
+    pub sim_time: f64,
+    pub base_keyframe: KeyframeId,
+    /// XOR of the base keyframe's split bits and the current ones, encoded like
+    /// [`RegionState::to_bytes`] over the region's roots.
+    pub xor_bits: Vec<u8>,
+}
+
+/// What an owner sends.
+#[derive(Clone, Debug, PartialEq)]
+pub enum SyncFrame {
+    Keyframe(RegionKeyframe),
+    TreeDelta(RegionTreeDelta),
+}
+
+impl SyncFrame {
+    pub fn region(&self) -> RegionId {
+        match self {
+            SyncFrame::Keyframe(k) => k.region,
+            SyncFrame::TreeDelta(d) => d.region,
+        }
+    }
+}
+
+/// Encodes the region's state (any region id of `map`, or [`FULL_STATE_REGION`]).
+pub fn encode_keyframe(
+    sim: &Simulation,
+    map: &RegionMap,
+    region: RegionId,
+    keyframe_id: KeyframeId,
+) -> Result<RegionKeyframe, SyncError> {
+    if !map.contains(region) {
+        return Err(SyncError::UnknownRegion(region));
+    }
+    let nodes = map.canonical_nodes(sim.lattice(), region);
+    Ok(keyframe_from_nodes(sim, map, region, keyframe_id, &nodes))
+}
+
+pub(super) fn keyframe_from_nodes(
+    sim: &Simulation,
+    map: &RegionMap,
+    region: RegionId,
+    keyframe_id: KeyframeId,
+    nodes: &[NodeId],
+) -> RegionKeyframe {
+    let (x, v) = (sim.positions(), sim.velocities());
+    RegionKeyframe {
+        region,
+        keyframe_id,
+        sim_time: sim.time(),
+        tree_bits: map.state(sim.lattice(), region).to_bytes(),
+        positions: nodes.iter().map(|n| x[n.0 as usize].into()).collect(),
+        velocities: nodes.iter().map(|n| v[n.0 as usize].into()).collect(),
+    }
+}
+
+/// [`SyncStrategy::FullState`]: every node of the organ and every root's tree state.
+pub fn encode_full_state(
+    sim: &Simulation,
+    map: &RegionMap,
+    keyframe_id: KeyframeId,
+) -> RegionKeyframe {
+    let nodes = map.canonical_nodes(sim.lattice(), FULL_STATE_REGION);
+    keyframe_from_nodes(sim, map, FULL_STATE_REGION, keyframe_id, &nodes)
+}
+
+/// [`SyncStrategy::FullState`] receiver: matches the whole tree state and takes over every
+/// node's position and velocity directly (no extrapolation, no blending).
+pub fn apply_full_state(
+    sim: &mut Simulation,
+    map: &RegionMap,
+    kf: &RegionKeyframe,
+) -> Result<(), SyncError> {
+    if kf.region != FULL_STATE_REGION {
+        return Err(SyncError::WrongRegion {
+            region: FULL_STATE_REGION,
+            got: kf.region,
+        });
+    }
+    let nodes = match_tree_and_nodes(sim, map, kf)?;
+    for (i, &n) in nodes.iter().enumerate() {
+        sim.set_node_state(n, V3::from(kf.positions[i]), V3::from(kf.velocities[i]));
+    }
+    sim.update_surfaces();
+    Ok(())
+}
+
+/// Checks the frame, makes the region's tree state match it, and returns the region's
+/// canonical nodes (as many as the frame has).
+pub(super) fn match_tree_and_nodes(
+    sim: &mut Simulation,
+    map: &RegionMap,
+    kf: &RegionKeyframe,
+) -> Result<Vec<NodeId>, SyncError> {
+    let region = kf.region;
+    if !map.contains(region) {
+        return Err(SyncError::UnknownRegion(region));
+    }
+    if kf.positions.len() != kf.velocities.len() {
+        return Err(SyncError::LengthMismatch {
+            region,
+            positions: kf.positions.len(),
+            velocities: kf.velocities.len(),
+        });
+    }
+    if kf
+        .positions
+        .iter()
+        .chain(&kf.velocities)
+        .any(|p| p.iter().any(|c| !c.is_finite()))
+    {
+        return Err(SyncError::NonFinite { region });
+    }
+    let target = RegionState::from_bytes(&kf.tree_bits)
+        .map_err(|source| SyncError::TreeBits { region, source })?;
+    apply_tree(sim, map, region, &target)?;
+    let nodes = map.canonical_nodes(sim.lattice(), region);
+    if nodes.len() != kf.positions.len() {
+        return Err(SyncError::NodeCount {
+            region,
+            expected: nodes.len(),
+            got: kf.positions.len(),
+        });
+    }
+    Ok(nodes)
+}
+
+/// Makes the region's trees equal `target` and lets the simulation follow.
+pub(super) fn apply_tree(
+    sim: &mut Simulation,
+    map: &RegionMap,
+    region: RegionId,
+    target: &RegionState,
+) -> Result<(), SyncError> {
+    if target.roots() != map.roots(region) {
+        return Err(SyncError::TreeRoots { region });
+    }
+    let mut events = Vec::new();
+    let stats = sim
+        .lattice_mut()
+        .apply_state(target, &mut events)
+        .map_err(|source| SyncError::Lattice { region, source });
+    // Whatever changed before an error must still reach the node state.
+    sim.after_topology_change(&events)?;
+    let stats = stats?;
+    if stats.residual != 0 {
+        return Err(SyncError::Residual {
+            region,
+            residual: stats.residual,
+        });
+    }
+    Ok(())
+}
+
+/// Encodes a set of split tets over `roots` like [`RegionState::to_bytes`] (see
+/// [`RegionState::from_split_tets`] for what is ignored).
+pub fn encode_split_set(roots: &[u32], tets: impl IntoIterator<Item = TetId>) -> Vec<u8> {
+    RegionState::from_split_tets(roots, tets).to_bytes()
+}
+
+/// `base` with the split state of every tet named by `delta` toggled.
+pub(super) fn xor_state(base: &RegionState, delta: &RegionState) -> RegionState {
+    let mut set: HashSet<TetId> = base.split_tets().collect();
+    for t in delta.split_tets() {
+        if !set.remove(&t) {
+            set.insert(t);
+        }
+    }
+    RegionState::from_split_tets(base.roots(), set)
+}
+
+/// The XOR of two tree states of the same roots, encoded for [`RegionTreeDelta::xor_bits`].
+pub fn encode_tree_xor(base: &RegionState, current: &RegionState) -> Vec<u8> {
+    encode_split_set(current.roots(), current.xor(base).tets())
+}
