@@ -392,18 +392,9 @@ impl ToolSpec {
     }
 }
 
-/// Deformation models.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Model {
-    /// Co-rotational linear FEM (default).
-    #[default]
-    Corotational,
-    /// Plain linear FEM (reference; volume grows under rotation).
-    Linear,
-    /// Non-linear hyperelastic reference (StVK/Neo-Hookean with Newton).
-    Nonlinear,
-}
+/// Deformation models: `linear`, `corotational` (default), `stvk` (alias `nonlinear`). One
+/// enum for every crate, sim-fem's.
+pub use sim_fem::Model;
 
 /// Polar-decomposition methods for the co-rotational model.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -426,7 +417,8 @@ pub enum PolarMethod {
 pub struct SimulationSettings {
     /// Time step in s (> 0, default 0.002 = 500 Hz).
     pub dt: f64,
-    /// Deformation model (default `corotational`).
+    /// Deformation model: `linear`, `corotational` (default) or `stvk` (St Venant–Kirchhoff;
+    /// `nonlinear` is read as `stvk`).
     pub model: Model,
     /// Maximum conjugate-gradient iterations per step (≥ 1, default 50).
     pub cg_iterations: u32,
@@ -1259,6 +1251,26 @@ point = [0.4, 0.05, 0.05]
     }
 
     #[test]
+    fn model_names_are_sim_fem_s_and_nonlinear_is_an_alias() {
+        for (name, model) in [
+            ("linear", Model::Linear),
+            ("corotational", Model::Corotational),
+            ("stvk", Model::StVK),
+            ("nonlinear", Model::StVK),
+        ] {
+            let l = load(&format!("{EXAMPLE}\n[simulation]\nmodel = \"{name}\"\n")).unwrap();
+            assert_eq!(l.scene.simulation.model, model, "{name}");
+            // Written back under its one name.
+            let text = l.scene.to_toml();
+            assert!(
+                text.contains(&format!("model = \"{}\"", model.name())),
+                "{name}: {text}"
+            );
+            assert_eq!(Scene::parse(&text, "re.toml").unwrap(), l.scene);
+        }
+    }
+
+    #[test]
     fn serialise_roundtrip() {
         let l = load(EXAMPLE).unwrap();
         let text = l.scene.to_toml();
@@ -1328,7 +1340,11 @@ skip_rest = false
         let l = Scene::load(&path).unwrap();
         let s = &l.scene;
         assert_eq!(s.materials["a"].rayleigh_stiffness, 0.01);
-        assert_eq!(s.simulation.model, Model::Nonlinear);
+        assert_eq!(
+            s.simulation.model,
+            Model::StVK,
+            "`nonlinear` is read as `stvk`"
+        );
         assert_eq!(s.simulation.polar, PolarMethod::ShapeMatching);
         assert_eq!(s.features.rotation_sharing_angle_deg, 2.5);
         assert!(!s.features.contact);

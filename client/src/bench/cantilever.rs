@@ -558,7 +558,7 @@ fn fmt_g(v: f64) -> String {
 fn plot(dir: &std::path::Path, r: &CantileverReport) -> Result<Vec<PathBuf>> {
     let mut by: BTreeMap<String, Vec<(f64, f64)>> = BTreeMap::new();
     for row in &r.runs {
-        if row.model == "nonlinear" || !row.max_dev_m.is_finite() {
+        if row.model == model_name(Model::StVK) || !row.max_dev_m.is_finite() {
             continue;
         }
         let label = if row.model == "corotational" {
