@@ -51,8 +51,9 @@ pub struct CantileverArgs {
     /// Skip the "largest mesh at 1 kHz" sweep.
     #[arg(long)]
     pub no_khz: bool,
-    /// Also run this MuJoCo peer script (e.g. /work/shared/peers/mujoco_beam.py) on the
-    /// soft beam of every mesh and dt, in this session, for comparison.
+    /// Also run this MuJoCo peer script (e.g. ../shared/peers/mujoco_beam.py from the
+    /// project's directory) on the soft beam of every mesh and dt, in this session, for
+    /// comparison.
     #[arg(long)]
     pub peer: Option<PathBuf>,
 }
