@@ -7,7 +7,9 @@ use anyhow::{Context, Result, bail};
 use indicatif::ProgressBar;
 use nalgebra::Vector3;
 use serde::Serialize;
-use sim_core::sim_fem::{ByersXu, Model, MullerIterative, NewtonParams, PolarMethod, SolverParams};
+use sim_core::sim_fem::{
+    ByersXu, Model, MullerIterative, NewtonParams, PolarMethod, SolverParams, StiffnessMode,
+};
 use sim_core::sim_scene::LoadedScene;
 use sim_core::{NodeId, SimOptions, Simulation};
 
@@ -171,18 +173,22 @@ impl RunConfig {
 
     pub fn options(&self, scene: &LoadedScene) -> SimOptions {
         let mut o = SimOptions::from_scene(&scene.scene);
-        o.model = self.model;
-        o.polar = self.polar.method(self.polar_tolerance);
+        o.step.model = self.model;
+        o.step.polar = self.polar.method(self.polar_tolerance);
         o.sharing_angle_deg = (self.sharing_angle_deg > 0.0).then_some(self.sharing_angle_deg);
-        o.template_stiffness = self.template_stiffness;
-        o.rest_threshold = if self.skip_rest { REST_THRESHOLD } else { 0.0 };
-        o.solver = SolverParams {
+        o.step.stiffness = if self.template_stiffness {
+            StiffnessMode::Template
+        } else {
+            StiffnessMode::Dense
+        };
+        o.step.rest_threshold = if self.skip_rest { REST_THRESHOLD } else { 0.0 };
+        o.step.solver = SolverParams {
             max_iters: self.cg_iterations,
             tol: self.cg_tolerance,
             warm_start: self.cg_warm_start,
         };
-        o.newton = self.newton;
-        o.threads = self.threads;
+        o.step.newton = self.newton;
+        o.step.threads = self.threads;
         o
     }
 
@@ -196,27 +202,27 @@ impl RunConfig {
             sharing_angle_deg: if corot { self.sharing_angle_deg } else { 0.0 },
             template_stiffness: self.template_stiffness,
             skip_rest: corot && self.skip_rest,
-            rest_threshold_m: if corot { options.rest_threshold } else { 0.0 },
-            operator: format!("{:?}", options.operator).to_lowercase(),
+            rest_threshold_m: if corot {
+                options.step.rest_threshold
+            } else {
+                0.0
+            },
+            operator: format!("{:?}", options.step.operator).to_lowercase(),
             cg_iterations: self.cg_iterations,
             cg_tolerance: self.cg_tolerance,
             cg_warm_start: self.cg_warm_start,
             newton_iterations: nonlinear.then_some(self.newton.max_iters),
             newton_tolerance_n: nonlinear.then_some(self.newton.tol),
             refinement_depth: self.depth,
-            threads: options.threads,
-            energy_guard: corot && options.energy_guard,
+            threads: options.step.threads,
+            energy_guard: corot && options.step.energy_guard,
         }
     }
 }
 
-/// Model names as the benchmarks print them.
+/// Model names as the benchmarks print them (the names of scene files and `--model`).
 pub fn model_name(m: Model) -> &'static str {
-    match m {
-        Model::Linear => "linear",
-        Model::Corotational => "corotational",
-        Model::StVK => "nonlinear",
-    }
+    m.name()
 }
 
 /// A finished run: per-step wall times and the node positions at the sample times.

@@ -51,8 +51,9 @@ pub struct CantileverArgs {
     /// Skip the "largest mesh at 1 kHz" sweep.
     #[arg(long)]
     pub no_khz: bool,
-    /// Also run this MuJoCo peer script (e.g. /work/shared/peers/mujoco_beam.py) on the
-    /// soft beam of every mesh and dt, in this session, for comparison.
+    /// Also run this MuJoCo peer script (e.g. ../shared/peers/mujoco_beam.py from the
+    /// project's directory) on the soft beam of every mesh and dt, in this session, for
+    /// comparison.
     #[arg(long)]
     pub peer: Option<PathBuf>,
 }
@@ -558,7 +559,7 @@ fn fmt_g(v: f64) -> String {
 fn plot(dir: &std::path::Path, r: &CantileverReport) -> Result<Vec<PathBuf>> {
     let mut by: BTreeMap<String, Vec<(f64, f64)>> = BTreeMap::new();
     for row in &r.runs {
-        if row.model == "nonlinear" || !row.max_dev_m.is_finite() {
+        if row.model == model_name(Model::StVK) || !row.max_dev_m.is_finite() {
             continue;
         }
         let label = if row.model == "corotational" {

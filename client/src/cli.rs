@@ -3,44 +3,35 @@
 
 use std::path::PathBuf;
 
-use clap::{Args, ValueEnum};
+use clap::Args;
 use sim_core::SimOptions;
 use sim_core::sim_fem::Model;
 
-/// Deformation models on the command line.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
-pub enum ModelArg {
-    /// Co-rotational linear FEM (the product's model).
-    Corotational,
-    /// Plain linear FEM (reference).
-    Linear,
-    /// St Venant–Kirchhoff with Newton (non-linear reference).
-    Nonlinear,
-}
-
-impl ModelArg {
-    pub fn fem(self) -> Model {
-        match self {
-            ModelArg::Corotational => Model::Corotational,
-            ModelArg::Linear => Model::Linear,
-            ModelArg::Nonlinear => Model::StVK,
-        }
-    }
-    pub fn name(self) -> &'static str {
-        match self {
-            ModelArg::Corotational => "corotational",
-            ModelArg::Linear => "linear",
-            ModelArg::Nonlinear => "nonlinear",
-        }
-    }
+/// `--model`: sim-fem's [`Model`] under its own names (`linear`, `corotational`, `stvk`),
+/// with `nonlinear` accepted as the former name of `stvk` (as in scene files).
+pub fn model_parser() -> impl clap::builder::TypedValueParser<Value = Model> {
+    use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser};
+    let help = |m: Model| match m {
+        Model::Linear => "plain linear FEM (reference)",
+        Model::Corotational => "co-rotational linear FEM (the product's model)",
+        Model::StVK => "St Venant–Kirchhoff with Newton (non-linear reference)",
+    };
+    PossibleValuesParser::new(Model::ALL.map(|m| {
+        let value = PossibleValue::new(m.name()).help(help(m));
+        Model::ALIASES
+            .iter()
+            .filter(|(_, target)| *target == m)
+            .fold(value, |value, (alias, _)| value.alias(alias))
+    }))
+    .try_map(|name| name.parse::<Model>())
 }
 
 /// Solver knobs shared by the simulation commands; unset ones come from the scene.
 #[derive(Debug, Clone, Args, Default)]
 pub struct SimKnobs {
     /// Deformation model.
-    #[arg(long, value_enum)]
-    pub model: Option<ModelArg>,
+    #[arg(long, value_parser = model_parser())]
+    pub model: Option<Model>,
     /// Time step (s).
     #[arg(long)]
     pub dt: Option<f64>,
@@ -61,13 +52,13 @@ pub struct SimKnobs {
 impl SimKnobs {
     pub fn apply(&self, o: &mut SimOptions) {
         if let Some(m) = self.model {
-            o.model = m.fem();
+            o.step.model = m;
         }
         if let Some(dt) = self.dt {
             o.dt = dt;
         }
         if let Some(n) = self.cg_iterations {
-            o.solver.max_iters = n;
+            o.step.solver.max_iters = n;
         }
         if let Some(a) = self.adaptivity {
             o.adaptivity = a;
@@ -76,7 +67,7 @@ impl SimKnobs {
             o.sharing_angle_deg = (a > 0.0).then_some(a);
         }
         if let Some(t) = self.threads {
-            o.threads = t.max(1);
+            o.step.threads = t.max(1);
         }
     }
 }

@@ -5,10 +5,10 @@ use std::time::Instant;
 use anyhow::{Result, bail};
 use clap::Args;
 use serde::Serialize;
-use sim_core::sim_fem::StaticParams;
+use sim_core::sim_fem::{Model, StaticParams};
 use sim_core::{SimOptions, Simulation};
 
-use crate::cli::ModelArg;
+use crate::cli::model_parser;
 use crate::scene_arg::load_scene;
 
 #[derive(Debug, Args)]
@@ -16,8 +16,8 @@ pub struct SolveArgs {
     /// Scene file (TOML) or builtin:NAME.
     pub scene: String,
     /// Deformation model.
-    #[arg(long, value_enum, default_value = "corotational")]
-    pub model: ModelArg,
+    #[arg(long, value_parser = model_parser(), default_value = "corotational")]
+    pub model: Model,
     /// Static equilibrium (the only mode of this command; accepted for clarity).
     #[arg(long)]
     pub r#static: bool,
@@ -89,19 +89,16 @@ pub fn solve(args: SolveArgs) -> Result<()> {
 }
 
 /// Static solve of a loaded scene; shared with the benches.
-pub fn solve_scene(
-    scene: sim_core::sim_scene::LoadedScene,
-    model: ModelArg,
-) -> Result<SolveResult> {
+pub fn solve_scene(scene: sim_core::sim_scene::LoadedScene, model: Model) -> Result<SolveResult> {
     let hash = scene.hash.clone();
     let mut options = SimOptions::from_scene(&scene.scene);
-    options.model = model.fem();
-    let gravity = options.gravity;
+    options.step.model = model;
+    let gravity = options.step.gravity;
     let mut sim = Simulation::new(scene, options)?;
     let rest = sim.probe_rest();
     let start = Instant::now();
     let stats = sim.solve_static(
-        model.fem(),
+        model,
         &StaticParams {
             gravity,
             initial_increment: 0.25,

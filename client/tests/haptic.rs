@@ -13,7 +13,7 @@ use cosurg::haptic::{
     spawn_with_model,
 };
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
-use sim_scene::{Keyframe, ToolPose, ToolScript};
+use sim_scene::{ToolPose, ToolScript, ToolWaypoint};
 
 fn pose(x: [f64; 3], jaw: f64) -> ToolPose {
     ToolPose {
@@ -29,7 +29,7 @@ fn script(tool: &str, keys: &[(f64, [f64; 3], f64)]) -> ToolScript {
     s.tracks.insert(
         tool.into(),
         keys.iter()
-            .map(|&(t, x, jaw)| Keyframe {
+            .map(|&(t, x, jaw)| ToolWaypoint {
                 t,
                 pose: pose(x, jaw),
                 label: None,

@@ -16,7 +16,7 @@ use cosurg::site::glue::DeviceSpec;
 use cosurg::site::{PlayoutLag, SiteConfig, SiteReport, Strategy, run_site};
 use proto::Role;
 use sim_core::SimOptions;
-use sim_core::sim_scene::{Keyframe, LoadedScene, ToolPose, ToolScript, builtin};
+use sim_core::sim_scene::{LoadedScene, ToolPose, ToolScript, ToolWaypoint, builtin};
 
 fn site(scene: &LoadedScene, name: &str, role: Role, tool: &str, seconds: f64) -> SiteConfig {
     let mut options = SimOptions::from_scene(&scene.scene);
@@ -149,7 +149,7 @@ fn approach(len: f64, offset: [f64; 3]) -> ToolScript {
         .map(|i| {
             let t = len * i as f64 / 4.0;
             let p = src.sample("forceps", t).unwrap();
-            Keyframe {
+            ToolWaypoint {
                 t,
                 pose: ToolPose {
                     position: p.position + nalgebra::Vector3::from(offset),

@@ -7,7 +7,7 @@
 
 use std::time::Instant;
 
-use cosurg_sim_core::sim_fem::{ByersXu, PolarMethod, SolverParams};
+use cosurg_sim_core::sim_fem::{ByersXu, PolarMethod, SolverParams, StiffnessMode};
 use cosurg_sim_core::{SimOptions, Simulation};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -23,21 +23,21 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let scene = cosurg_sim_core::sim_scene::builtin::cantilever_with(young, cell)?;
     let mut o = SimOptions::from_scene(&scene.scene);
     o.dt = dt;
-    o.polar = PolarMethod::ByersXu(ByersXu {
+    o.step.polar = PolarMethod::ByersXu(ByersXu {
         tol: 1e-6,
         ..ByersXu::default()
     });
     o.sharing_angle_deg = Some(5.0);
-    o.template_stiffness = true;
-    o.rest_threshold = 1e-6;
-    o.solver = SolverParams {
+    o.step.stiffness = StiffnessMode::Template;
+    o.step.rest_threshold = 1e-6;
+    o.step.solver = SolverParams {
         max_iters: 50,
         tol: 1e-6,
         warm_start: false,
     };
-    o.threads = threads;
-    o.energy_guard = arg(6, 1.0) != 0.0;
-    o.solver.max_iters = arg(7, 50.0) as usize;
+    o.step.threads = threads;
+    o.step.energy_guard = arg(6, 1.0) != 0.0;
+    o.step.solver.max_iters = arg(7, 50.0) as usize;
     let mut sim = Simulation::new(scene, o)?;
     sim.fem()?;
     let mut ms = Vec::with_capacity(steps);

@@ -360,7 +360,7 @@ impl Simulation {
         let mut elements = Vec::with_capacity(self.lattice.leaf_count());
         for &t in self.lattice.leaves() {
             let nodes = self.lattice.tet_nodes(t).map(|n| n.0 as usize);
-            let shape = if self.options.template_stiffness {
+            let shape = if self.options.template_stiffness() {
                 let key = self.lattice.tet_shape(t);
                 let next_id = self.shape_ids.len() as u64;
                 let id = *self.shape_ids.entry(key).or_insert(next_id);
@@ -458,7 +458,7 @@ impl Simulation {
             report.shared_rotations = shared.shared_elements;
             report.sharing_blocks_tested = shared.blocks_tested;
         }
-        let params = self.options.step_params();
+        let params = self.options.step;
         // Extra stiffness (contact) applies to this step only.
         fem.set_external_stiffness(&self.k_extra);
         let result = fem.step(&mut self.x, &mut self.v, &f_ext, dt, &params);
@@ -586,7 +586,7 @@ impl Simulation {
     }
     /// Changes options; a change of stiffness kernel or sharing rebuilds the FEM system.
     pub fn set_options(&mut self, options: SimOptions) {
-        if options.template_stiffness != self.options.template_stiffness
+        if options.template_stiffness() != self.options.template_stiffness()
             || options.sharing_angle_deg != self.options.sharing_angle_deg
         {
             self.sharing = RotationSharing::new(options.sharing_angle_deg);
@@ -686,10 +686,10 @@ impl Simulation {
 
     /// Elastic + kinetic + gravitational energy relative to the rest pose (J).
     pub fn energy(&mut self) -> Result<f64, SimError> {
-        let g = self.options.gravity;
+        let g = self.options.step.gravity;
         let (x, v) = (self.x.clone(), self.v.clone());
         let rest = self.rest_positions();
-        let params = self.options.step_params();
+        let params = self.options.step;
         let fem = self.fem()?;
         // Co-rotational elastic energy with the rotations at the current positions (the
         // stored ones are those of the previous step: for an inverted element whose

@@ -242,12 +242,12 @@ impl RotationSharing {
         let Some(thr) = self.threshold_sq else {
             return Ok(None);
         };
-        if options.model != sim_fem::Model::Corotational || self.blocks.is_empty() {
+        if options.step.model != sim_fem::Model::Corotational || self.blocks.is_empty() {
             return Ok(None);
         }
         let mut out = SharingUpdate::default();
-        let polar = options.polar;
-        let rest = options.rest_threshold;
+        let polar = options.step.polar;
+        let rest = options.step.rest_threshold;
         // Hysteresis: leaves keep their block's rotation while the test holds at θ_tol, but
         // a block whose leaves extracted their own rotations last time starts sharing only
         // when its neighbours agree within θ_tol / 2. Without it, a block whose neighbour

@@ -11,12 +11,12 @@ type V3 = Vector3<f64>;
 fn sim(angle: Option<f64>, gravity: bool, dt: f64) -> Simulation {
     let scene = cantilever_with(1e5, 0.025).unwrap();
     let mut o = SimOptions::from_scene(&scene.scene);
-    o.model = Model::Corotational;
+    o.step.model = Model::Corotational;
     o.sharing_angle_deg = angle;
     o.dt = dt;
-    o.rest_threshold = 0.0;
+    o.step.rest_threshold = 0.0;
     if !gravity {
-        o.gravity = V3::zeros();
+        o.step.gravity = V3::zeros();
     }
     Simulation::new(scene, o).unwrap()
 }
@@ -194,7 +194,7 @@ fn threaded_steps_with_sharing_match_sequential() {
     let mut many = sim(Some(5.0), true, 0.01);
     for (k, threads) in [2, 3, 1, 2, 2, 7, 1, 3, 2, 2, 4, 2].into_iter().enumerate() {
         let mut o = many.options().clone();
-        o.threads = threads;
+        o.step.threads = threads;
         many.set_options(o);
         let a = one.step().unwrap();
         let b = many.step().unwrap();
@@ -233,8 +233,12 @@ fn assembled_operator_matches_matrix_free_with_shared_rotations() {
             (&mut m, OperatorMode::MatrixFree),
         ] {
             let mut o = s.options().clone();
-            o.operator = op;
-            o.template_stiffness = template;
+            o.step.operator = op;
+            o.step.stiffness = if template {
+                StiffnessMode::Template
+            } else {
+                StiffnessMode::Dense
+            };
             s.set_options(o);
         }
         let mut shared = 0;

@@ -11,19 +11,21 @@
 
 pub mod element;
 pub mod mesh;
+pub mod model;
 mod parallel;
 pub mod polar;
 pub mod solver;
 pub mod system;
 
 pub use element::{Mat12, Template, TetGeometry, lame};
+pub use model::{Model, UnknownModel};
 pub use polar::{
     ByersXu, MullerIterative, PolarMethod, PolarResult, RotationExtractor, ShapeMatching, SvdPolar,
     WarmStart, rotation_threshold_sq, rotations_within,
 };
 pub use solver::{CgResult, SolverParams};
 pub use system::{
-    ElementDesc, FALLBACK_NEWTON, FemDesc, FemSystem, Material, Model, NewtonParams, OperatorMode,
+    ElementDesc, FALLBACK_NEWTON, FemDesc, FemSystem, Material, NewtonParams, OperatorMode,
     RotationSourceDesc, ShapeRef, StaticParams, StaticStats, StepParams, StepStats, StiffnessMode,
     TemplateInfo,
 };

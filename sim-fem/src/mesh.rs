@@ -1,6 +1,7 @@
 //! Structured test meshes: a box of cubes, each split into 6 Kuhn tetrahedra around the
-//! cube's main diagonal (same numbering as `/work/shared/peers/beam.py`). Used by tests,
-//! benchmarks and as an example of the arrays sim-core passes in.
+//! cube's main diagonal (same numbering as the peer script `../shared/peers/beam.py`,
+//! relative to the project). Used by tests, benchmarks and as an example of the arrays
+//! sim-core passes in.
 
 use nalgebra::Vector3;
 

@@ -107,10 +107,10 @@ fn stvk_newton_dynamic_step_is_stable() {
         model: Model::StVK,
         gravity: g,
         solver: SolverParams::accurate(),
-        newton: Some(NewtonParams {
+        newton: NewtonParams {
             max_iters: 20,
             tol: 1e-8,
-        }),
+        },
         ..Default::default()
     };
     let mut worst = 0.0f64;

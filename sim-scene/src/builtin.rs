@@ -27,7 +27,7 @@ use nalgebra::{UnitQuaternion, Vector3};
 
 use crate::mesh::TriMesh;
 use crate::scene::{LoadedScene, Scene};
-use crate::script::{Keyframe, ToolPose, ToolScript};
+use crate::script::{ToolPose, ToolScript, ToolWaypoint};
 
 /// `scenes/cantilever.toml`.
 pub const CANTILEVER_TOML: &str = include_str!("../../scenes/cantilever.toml");
@@ -403,8 +403,14 @@ fn pointing(tip_dir: &Vector3<f64>) -> UnitQuaternion<f64> {
     })
 }
 
-fn key(t: f64, position: Vector3<f64>, q: UnitQuaternion<f64>, jaw: f64, label: &str) -> Keyframe {
-    Keyframe {
+fn waypoint(
+    t: f64,
+    position: Vector3<f64>,
+    q: UnitQuaternion<f64>,
+    jaw: f64,
+    label: &str,
+) -> ToolWaypoint {
+    ToolWaypoint {
         t,
         pose: ToolPose {
             position,
@@ -436,19 +442,19 @@ pub fn generate_scripts() -> (ToolScript, ToolScript) {
     g.tracks.insert(
         "forceps".into(),
         vec![
-            key(
+            waypoint(
                 0.0,
                 start,
                 q,
                 JAW_OPEN,
                 "approach the fundus with open jaws",
             ),
-            key(1.5, grasp, q, JAW_OPEN, ""),
-            key(2.0, grasp, q, 0.0, "close the jaws on the fundus"),
-            key(3.0, grasp + lift, q, 0.0, "lift 3 cm"),
-            key(4.5, grasp + lift, q, 0.0, "hold"),
-            key(5.0, grasp + lift, q, JAW_OPEN, "release"),
-            key(6.0, start + lift, q, JAW_OPEN, "withdraw"),
+            waypoint(1.5, grasp, q, JAW_OPEN, ""),
+            waypoint(2.0, grasp, q, 0.0, "close the jaws on the fundus"),
+            waypoint(3.0, grasp + lift, q, 0.0, "lift 3 cm"),
+            waypoint(4.5, grasp + lift, q, 0.0, "hold"),
+            waypoint(5.0, grasp + lift, q, JAW_OPEN, "release"),
+            waypoint(6.0, start + lift, q, JAW_OPEN, "withdraw"),
         ],
     );
     // probe_dissect: the probe comes from below, presses 5 mm into the underside near the
@@ -456,21 +462,21 @@ pub fn generate_scripts() -> (ToolScript, ToolScript) {
     let e = gb.down();
     let q = pointing(&-e);
     let press = 0.005;
-    let mut track = vec![key(
+    let mut track = vec![waypoint(
         0.0,
         gb.surface_point(0.85, &e) + e * 0.03,
         q,
         0.0,
         "approach the neck from below",
     )];
-    track.push(key(
+    track.push(waypoint(
         1.0,
         gb.surface_point(0.85, &e) + e * 0.001,
         q,
         0.0,
         "touch",
     ));
-    track.push(key(
+    track.push(waypoint(
         1.5,
         gb.surface_point(0.85, &e) - e * press,
         q,
@@ -478,7 +484,7 @@ pub fn generate_scripts() -> (ToolScript, ToolScript) {
         "press 5 mm",
     ));
     for (i, s) in [0.75, 0.65, 0.55, 0.45].iter().enumerate() {
-        track.push(key(
+        track.push(waypoint(
             2.0 + i as f64 * 0.75,
             gb.surface_point(*s, &e) - e * press,
             q,
@@ -490,7 +496,7 @@ pub fn generate_scripts() -> (ToolScript, ToolScript) {
             },
         ));
     }
-    track.push(key(
+    track.push(waypoint(
         5.0,
         gb.surface_point(0.45, &e) + e * 0.03,
         q,

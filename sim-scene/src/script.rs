@@ -62,9 +62,10 @@ pub struct ToolPose {
     pub jaw: f64,
 }
 
-/// A pose at a time, with an optional label.
+/// A tool pose at a time, with an optional label: one `[[pose]]` of a script. (Not a
+/// keyframe: that word is kept for a region's state on the wire.)
 #[derive(Debug, Clone, PartialEq)]
-pub struct Keyframe {
+pub struct ToolWaypoint {
     /// Time in s.
     pub t: f64,
     /// The pose.
@@ -73,13 +74,13 @@ pub struct Keyframe {
     pub label: Option<String>,
 }
 
-/// A parsed script: keyframes per tool, sorted by time.
+/// A parsed script: waypoints per tool, sorted by time.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct ToolScript {
     /// Optional title.
     pub title: Option<String>,
-    /// Keyframes per tool name.
-    pub tracks: BTreeMap<String, Vec<Keyframe>>,
+    /// Waypoints per tool name.
+    pub tracks: BTreeMap<String, Vec<ToolWaypoint>>,
 }
 
 #[derive(Deserialize)]
@@ -148,7 +149,7 @@ impl ToolScript {
         if raw.pose.is_empty() {
             return Err(inv("pose".into(), "the script has no [[pose]]".into()));
         }
-        let mut tracks: BTreeMap<String, Vec<Keyframe>> = BTreeMap::new();
+        let mut tracks: BTreeMap<String, Vec<ToolWaypoint>> = BTreeMap::new();
         for (i, p) in raw.pose.into_iter().enumerate() {
             let tool = p.tool.or_else(|| raw.tool.clone()).ok_or_else(|| {
                 inv(
@@ -197,7 +198,7 @@ impl ToolScript {
                 Some(j) => j,
                 None => prev.map(|k| k.pose.jaw).unwrap_or(0.0),
             };
-            track.push(Keyframe {
+            track.push(ToolWaypoint {
                 t: p.t,
                 pose: ToolPose {
                     position: Vector3::from(p.position),
@@ -222,8 +223,8 @@ impl ToolScript {
         if let Some(t) = &self.title {
             let _ = writeln!(s, "title = {}", toml_string(t));
         }
-        for (tool, keys) in &self.tracks {
-            for k in keys {
+        for (tool, waypoints) in &self.tracks {
+            for k in waypoints {
                 let p = &k.pose;
                 let q = wxyz(&p.orientation);
                 let _ = write!(
@@ -264,17 +265,17 @@ impl ToolScript {
 
     /// The pose of `tool` at time `t` (`None` when the script has no such tool).
     pub fn sample(&self, tool: &str, t: f64) -> Option<ToolPose> {
-        let keys = self.tracks.get(tool)?;
-        let first = keys.first()?;
+        let waypoints = self.tracks.get(tool)?;
+        let first = waypoints.first()?;
         if t <= first.t {
             return Some(first.pose.clone());
         }
-        let last = keys.last()?;
+        let last = waypoints.last()?;
         if t >= last.t {
             return Some(last.pose.clone());
         }
-        let i = keys.partition_point(|k| k.t <= t); // keys[i-1].t <= t < keys[i].t
-        let (a, b) = (&keys[i - 1], &keys[i]);
+        let i = waypoints.partition_point(|k| k.t <= t); // waypoints[i-1].t <= t < waypoints[i].t
+        let (a, b) = (&waypoints[i - 1], &waypoints[i]);
         let s = (t - a.t) / (b.t - a.t);
         let qa = a.pose.orientation;
         let mut qb = b.pose.orientation;
@@ -351,7 +352,7 @@ position = [1.0, 1.0, 1.0]
         let q2 = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 0.3);
         let neg = UnitQuaternion::new_unchecked(-q2.into_inner());
         let mut s = ToolScript::default();
-        let kf = |t: f64, q: UnitQuaternion<f64>| Keyframe {
+        let kf = |t: f64, q: UnitQuaternion<f64>| ToolWaypoint {
             t,
             pose: ToolPose {
                 position: Vector3::zeros(),
@@ -371,10 +372,10 @@ position = [1.0, 1.0, 1.0]
         let text = s.to_toml();
         let r = ToolScript::parse(&text, "w.toml").unwrap();
         assert_eq!(r.title, s.title);
-        for (tool, keys) in &s.tracks {
+        for (tool, waypoints) in &s.tracks {
             let rk = &r.tracks[tool];
-            assert_eq!(rk.len(), keys.len());
-            for (a, b) in keys.iter().zip(rk) {
+            assert_eq!(rk.len(), waypoints.len());
+            for (a, b) in waypoints.iter().zip(rk) {
                 assert_eq!(a.t, b.t);
                 assert_eq!(a.label, b.label);
                 assert!((a.pose.position - b.pose.position).norm() < 1e-5);

@@ -87,7 +87,7 @@ impl ScriptedDevice {
         let mut script = ToolScript::default();
         script.tracks.insert(
             tool.into(),
-            vec![sim_scene::Keyframe {
+            vec![sim_scene::ToolWaypoint {
                 t: 0.0,
                 pose,
                 label: None,

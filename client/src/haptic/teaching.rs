@@ -5,7 +5,7 @@ use std::path::Path;
 use std::time::Duration;
 
 use nalgebra::Vector3;
-use sim_scene::{Keyframe, ToolPose, ToolScript};
+use sim_scene::{ToolPose, ToolScript, ToolWaypoint};
 
 use super::{HapticError, ToolInput};
 
@@ -21,7 +21,7 @@ pub struct TeachingRecorder {
     t0: Option<Duration>,
     last_kept: Option<Duration>,
     last_seen: Option<ToolInput>,
-    keys: Vec<Keyframe>,
+    waypoints: Vec<ToolWaypoint>,
 }
 
 impl TeachingRecorder {
@@ -47,7 +47,7 @@ impl TeachingRecorder {
             t0: None,
             last_kept: None,
             last_seen: None,
-            keys: Vec::with_capacity(1024),
+            waypoints: Vec::with_capacity(1024),
         })
     }
 
@@ -71,7 +71,7 @@ impl TeachingRecorder {
 
     fn keep(&mut self, input: &ToolInput, t0: Duration) {
         self.last_kept = Some(input.time);
-        self.keys.push(Keyframe {
+        self.waypoints.push(ToolWaypoint {
             t: input.time.saturating_sub(t0).as_secs_f64(),
             pose: ToolPose {
                 position: input.position,
@@ -89,33 +89,33 @@ impl TeachingRecorder {
 
     /// Number of poses kept so far.
     pub fn len(&self) -> usize {
-        self.keys.len()
+        self.waypoints.len()
     }
 
     /// Nothing recorded yet.
     pub fn is_empty(&self) -> bool {
-        self.keys.is_empty()
+        self.waypoints.is_empty()
     }
 
     /// The recording as a script (the newest input is appended as the final pose when it
     /// is at least 1 ms after the last kept one). `None` when nothing was recorded.
     pub fn to_script(&self) -> Option<ToolScript> {
-        let mut keys = self.keys.clone();
+        let mut waypoints = self.waypoints.clone();
         if let (Some(last), Some(kept), Some(t0)) = (self.last_seen, self.last_kept, self.t0)
             && last.time >= kept + Duration::from_millis(1)
         {
             let mut r = self.clone();
             r.keep(&last, t0);
-            keys = r.keys;
+            waypoints = r.waypoints;
         }
-        if keys.is_empty() {
+        if waypoints.is_empty() {
             return None;
         }
         let mut s = ToolScript {
             title: self.title.clone(),
             ..Default::default()
         };
-        s.tracks.insert(self.tool.clone(), keys);
+        s.tracks.insert(self.tool.clone(), waypoints);
         Some(s)
     }
 

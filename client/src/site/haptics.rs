@@ -14,7 +14,7 @@ use anyhow::{Context, Result, bail};
 use nalgebra::{Matrix3, Vector3};
 use proto::{Command, Message, Role, TeachingTrajectory, ToolSample};
 use sim_core::sim_scene::script::{quat_wxyz, wxyz};
-use sim_core::sim_scene::{Keyframe, ToolPose, ToolScript};
+use sim_core::sim_scene::{ToolPose, ToolScript, ToolWaypoint};
 use tracing::{debug, info, warn};
 
 use super::SiteReport;
@@ -535,12 +535,12 @@ impl Teaching {
 
     fn playback_of(&self, tr: &TeachingTrajectory) -> Option<TeachingPlayback> {
         let (_, name) = self.tool.as_ref()?;
-        let mut keys: Vec<Keyframe> = Vec::with_capacity(tr.samples.len());
+        let mut keys: Vec<ToolWaypoint> = Vec::with_capacity(tr.samples.len());
         for s in &tr.samples {
-            if keys.last().is_some_and(|k: &Keyframe| s.t_s <= k.t) || !s.t_s.is_finite() {
+            if keys.last().is_some_and(|k: &ToolWaypoint| s.t_s <= k.t) || !s.t_s.is_finite() {
                 continue;
             }
-            keys.push(Keyframe {
+            keys.push(ToolWaypoint {
                 t: s.t_s,
                 pose: ToolPose {
                     position: Vector3::from(s.position.map(f64::from)),

@@ -404,18 +404,9 @@ impl ToolSpec {
     }
 }
 
-/// Deformation models.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Model {
-    /// Co-rotational linear FEM (default).
-    #[default]
-    Corotational,
-    /// Plain linear FEM (reference; volume grows under rotation).
-    Linear,
-    /// Non-linear hyperelastic reference (StVK/Neo-Hookean with Newton).
-    Nonlinear,
-}
+/// Deformation models: `linear`, `corotational` (default), `stvk` (alias `nonlinear`). One
+/// enum for every crate, sim-fem's.
+pub use sim_fem::Model;
 
 /// Polar-decomposition methods for the co-rotational model.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -438,7 +429,8 @@ pub enum PolarMethod {
 pub struct SimulationSettings {
     /// Time step in s (> 0, default 0.002 = 500 Hz).
     pub dt: f64,
-    /// Deformation model (default `corotational`).
+    /// Deformation model: `linear`, `corotational` (default) or `stvk` (St Venant–Kirchhoff;
+    /// `nonlinear` is read as `stvk`).
     pub model: Model,
     /// Maximum conjugate-gradient iterations per step (≥ 1, default 50).
     pub cg_iterations: u32,

@@ -75,6 +75,26 @@ fn example_parses_with_meanings_and_defaults() {
 }
 
 #[test]
+fn model_names_are_sim_fem_s_and_nonlinear_is_an_alias() {
+    for (name, model) in [
+        ("linear", Model::Linear),
+        ("corotational", Model::Corotational),
+        ("stvk", Model::StVK),
+        ("nonlinear", Model::StVK),
+    ] {
+        let l = load(&format!("{EXAMPLE}\n[simulation]\nmodel = \"{name}\"\n")).unwrap();
+        assert_eq!(l.scene.simulation.model, model, "{name}");
+        // Written back under its one name.
+        let text = l.scene.to_toml();
+        assert!(
+            text.contains(&format!("model = \"{}\"", model.name())),
+            "{name}: {text}"
+        );
+        assert_eq!(Scene::parse(&text, "re.toml").unwrap(), l.scene);
+    }
+}
+
+#[test]
 fn serialise_roundtrip() {
     let l = load(EXAMPLE).unwrap();
     let text = l.scene.to_toml();
@@ -144,7 +164,11 @@ skip_rest = false
     let l = Scene::load(&path).unwrap();
     let s = &l.scene;
     assert_eq!(s.materials["a"].rayleigh_stiffness, 0.01);
-    assert_eq!(s.simulation.model, Model::Nonlinear);
+    assert_eq!(
+        s.simulation.model,
+        Model::StVK,
+        "`nonlinear` is read as `stvk`"
+    );
     assert_eq!(s.simulation.polar, PolarMethod::ShapeMatching);
     assert_eq!(s.features.rotation_sharing_angle_deg, 2.5);
     assert!(!s.features.contact);

@@ -1,0 +1,87 @@
+//! What steps keep for the next one: per-element dense stiffness, the CG warm start, the
+//! block pattern of the assembled operator, the assembly order and its block storage.
+
+use nalgebra::Matrix3;
+
+use super::{FemSystem, V3};
+use crate::element::Mat12;
+use crate::parallel::Partition;
+use crate::solver::BlockPattern;
+use crate::system::StiffnessMode;
+
+/// Caches of a [`FemSystem`]; none of them changes results, only their cost.
+#[derive(Clone, Debug, Default)]
+pub(super) struct Caches {
+    /// Per-element dense `K_e` ([`StiffnessMode::Dense`]), built on first use.
+    pub(super) dense: Option<Vec<Mat12>>,
+    /// Δv of the previous linearised step (CG warm start).
+    pub(super) warm_dv: Vec<V3>,
+    /// Block pattern of the assembled operator, built on first use.
+    pub(super) pattern: Option<BlockPattern>,
+    /// Element indices grouped by their current rotation source (assembly order), and
+    /// whether the assignment changed since it was built.
+    pub(super) by_source: Vec<u32>,
+    pub(super) by_source_stale: bool,
+    /// Block storage of the assembled operator, kept between steps to avoid reallocating.
+    pub(super) block_buf: Vec<Matrix3<f64>>,
+}
+
+impl FemSystem {
+    pub(super) fn ensure_dense(&mut self) {
+        if self.caches.dense.is_none() {
+            let d = (0..self.mesh.elements.len())
+                .map(|ei| self.k0_matrix(ei, StiffnessMode::Gradient))
+                .collect();
+            self.caches.dense = Some(d);
+        }
+    }
+
+    /// Brings the block pattern, the assembly order and (on multi-threaded steps) the
+    /// partition up to date.
+    pub(super) fn refresh_order(&mut self) {
+        if self.caches.pattern.is_none() {
+            let conn: Vec<[usize; 4]> = self.mesh.elements.iter().map(|e| e.nodes).collect();
+            self.caches.pattern = Some(BlockPattern::new(self.mesh.rest.len(), &conn));
+        }
+        if self.caches.by_source_stale {
+            self.group_by_source();
+        }
+    }
+
+    /// Counting sort of the elements by their current rotation source (O(elements +
+    /// sources)), the order in which assembly visits them; on multi-threaded steps also
+    /// the partition (its element lists follow that order).
+    pub(super) fn group_by_source(&mut self) {
+        let mut start = vec![0u32; self.rotations.sources.len() + 1];
+        for e in &self.mesh.elements {
+            start[e.source + 1] += 1;
+        }
+        for s in 0..self.rotations.sources.len() {
+            start[s + 1] += start[s];
+        }
+        self.caches.by_source.clear();
+        self.caches.by_source.resize(self.mesh.elements.len(), 0);
+        for (ei, e) in self.mesh.elements.iter().enumerate() {
+            let slot = &mut start[e.source];
+            self.caches.by_source[*slot as usize] = ei as u32;
+            *slot += 1;
+        }
+        self.caches.by_source_stale = false;
+        // A partition's element lists follow this order: rebuild it, or drop it when the
+        // step is single-threaded (the next multi-threaded step rebuilds it).
+        self.exec.partition = None;
+        if self.exec.threads > 1
+            && let Some(pat) = &self.caches.pattern
+        {
+            let elements = &self.mesh.elements;
+            let mut part = Partition::new(
+                self.exec.threads,
+                &pat.upper_row_work(),
+                &self.caches.by_source,
+                |e| elements[e].nodes,
+            );
+            part.set_spill_ends(pat);
+            self.exec.partition = Some(part);
+        }
+    }
+}

@@ -1,0 +1,166 @@
+//! The linearised backward-Euler step (one linear solve with R frozen at `x_n`), and the
+//! matrix of that step for solver comparisons.
+
+use nalgebra::Matrix3;
+
+use super::operator::ElemMats;
+use super::{FemSystem, V3};
+use crate::FemError;
+use crate::model::Model;
+use crate::solver::{CgResult, LinearOperator, pcg};
+use crate::system::{OperatorMode, StepParams, StepStats};
+
+impl FemSystem {
+    /// The matrix of the linearised step at `x`, `M + dt C + (β dt + dt²) R K Rᵀ + dt² K_c`
+    /// with the rotations extracted at `x` (model and stiffness kernel of `p`), as 3×3
+    /// blocks `(row node, column node, block)` of both triangles, without the fixed nodes'
+    /// rows and columns. For comparing linear solvers on the step's own system
+    /// (`examples/direct_vs_cg.rs`); a step does not go through it. Like a step, it stores
+    /// the rotations it extracts (the next step starts from them).
+    pub fn step_matrix(
+        &mut self,
+        x: &[V3],
+        dt: f64,
+        p: &StepParams,
+    ) -> Result<Vec<(usize, usize, Matrix3<f64>)>, FemError> {
+        self.check_sizes(x, None, x)?;
+        if p.model == Model::Corotational {
+            self.update_rotations(x, &p.polar, 0.0);
+        }
+        let (mass_coef, coef) = self.linearised_coefficients(dt);
+        let fixed = self.mesh.fixed.clone();
+        let rotated = p.model == Model::Corotational;
+        let op = self.build_operator(
+            mass_coef,
+            ElemMats::Rotated { coef, rotated },
+            dt * dt,
+            p.stiffness,
+            OperatorMode::Assembled,
+        );
+        let pat = op.sys.caches.pattern.as_ref().expect("assembled");
+        let blocks = op.assembled.as_ref().expect("assembled");
+        let mut out = Vec::new();
+        for i in 0..pat.num_rows() {
+            for (k, j) in pat.row(i) {
+                // Upper storage: mirror the blocks above the diagonal.
+                if j < i || fixed[i] || fixed[j] {
+                    continue;
+                }
+                out.push((i, j, blocks[k]));
+                if j != i {
+                    out.push((j, i, blocks[k].transpose()));
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    /// Coefficients of the linearised step's matrix: per node `m_i + dt α m_i` (lumped mass
+    /// and mass damping) and per element `β_e dt + dt²` (stiffness damping and stiffness).
+    pub(super) fn linearised_coefficients(&self, dt: f64) -> (Vec<f64>, Vec<f64>) {
+        let mass_coef = (0..self.mesh.rest.len())
+            .map(|i| self.mesh.mass[i] + dt * self.mesh.mass_damping[i])
+            .collect();
+        let coef = self
+            .mesh
+            .elements
+            .iter()
+            .map(|e| dt * self.mesh.materials[e.material].beta + dt * dt)
+            .collect();
+        (mass_coef, coef)
+    }
+
+    /// The linearised backward-Euler step (see [`FemSystem::step`]) with its fallbacks: to
+    /// the Newton step when a rotation turned by more than
+    /// [`StepParams::fallback_angle_deg`], and the energy guard.
+    pub(super) fn step_linearised(
+        &mut self,
+        x: &mut [V3],
+        v: &mut [V3],
+        f_ext: &[V3],
+        dt: f64,
+        p: &StepParams,
+    ) -> Result<StepStats, FemError> {
+        let n = self.mesh.rest.len();
+        let mut stats = StepStats {
+            newton_iterations: 1,
+            newton_residual: f64::NAN,
+            ..Default::default()
+        };
+        if p.model == Model::Corotational {
+            let (e, r, it, inv) = self.update_rotations(x, &p.polar, p.rest_threshold);
+            stats.rotations_extracted = e;
+            stats.rotations_reused = r;
+            stats.polar_iterations = it;
+            stats.inverted = inv;
+            stats.max_rotation_change_sq = self.rotations.last_pass.max_change_sq;
+            if p.fallback_angle_deg > 0.0
+                && stats.max_rotation_change_sq
+                    > crate::polar::rotation_threshold_sq(p.fallback_angle_deg.to_radians())
+            {
+                return self.fallback_step(x, v, f_ext, dt, p, &stats);
+            }
+        }
+        if self.exec.threads > 1 {
+            // The parallel force loop needs the partition.
+            self.refresh_order();
+        }
+        let mut fint = vec![V3::zeros(); n];
+        let elastic_n = self.elastic(x, p.model, p.stiffness, None, Some(&mut fint));
+        let guard = self.energy_guard_start(x, v, elastic_n, p);
+        let (mass_coef, coef) = self.linearised_coefficients(dt);
+        let warm = std::mem::take(&mut self.caches.warm_dv);
+        let (mass, mass_damping) = (self.mesh.mass.clone(), self.mesh.mass_damping.clone());
+        let fixed = self.mesh.fixed.clone();
+        let op = self.build_operator(
+            mass_coef.clone(),
+            ElemMats::Rotated {
+                coef,
+                rotated: p.model == Model::Corotational,
+            },
+            dt * dt,
+            p.stiffness,
+            p.operator,
+        );
+        let mut av = vec![V3::zeros(); n];
+        op.apply(v, &mut av);
+        let mut rhs = vec![V3::zeros(); n];
+        for i in 0..n {
+            if fixed[i] {
+                continue;
+            }
+            rhs[i] = (fint[i] + f_ext[i] + p.gravity * mass[i] - v[i] * mass_damping[i]) * dt
+                - (av[i] - v[i] * mass_coef[i]);
+        }
+        let mut dv = if p.solver.warm_start && warm.len() == n {
+            warm
+        } else {
+            vec![V3::zeros(); n]
+        };
+        let res: CgResult = pcg(&op, &fixed, &rhs, &mut dv, &p.solver);
+        self.caches.block_buf = op.into_blocks();
+        stats.cg_iterations = res.iterations;
+        stats.cg_residual = res.relative_residual;
+        for i in 0..n {
+            if !fixed[i] {
+                v[i] += dv[i];
+            }
+            x[i] += v[i] * dt;
+        }
+        if !x.iter().all(|p| p.iter().all(|c| c.is_finite())) {
+            return Err(FemError::NonFinite);
+        }
+        self.caches.warm_dv = dv;
+        if let Some(start) = guard
+            && self.energy_guard_rejects(&start, x, v, f_ext, p, &stats)
+        {
+            start.restore(x, v);
+            // The rejected step's Δv is no guess for the next one.
+            self.caches.warm_dv = vec![V3::zeros(); n];
+            let mut s = self.fallback_step(x, v, f_ext, dt, p, &stats)?;
+            s.energy_guard = true;
+            return Ok(s);
+        }
+        Ok(stats)
+    }
+}

@@ -1,0 +1,366 @@
+//! The system matrix as CG sees it: element-by-element products (matrix-free) or the
+//! assembled 3×3-block CSR, and the assembly order that keeps rotation sharing cheap.
+
+use nalgebra::Matrix3;
+
+use super::{FemSystem, V3, gather};
+use crate::element::{Mat12, apply_dense};
+use crate::parallel::{multiply_upper_parts, split_ranges};
+use crate::solver::LinearOperator;
+use crate::system::{OperatorMode, StiffnessMode};
+
+/// Element matrices entering a linear operator.
+pub(super) enum ElemMats {
+    /// `coef_e · R_e K_e R_eᵀ` (R = I if `rotated` is false).
+    Rotated { coef: Vec<f64>, rotated: bool },
+    /// Explicit per-element 12×12 matrices.
+    Dense(Vec<Mat12>),
+}
+
+impl FemSystem {
+    pub(super) fn build_operator<'a>(
+        &'a mut self,
+        mass_coef: Vec<f64>,
+        elem: ElemMats,
+        ext_coef: f64,
+        mode: StiffnessMode,
+        operator: OperatorMode,
+    ) -> SysOp<'a> {
+        if operator == OperatorMode::Assembled || self.exec.threads > 1 {
+            self.refresh_order();
+        }
+        let buf = std::mem::take(&mut self.caches.block_buf);
+        let this: &'a FemSystem = self;
+        let mut op = SysOp {
+            sys: this,
+            mass_coef,
+            elem,
+            ext_coef,
+            mode,
+            assembled: None,
+        };
+        if operator == OperatorMode::Assembled {
+            op.assemble(buf);
+        }
+        op
+    }
+}
+
+/// The operator `A p = diag(mass_coef) p + Σ_e (element matrix) p_e + ext_coef K_c p`.
+pub(super) struct SysOp<'a> {
+    pub(super) sys: &'a FemSystem,
+    mass_coef: Vec<f64>,
+    elem: ElemMats,
+    ext_coef: f64,
+    mode: StiffnessMode,
+    pub(super) assembled: Option<Vec<Matrix3<f64>>>,
+}
+
+/// Smallest mesh (nodes) whose sparse products are split over threads: on 2 cores the
+/// coarse cantilever beam (425 nodes, about 4 µs per product) stepped 25 % slower with
+/// a split product at dt = 10 ms (50 CG iterations), the 12,288-tet one (2,673 nodes)
+/// 1.5× faster (`examples/step_cost.rs`).
+const PARALLEL_PRODUCT_MIN_NODES: usize = 1000;
+
+/// The 16 3×3 blocks (index `4a + b`) of `R K Rᵀ` for a symmetric 12×12 `K` (`r = None`:
+/// `K` itself). Only the 10 blocks with `a ≤ b` are rotated; the others are their
+/// transposes.
+pub(super) fn rotated_blocks(k: &Mat12, r: Option<&Matrix3<f64>>) -> [Matrix3<f64>; 16] {
+    let mut out = [Matrix3::zeros(); 16];
+    for a in 0..4 {
+        for b in a..4 {
+            let kab: Matrix3<f64> = k.fixed_view::<3, 3>(3 * a, 3 * b).into_owned();
+            let blk = match r {
+                Some(r) => r * kab * r.transpose(),
+                None => kab,
+            };
+            out[4 * a + b] = blk;
+            if a != b {
+                out[4 * b + a] = blk.transpose();
+            }
+        }
+    }
+    out
+}
+
+/// The 16 blocks of `R K Rᵀ` of an isotropic linear tet straight from its shape-function
+/// gradients `g` (1/m) and volume `v` (m³): `K_ab = v [λ g_a g_bᵀ + μ g_b g_aᵀ + μ (g_a·g_b)
+/// I]`, so with `r_a = R g_a` a rotated block is `v [λ r_a r_bᵀ + μ r_b r_aᵀ + μ (g_a·g_b)
+/// I]` — about a third of the flops of rotating each block of `K`.
+pub(super) fn rotated_iso_blocks(
+    g: &[V3; 4],
+    v: f64,
+    lambda: f64,
+    mu: f64,
+    r: Option<&Matrix3<f64>>,
+    out: &mut [Matrix3<f64>; 16],
+) {
+    let rg = match r {
+        Some(r) => [r * g[0], r * g[1], r * g[2], r * g[3]],
+        None => *g,
+    };
+    for a in 0..4 {
+        for b in a..4 {
+            let mut blk =
+                rg[a] * rg[b].transpose() * (v * lambda) + rg[b] * rg[a].transpose() * (v * mu);
+            let d = v * mu * g[a].dot(&g[b]);
+            blk[(0, 0)] += d;
+            blk[(1, 1)] += d;
+            blk[(2, 2)] += d;
+            out[4 * a + b] = blk;
+            if a != b {
+                out[4 * b + a] = blk.transpose();
+            }
+        }
+    }
+}
+
+/// `blocks[slots[i]] += c · local[i]` for the blocks of one element whose bit is set in
+/// `mask` (all 16, or those on and above the diagonal for symmetric storage).
+#[inline]
+pub(super) fn scatter_blocks(
+    blocks: &mut [Matrix3<f64>],
+    slots: &[usize; 16],
+    mask: u16,
+    local: &[Matrix3<f64>; 16],
+    c: f64,
+) {
+    for (i, (s, l)) in slots.iter().zip(local).enumerate() {
+        if mask & (1 << i) != 0 {
+            blocks[*s] += l * c;
+        }
+    }
+}
+
+impl SysOp<'_> {
+    /// Hands back the assembled block storage (for reuse by the next step).
+    pub(super) fn into_blocks(self) -> Vec<Matrix3<f64>> {
+        self.assembled.unwrap_or_default()
+    }
+
+    /// Adds `coef_e · R_e K_e R_eᵀ` (upper blocks) of `elements` (grouped by rotation
+    /// source) into `blocks`, which holds the pattern's blocks from index `offset` on.
+    /// With template stiffness `R C Rᵀ` is formed once per (source, template-material
+    /// combination) and shared by every element of the group, scaled by its size `h`: with
+    /// rotation sharing most elements then cost a scaled scatter only (the point of
+    /// combining sharing with templates).
+    pub(super) fn add_rotated(
+        &self,
+        elements: &[u32],
+        blocks: &mut [Matrix3<f64>],
+        offset: usize,
+        coef: &[f64],
+        rotated: bool,
+    ) {
+        let sys = self.sys;
+        let pat = sys.caches.pattern.as_ref().expect("pattern built");
+        let templated = matches!(
+            self.mode,
+            StiffnessMode::Template | StiffnessMode::TemplateSparse
+        );
+        // Per group: the combos seen and `R C Rᵀ` of each (C = template stiffness at unit
+        // size: the element's own blocks over its size h). Few per group.
+        const CACHE: usize = 8;
+        let mut cache_combo = [usize::MAX; CACHE];
+        let mut cache = [[Matrix3::zeros(); 16]; CACHE];
+        let mut cached = 0;
+        let mut group = usize::MAX;
+        let mut local = [Matrix3::zeros(); 16];
+        let mut slots = [0usize; 16];
+        for &ei in elements {
+            let ei = ei as usize;
+            let e = &sys.mesh.elements[ei];
+            for (s, abs) in slots.iter_mut().zip(pat.element_slots(ei)) {
+                *s = abs - offset;
+            }
+            // `R K Rᵀ` is symmetric: store the upper triangle only.
+            let upper = pat.element_upper(ei);
+            let r = rotated.then(|| &sys.rotations.sources[e.source].rotation);
+            let m = &sys.mesh.materials[e.material];
+            match (templated, e.template, self.mode) {
+                (true, Some((_, h)), _) => {
+                    // Unrotated: one group for all elements.
+                    let key = if rotated { e.source } else { 0 };
+                    if key != group {
+                        cached = 0;
+                        group = key;
+                    }
+                    let hit = cache_combo[..cached].iter().position(|c| *c == e.combo);
+                    let i = match hit {
+                        Some(i) => i,
+                        None => {
+                            // A full cache (rare) recycles its last entry.
+                            let i = cached.min(CACHE - 1);
+                            cached = (cached + 1).min(CACHE);
+                            cache_combo[i] = e.combo;
+                            let v = e.volume / h;
+                            rotated_iso_blocks(&e.grads, v, m.lambda, m.mu, r, &mut cache[i]);
+                            i
+                        }
+                    };
+                    scatter_blocks(blocks, &slots, upper, &cache[i], coef[ei] * h);
+                }
+                (_, _, StiffnessMode::Dense) => {
+                    let k0 = sys.k0_matrix(ei, self.mode);
+                    let k = rotated_blocks(&k0, r);
+                    scatter_blocks(blocks, &slots, upper, &k, coef[ei]);
+                }
+                _ => {
+                    rotated_iso_blocks(&e.grads, e.volume, m.lambda, m.mu, r, &mut local);
+                    scatter_blocks(blocks, &slots, upper, &local, coef[ei]);
+                }
+            }
+        }
+    }
+
+    /// Assembles `A` into `blocks` (reused storage): element blocks (on the parts of a
+    /// multi-threaded step in parallel, then the interface), mass and external stiffness.
+    pub(super) fn assemble(&mut self, mut blocks: Vec<Matrix3<f64>>) {
+        let sys = self.sys;
+        let pat = sys.caches.pattern.as_ref().expect("pattern built");
+        blocks.clear();
+        blocks.resize(pat.num_blocks(), Matrix3::zeros());
+        match &self.elem {
+            ElemMats::Dense(m) => {
+                // Newton tangents (possibly unsymmetric): every block as given.
+                for (ei, k) in m.iter().enumerate() {
+                    let slots = pat.element_slots(ei);
+                    for a in 0..4 {
+                        for b in 0..4 {
+                            blocks[slots[4 * a + b]] += k.fixed_view::<3, 3>(3 * a, 3 * b);
+                        }
+                    }
+                }
+            }
+            ElemMats::Rotated { coef, rotated } => match sys.active_partition() {
+                Some(part) => {
+                    use rayon::prelude::*;
+                    // A part's elements only touch its nodes' rows: a contiguous block range.
+                    let bounds: Vec<usize> = part
+                        .node_start
+                        .iter()
+                        .map(|&s| pat.row_block_range(s, s).0)
+                        .collect();
+                    split_ranges(&mut blocks, &bounds)
+                        .into_par_iter()
+                        .zip(part.elements.par_iter())
+                        .zip(bounds.par_iter())
+                        .for_each(|((b, els), &offset)| {
+                            self.add_rotated(els, b, offset, coef, *rotated)
+                        });
+                    self.add_rotated(&part.interface, &mut blocks, 0, coef, *rotated);
+                }
+                _ => self.add_rotated(&sys.caches.by_source, &mut blocks, 0, coef, *rotated),
+            },
+        }
+        for (i, d) in pat.diagonal_slots().iter().enumerate() {
+            blocks[*d] += Matrix3::identity() * self.mass_coef[i];
+        }
+        for (k, blk) in &self.sys.k_ext {
+            blocks[pat.diagonal_slots()[*k]] += blk * self.ext_coef;
+        }
+        self.assembled = Some(blocks);
+    }
+}
+
+impl LinearOperator for SysOp<'_> {
+    fn apply(&self, p: &[V3], out: &mut [V3]) {
+        if let Some(blocks) = &self.assembled {
+            let pat = self.sys.caches.pattern.as_ref().expect("pattern");
+            match (&self.elem, self.sys.active_partition()) {
+                // Below PARALLEL_PRODUCT_MIN_NODES a product is a few µs of work, less than
+                // forking and joining costs: one thread does it.
+                (ElemMats::Rotated { .. }, Some(part))
+                    if out.len() >= PARALLEL_PRODUCT_MIN_NODES =>
+                {
+                    multiply_upper_parts(pat, blocks, p, out, part)
+                }
+                (ElemMats::Rotated { .. }, _) => pat.multiply_upper(blocks, p, out),
+                (ElemMats::Dense(_), _) => pat.multiply(blocks, p, out),
+            }
+            return;
+        }
+        for (i, o) in out.iter_mut().enumerate() {
+            *o = p[i] * self.mass_coef[i];
+        }
+        match &self.elem {
+            ElemMats::Dense(m) => {
+                for (ei, e) in self.sys.mesh.elements.iter().enumerate() {
+                    let y = apply_dense(&m[ei], &gather(p, &e.nodes));
+                    for a in 0..4 {
+                        out[e.nodes[a]] += y[a];
+                    }
+                }
+            }
+            ElemMats::Rotated { coef, rotated } => {
+                for (ei, e) in self.sys.mesh.elements.iter().enumerate() {
+                    let pe = gather(p, &e.nodes);
+                    if *rotated {
+                        let r = self.sys.rotations.sources[e.source].rotation;
+                        let rt = r.transpose();
+                        let u = [rt * pe[0], rt * pe[1], rt * pe[2], rt * pe[3]];
+                        let y = self.sys.apply_k0(ei, &u, self.mode);
+                        let c = coef[ei];
+                        for a in 0..4 {
+                            out[e.nodes[a]] += r * y[a] * c;
+                        }
+                    } else {
+                        let y = self.sys.apply_k0(ei, &pe, self.mode);
+                        for a in 0..4 {
+                            out[e.nodes[a]] += y[a] * coef[ei];
+                        }
+                    }
+                }
+            }
+        }
+        for (k, blk) in &self.sys.k_ext {
+            out[*k] += blk * p[*k] * self.ext_coef;
+        }
+    }
+
+    fn diagonal(&self) -> Vec<V3> {
+        if let Some(blocks) = &self.assembled {
+            let pat = self.sys.caches.pattern.as_ref().expect("pattern");
+            return pat
+                .diagonal_slots()
+                .iter()
+                .map(|&d| blocks[d].diagonal())
+                .collect();
+        }
+        let mut d: Vec<V3> = self.mass_coef.iter().map(|m| V3::repeat(*m)).collect();
+        for ei in 0..self.sys.mesh.elements.len() {
+            let e = &self.sys.mesh.elements[ei];
+            match &self.elem {
+                ElemMats::Dense(m) => {
+                    for a in 0..4 {
+                        for c in 0..3 {
+                            d[e.nodes[a]][c] += m[ei][(3 * a + c, 3 * a + c)];
+                        }
+                    }
+                }
+                ElemMats::Rotated { coef, rotated } => {
+                    // diag(R K_aa Rᵀ) from the 3×3 diagonal blocks of K (cheap: from the
+                    // gradients, K_aa = V[λ g gᵀ + μ(|g|² I + g gᵀ)]).
+                    let m = &self.sys.mesh.materials[e.material];
+                    let r = if *rotated {
+                        self.sys.rotations.sources[e.source].rotation
+                    } else {
+                        Matrix3::identity()
+                    };
+                    for a in 0..4 {
+                        let g = e.grads[a];
+                        let kaa = (g * g.transpose() * (m.lambda + m.mu)
+                            + Matrix3::identity() * (m.mu * g.norm_squared()))
+                            * e.volume;
+                        let rk = r * kaa * r.transpose();
+                        d[e.nodes[a]] += rk.diagonal() * coef[ei];
+                    }
+                }
+            }
+        }
+        for (k, blk) in &self.sys.k_ext {
+            d[*k] += blk.diagonal() * self.ext_coef;
+        }
+        d
+    }
+}
