@@ -41,8 +41,10 @@ impl Default for SyncConfig {
 pub enum SyncStrategy {
     /// Keyframes of owned regions on dead-reckoning demand, extrapolated and blended.
     Keyframe,
-    /// Every node of the organ every `every_steps` steps ([`encode_full_state`](super::encode_full_state) /
-    /// [`apply_full_state`](super::apply_full_state)); receivers take the state over directly.
+    /// Every node of the organ every `every_steps` steps
+    /// ([`encode_full_state`](super::encode_full_state) /
+    /// [`apply_full_state`](super::apply_full_state)); receivers take the state over
+    /// directly.
     FullState { every_steps: u32 },
     /// Only tool poses are shared; every site simulates everything (nothing here).
     InputOnly,

@@ -86,7 +86,8 @@ pub(super) fn keyframe_from_nodes(
     }
 }
 
-/// [`SyncStrategy::FullState`]: every node of the organ and every root's tree state.
+/// The frame of [`SyncStrategy::FullState`](super::SyncStrategy::FullState): every node
+/// of the organ and every root's tree state.
 pub fn encode_full_state(
     sim: &Simulation,
     map: &RegionMap,
@@ -96,8 +97,9 @@ pub fn encode_full_state(
     keyframe_from_nodes(sim, map, FULL_STATE_REGION, keyframe_id, &nodes)
 }
 
-/// [`SyncStrategy::FullState`] receiver: matches the whole tree state and takes over every
-/// node's position and velocity directly (no extrapolation, no blending).
+/// The receiver of [`SyncStrategy::FullState`](super::SyncStrategy::FullState): matches
+/// the whole tree state and takes over every node's position and velocity directly (no
+/// extrapolation, no blending).
 pub fn apply_full_state(
     sim: &mut Simulation,
     map: &RegionMap,
