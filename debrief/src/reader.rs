@@ -51,7 +51,10 @@ impl std::fmt::Display for Tail {
         match self {
             Tail::Complete => write!(f, "complete"),
             Tail::Truncated { offset, bytes } => {
-                write!(f, "truncated: {bytes} bytes of an incomplete record at byte {offset}")
+                write!(
+                    f,
+                    "truncated: {bytes} bytes of an incomplete record at byte {offset}"
+                )
             }
             Tail::BadCrc { offset } => write!(f, "CRC mismatch in the record at byte {offset}"),
             Tail::BadLength { offset, length } => {

@@ -422,7 +422,12 @@ pub fn html_report(
             .damage_strain_threshold
             .map_or("(not recorded)".into(), |t| t.to_string()),
     );
-    h.push_str(&svg_chart("Tip speed", "time (s)", "speed (mm/s)", &speed_lines)?);
+    h.push_str(&svg_chart(
+        "Tip speed",
+        "time (s)",
+        "speed (mm/s)",
+        &speed_lines,
+    )?);
     h.push_str(&svg_chart(
         "Tip paths, top view (reference thin)",
         "x (mm)",
@@ -436,7 +441,12 @@ pub fn html_report(
         &projection(0, 2),
     )?);
     if !force_lines.is_empty() {
-        h.push_str(&svg_chart("Forces on the tools", "time (s)", "|F| (N)", &force_lines)?);
+        h.push_str(&svg_chart(
+            "Forces on the tools",
+            "time (s)",
+            "|F| (N)",
+            &force_lines,
+        )?);
     }
     if !damage.is_empty() {
         h.push_str(&svg_chart(
@@ -453,4 +463,3 @@ pub fn html_report(
     h.push_str("</body></html>\n");
     Ok(h)
 }
-

@@ -157,12 +157,7 @@ fn kinematics(times: &[f64], p: &[P3], cutoff_hz: f64) -> Option<Kinematics> {
             jerk[i][k] = j[i + pad];
         }
     }
-    Some(Kinematics {
-        pos,
-        vel,
-        jerk,
-        dt,
-    })
+    Some(Kinematics { pos, vel, jerk, dt })
 }
 
 /// Log dimensionless jerk (Hogan & Sternad 2009; the speed-normalised form of
@@ -209,7 +204,13 @@ pub fn shaft_axis(q: [f64; 4]) -> P3 {
 pub fn depth_along_shaft(states: &[ToolState]) -> f64 {
     states
         .windows(2)
-        .map(|w| dot(sub(w[1].position, w[0].position), shaft_axis(w[0].orientation)).abs())
+        .map(|w| {
+            dot(
+                sub(w[1].position, w[0].position),
+                shaft_axis(w[0].orientation),
+            )
+            .abs()
+        })
         .sum()
 }
 
@@ -383,7 +384,12 @@ pub fn find_acts(track: &Track, cuts: &[(f64, f64)], s: &ScoreSettings) -> Vec<A
                 .any(|&(gs, _)| t[gs] >= t[e] && t[gs] - t[e] < s.approach_s)
         })
         .collect();
-    acts.extend(grasps.into_iter().enumerate().map(|(i, r)| mk(ActKind::Grasp, i, r)));
+    acts.extend(
+        grasps
+            .into_iter()
+            .enumerate()
+            .map(|(i, r)| mk(ActKind::Grasp, i, r)),
+    );
     acts.extend(
         dissections
             .into_iter()
@@ -508,7 +514,13 @@ pub fn measure(track: &Track, act: &Act, damage: &[(f64, f64)], s: &ScoreSetting
 }
 
 /// DTW between the tips of two acts, each resampled to `dtw_points` (m).
-pub fn dtw_between(a: &Track, act_a: &Act, b: &Track, act_b: &Act, s: &ScoreSettings) -> Option<f64> {
+pub fn dtw_between(
+    a: &Track,
+    act_a: &Act,
+    b: &Track,
+    act_b: &Act,
+    s: &ScoreSettings,
+) -> Option<f64> {
     let cut = |t: &Track, act: &Act| {
         let r = act.first..=act.last.min(t.len().saturating_sub(1));
         let p: Vec<P3> = t.states[r.clone()].iter().map(|x| x.position).collect();
@@ -518,7 +530,6 @@ pub fn dtw_between(a: &Track, act_a: &Act, b: &Track, act_b: &Act, s: &ScoreSett
     let band = (s.dtw_band_fraction * s.dtw_points as f64).ceil() as usize;
     dtw_mean_distance(&pa, &pb, band.max(1))
 }
-
 
 /// Filtered tip speed of each sample (m/s).
 pub fn speeds(times: &[f64], p: &[P3], cutoff_hz: f64) -> Vec<f64> {
