@@ -32,6 +32,10 @@ pub enum Command {
     Bench(crate::bench::BenchArgs),
     /// User-space network impairment relay (UDP) between sites and a coordinator.
     Netem(netem::NetemArgs),
+    /// Skill scores of one site's acts from a session recording.
+    Score(crate::score::ScoreArgs),
+    /// Play a session recording back (headless: --export-vtu DIR).
+    Replay(crate::replay::ReplayArgs),
 }
 
 /// Deformation models on the command line.
@@ -139,6 +143,8 @@ pub fn dispatch(cli: Cli) -> Result<()> {
         Command::Run(a) => crate::run::run(a),
         Command::Solve(a) => crate::solve::solve(a),
         Command::Bench(a) => crate::bench::run(a),
+        Command::Score(a) => crate::score::score(a),
+        Command::Replay(a) => crate::replay::replay(a),
         Command::Netem(a) => tokio::runtime::Builder::new_multi_thread()
             .enable_all()
             .build()
