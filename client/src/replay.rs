@@ -40,7 +40,7 @@ pub fn replay(args: ReplayArgs) -> Result<()> {
             "replay in the window is not available yet; use --export-vtu DIR for the ParaView series"
         );
     };
-    if !(args.frame_interval > 0.0) {
+    if args.frame_interval.is_nan() || args.frame_interval <= 0.0 {
         bail!(
             "--frame-interval must be > 0 s, got {}",
             args.frame_interval

@@ -44,7 +44,7 @@ pub fn score(args: ScoreArgs) -> Result<()> {
     let session = Session::open(&args.recording)
         .with_context(|| format!("opening {}", args.recording.display()))?;
     let rec = pick(&session, &args.site, "scored")?;
-    if !(args.idle_speed >= 0.0) {
+    if args.idle_speed.is_nan() || args.idle_speed < 0.0 {
         bail!(
             "--idle-speed must be a speed in mm/s ≥ 0, got {}",
             args.idle_speed

@@ -60,7 +60,7 @@ impl Default for ScoreSettings {
 
 /// Path length: sum of the segment lengths (m).
 pub fn path_length(p: &[P3]) -> f64 {
-    p.windows(2).map(|w| norm(sub(w[1], w[0]))).sum()
+    p.windows(2).map(|w| norm(sub(w[1], w[0]))).sum::<f64>() + 0.0 // not −0.0 when empty
 }
 
 /// Economy of motion: path length over the straight distance between the ends
@@ -83,7 +83,7 @@ fn filtfilt_padded(x: &[f64], fs: f64, fc: f64, pad: usize) -> Vec<f64> {
     for i in 1..=pad {
         y.push(2.0 * x[n - 1] - x[(n - 1).saturating_sub(i)]);
     }
-    if !(fc > 0.0 && fc < 0.45 * fs) {
+    if fc.is_nan() || fc <= 0.0 || fc >= 0.45 * fs {
         return y;
     }
     let k = (std::f64::consts::PI * fc / fs).tan();
@@ -137,7 +137,7 @@ fn kinematics(times: &[f64], p: &[P3], cutoff_hz: f64) -> Option<Kinematics> {
         return None;
     }
     let dt = (times[n - 1] - times[0]) / (n - 1) as f64;
-    if !(dt > 0.0) {
+    if dt.is_nan() || dt <= 0.0 {
         return None;
     }
     let fs = 1.0 / dt;
@@ -186,7 +186,8 @@ pub fn idle_time(times: &[f64], p: &[P3], threshold: f64, cutoff_hz: f64) -> f64
     (0..p.len() - 1)
         .filter(|&i| norm(k.vel[i]) < threshold && norm(k.vel[i + 1]) < threshold)
         .map(|i| times[i + 1] - times[i])
-        .sum()
+        .sum::<f64>()
+        + 0.0 // an empty float sum is −0.0
 }
 
 /// Rotates the tool frame's +z (the shaft) by `q = [w, x, y, z]`.

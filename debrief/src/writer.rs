@@ -89,7 +89,11 @@ impl Default for RecorderSettings {
 impl RecorderSettings {
     /// Steps per step record at simulation rate `sim_rate_hz`.
     pub fn sample_every(&self, sim_rate_hz: f64) -> u32 {
-        if !(sim_rate_hz > 0.0) || !(self.max_sample_rate_hz > 0.0) {
+        if sim_rate_hz.is_nan()
+            || sim_rate_hz <= 0.0
+            || self.max_sample_rate_hz.is_nan()
+            || self.max_sample_rate_hz <= 0.0
+        {
             return 1;
         }
         ((sim_rate_hz / self.max_sample_rate_hz) - 1e-9)
@@ -174,7 +178,7 @@ impl<W: Write> Recorder<W> {
 
     /// Whether step `step` is one that gets recorded (the others' samples are ignored).
     pub fn wants_step(&self, step: u64) -> bool {
-        step % u64::from(self.sample_every) == 0
+        step.is_multiple_of(u64::from(self.sample_every))
     }
 
     /// Bytes written so far (header and records, including what is still buffered).
