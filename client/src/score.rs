@@ -67,7 +67,7 @@ pub fn score(args: ScoreArgs) -> Result<()> {
                     .with_context(|| format!("opening the reference {}", path.display()))?;
                 let site = site.unwrap_or_else(|| ref_session.recordings[0].header.site.clone());
                 Some((pick(&ref_session, &site, "reference")?, site))
-            } else if site.is_none() {
+            } else if site.is_none() && !r.contains(['/', '\\']) && !r.ends_with(".cosrec") {
                 Some((pick(&session, r, "reference")?, r.clone()))
             } else {
                 bail!("reference recording {} does not exist", path.display());
