@@ -30,6 +30,10 @@ pub enum Command {
     Bench(bench::BenchArgs),
     /// User-space network impairment relay (UDP) between sites and a coordinator.
     Netem(netem::NetemArgs),
+    /// Skill scores of one site's acts from a session recording.
+    Score(cosurg::score::ScoreArgs),
+    /// Play a session recording back (headless: --export-vtu DIR).
+    Replay(cosurg::replay::ReplayArgs),
 }
 
 pub fn dispatch(cli: Cli) -> Result<()> {
@@ -39,6 +43,8 @@ pub fn dispatch(cli: Cli) -> Result<()> {
         Command::Run(a) => cosurg::run::run(a),
         Command::Solve(a) => cosurg::solve::solve(a),
         Command::Bench(a) => bench::run(a),
+        Command::Score(a) => cosurg::score::score(a),
+        Command::Replay(a) => cosurg::replay::replay(a),
         Command::Netem(a) => tokio::runtime::Builder::new_multi_thread()
             .enable_all()
             .build()
