@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 
 use cosurg::divergence::fill_divergence;
 use cosurg::site::SiteReport;
+use test_support::link as wire;
 
 const TOKEN: &str = "e2e-secret";
 
@@ -45,26 +46,25 @@ impl Drop for Server {
 fn start_server() -> Server {
     let state = tempfile::tempdir().unwrap();
     let scene = sim_core::sim_scene::builtin::cholecystectomy();
-    let mut child = Command::new(test_support::exe::sibling_exe(
-        env!("CARGO_BIN_EXE_cosurg"),
-        "cosurg-server",
-    ))
-    .args([
-        "--listen",
-        "127.0.0.1:0",
-        "--session",
-        SESSION,
-        "--token",
-        TOKEN,
-    ])
-    .args(["--scene-hash", &scene.hash, "--seconds", "300"])
-    .arg("--state-dir")
-    .arg(state.path())
-    .env("COSURG_LOG", "warn")
-    .stdout(Stdio::piped())
-    .stderr(Stdio::null())
-    .spawn()
-    .expect("start cosurg-server");
+    // `cosurg-server` belongs to another package: no CARGO_BIN_EXE_ for it here.
+    let server_exe = test_support::exe::sibling_exe(env!("CARGO_BIN_EXE_cosurg"), "cosurg-server");
+    let mut child = Command::new(server_exe)
+        .args([
+            "--listen",
+            "127.0.0.1:0",
+            "--session",
+            SESSION,
+            "--token",
+            TOKEN,
+        ])
+        .args(["--scene-hash", &scene.hash, "--seconds", "300"])
+        .arg("--state-dir")
+        .arg(state.path())
+        .env("COSURG_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("start cosurg-server");
     let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
     let (mut addr, mut fingerprint) = (None, None);
     let deadline = Instant::now() + Duration::from_secs(30);
@@ -421,18 +421,12 @@ fn garbage_from_one_site_does_not_disturb_the_others() {
     rt.block_on(async {
         let scene = sim_core::sim_scene::builtin::cholecystectomy();
         let cfg = server::tls::client_config_pinned(&server.fingerprint).unwrap();
-        let endpoint = test_support::link::client_endpoint(cfg).unwrap();
-        let join = test_support::link::join_message(
-            "rogue",
-            proto::Role::Trainee,
-            SESSION,
-            TOKEN,
-            &scene.hash,
-        );
+        let endpoint = wire::client_endpoint(cfg).unwrap();
+        let join = wire::join_message("rogue", proto::Role::Trainee, SESSION, TOKEN, &scene.hash);
         let addr = server.addr.parse().unwrap();
         let mut site = tokio::time::timeout(
             Duration::from_secs(10),
-            test_support::link::connect_and_join(&endpoint, addr, "localhost", &join),
+            wire::connect_and_join(&endpoint, addr, "localhost", &join),
         )
         .await
         .unwrap()

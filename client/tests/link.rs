@@ -11,6 +11,7 @@ use proto::{
 };
 use server::tls::Identity;
 use server::{Coordinator, CoordinatorConfig, CoordinatorHandle};
+use test_support::link as wire;
 use tokio::time::{Instant, sleep};
 
 const SCENE: &str = "5ca1ab1e";
@@ -659,10 +660,7 @@ async fn malformed_input_is_counted_not_fatal() {
         let conn = ep.accept().await.unwrap().await.unwrap();
         let (mut send, mut recv) = conn.accept_bi().await.unwrap();
         let mut dec = proto::FrameDecoder::default();
-        match test_support::link::read_frame(&mut recv, &mut dec)
-            .await
-            .unwrap()
-        {
+        match wire::read_frame(&mut recv, &mut dec).await.unwrap() {
             Some(Message::Join(j)) => assert_eq!(j.site_name, "victim"),
             other => panic!("expected Join, got {other:?}"),
         }
@@ -678,7 +676,7 @@ async fn malformed_input_is_counted_not_fatal() {
             sites: vec![],
             coordinator_time_us: 0,
         };
-        test_support::link::write_frame(&mut send, &Message::Welcome(welcome))
+        wire::write_frame(&mut send, &Message::Welcome(welcome))
             .await
             .unwrap();
         assert_eq!(welcome_site(&link).await, 4);
@@ -702,11 +700,11 @@ async fn malformed_input_is_counted_not_fatal() {
             s.finish().unwrap();
         }
         // Valid traffic still gets through on every channel afterwards.
-        test_support::link::send_datagram(&conn, &pose(0.5)).unwrap();
-        test_support::link::send_uni(&conn, &Message::Keyframe(keyframe(2, 1, 10)), 0)
+        wire::send_datagram(&conn, &pose(0.5)).unwrap();
+        wire::send_uni(&conn, &Message::Keyframe(keyframe(2, 1, 10)), 0)
             .await
             .unwrap();
-        test_support::link::write_frame(
+        wire::write_frame(
             &mut send,
             &Message::Leave(proto::Leave {
                 site: 9,
