@@ -137,3 +137,29 @@ pub fn dispatch(cli: Cli) -> Result<()> {
             .block_on(netem::run_cli(a)),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn solve_model(arg: &str) -> Result<Model, clap::Error> {
+        let cli = Cli::try_parse_from(["cosurg", "solve", "builtin:cantilever", "--model", arg])?;
+        match cli.command {
+            Command::Solve(a) => Ok(a.model),
+            other => panic!("parsed as {other:?}"),
+        }
+    }
+
+    #[test]
+    fn model_names_are_the_scene_files_and_nonlinear_is_an_alias() {
+        for m in Model::ALL {
+            assert_eq!(solve_model(m.name()).unwrap(), m);
+        }
+        assert_eq!(solve_model("nonlinear").unwrap(), Model::StVK);
+        let err = solve_model("fancy").unwrap_err().to_string();
+        assert!(
+            err.contains("[possible values: linear, corotational, stvk]"),
+            "{err}"
+        );
+    }
+}
