@@ -52,3 +52,29 @@ pub fn dispatch(cli: Cli) -> Result<()> {
             .block_on(netem::run_cli(a)),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn solve_model(arg: &str) -> Result<&'static str, clap::Error> {
+        let cli = Cli::try_parse_from(["cosurg", "solve", "builtin:cantilever", "--model", arg])?;
+        match cli.command {
+            Command::Solve(a) => Ok(a.model.name()),
+            other => panic!("parsed as {other:?}"),
+        }
+    }
+
+    #[test]
+    fn model_names_are_the_scene_files_and_nonlinear_is_an_alias() {
+        for name in ["linear", "corotational", "stvk"] {
+            assert_eq!(solve_model(name).unwrap(), name);
+        }
+        assert_eq!(solve_model("nonlinear").unwrap(), "stvk");
+        let err = solve_model("fancy").unwrap_err().to_string();
+        assert!(
+            err.contains("[possible values: linear, corotational, stvk]"),
+            "{err}"
+        );
+    }
+}

@@ -98,3 +98,30 @@ impl SimOptions {
         )
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use sim_fem::Model;
+
+    #[test]
+    fn scene_settings_land_in_the_embedded_step_parameters() {
+        let mut scene = sim_scene::builtin::cantilever().scene;
+        scene.simulation.model = Model::StVK;
+        scene.simulation.cg_iterations = 17;
+        scene.features.template_stiffness = false;
+        scene.features.skip_rest = true;
+        let o = SimOptions::from_scene(&scene);
+        assert_eq!(o.dt, scene.simulation.dt);
+        assert_eq!(o.step.model, Model::StVK);
+        assert_eq!(o.step.solver.max_iters, 17);
+        assert_eq!(o.step.stiffness, StiffnessMode::Dense);
+        assert!(!o.template_stiffness());
+        assert_eq!(o.step.rest_threshold, 1e-6);
+        assert_eq!(o.step.gravity, scene.gravity);
+        assert_eq!((o.step.newton.max_iters, o.step.newton.tol), (8, 1e-6));
+        assert!(o.step.energy_guard && o.step.fallback_angle_deg == 30.0);
+        scene.features.template_stiffness = true;
+        assert!(SimOptions::from_scene(&scene).template_stiffness());
+    }
+}

@@ -9,7 +9,8 @@ use crate::parallel::Partition;
 use crate::solver::BlockPattern;
 use crate::system::StiffnessMode;
 
-/// Caches of a [`FemSystem`]; none of them changes results, only their cost.
+/// What a [`FemSystem`] keeps between steps. Only the warm start (when
+/// [`crate::SolverParams::warm_start`] is on) changes results; the rest changes their cost.
 #[derive(Clone, Debug, Default)]
 pub(super) struct Caches {
     /// Per-element dense `K_e` ([`StiffnessMode::Dense`]), built on first use.
@@ -27,6 +28,7 @@ pub(super) struct Caches {
 }
 
 impl FemSystem {
+    /// Builds the per-element dense stiffness matrices of [`StiffnessMode::Dense`] once.
     pub(super) fn ensure_dense(&mut self) {
         if self.caches.dense.is_none() {
             let d = (0..self.mesh.elements.len())

@@ -59,7 +59,7 @@ pub struct ElementDesc {
     pub shape: Option<ShapeRef>,
     /// Index of the rotation source whose R this element uses initially (None: its own).
     /// Every element also gets a source of its own, so
-    /// [`FemSystem::set_rotation_assignment`] can switch between the two at any step.
+    /// [`FemSystem::set_rotation_assignment`](crate::FemSystem::set_rotation_assignment) can switch between the two at any step.
     pub rotation_source: Option<usize>,
 }
 
@@ -73,7 +73,7 @@ pub struct RotationSourceDesc {
     pub rest_inverse_edges: Option<Matrix3<f64>>,
 }
 
-/// Everything needed to build a [`FemSystem`].
+/// Everything needed to build a [`FemSystem`](crate::FemSystem).
 #[derive(Clone, Debug, Default)]
 pub struct FemDesc {
     /// Rest positions (m).
@@ -88,7 +88,7 @@ pub struct FemDesc {
     pub rotation_sources: Vec<RotationSourceDesc>,
 }
 
-/// Template zero statistics (see [`Template`]).
+/// Template zero statistics (see [`Template`](crate::Template)).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TemplateInfo {
     /// Shape key.

@@ -1,5 +1,6 @@
-//! The system matrix as CG sees it: element-by-element products (matrix-free) or the
-//! assembled 3×3-block CSR, and the assembly order that keeps rotation sharing cheap.
+//! The system matrix as CG sees it, `A = diag(mass_coef) + Σ_e (element matrix) +
+//! ext_coef K_c`: element-by-element products (matrix-free) or the assembled 3×3-block CSR
+//! (built in the assembly order of `caches.rs`, which keeps rotation sharing cheap).
 
 use nalgebra::Matrix3;
 
@@ -18,6 +19,9 @@ pub(super) enum ElemMats {
 }
 
 impl FemSystem {
+    /// The operator of one linear solve; assembled now when `operator` says so (reusing the
+    /// block storage of the previous solve, to be handed back with
+    /// [`SysOp::into_blocks`]).
     pub(super) fn build_operator<'a>(
         &'a mut self,
         mass_coef: Vec<f64>,

@@ -130,8 +130,8 @@ impl FemSystem {
 
     /// Rotation of shared source `s` at positions `x`, extracted now unless it already was
     /// at these positions (since the last step) or its nodes are at rest (`rest_threshold`,
-    /// m, as in [`StepParams::rest_threshold`]). The extraction counts towards the next
-    /// step's [`StepStats::rotations_extracted`], and the step does not extract it again.
+    /// m, as in [`StepParams::rest_threshold`](crate::StepParams::rest_threshold)). The extraction counts towards the next
+    /// step's [`StepStats::rotations_extracted`](crate::StepStats::rotations_extracted), and the step does not extract it again.
     /// For the caller's sharing test; `s < num_shared_sources()`.
     pub fn shared_source_rotation(
         &mut self,

@@ -39,7 +39,8 @@ pub struct StepStats {
 }
 
 impl FemSystem {
-    /// Dynamic step (see [`StepParams::newton`] for which integrator).
+    /// Dynamic step: linearised backward Euler for the linear and co-rotational models,
+    /// backward Euler with Newton iterations ([`StepParams::newton`]) for StVK.
     ///
     /// **Linearised backward Euler** (Linear, Corotational; one linear solve):
     /// with `K` the stiffness at `x_n` (co-rotated with R frozen), `C = Σ α_e M_e`,

@@ -261,7 +261,7 @@ fn syntax_and_unknown_keys() {
     );
     let e = err(&format!("{EXAMPLE}\n[simulation]\nmodel = \"fancy\"\n"));
     assert!(
-        e.starts_with("s.toml: `simulation.model`: unknown variant `fancy`, expected one of `corotational`, `linear`, `nonlinear`"),
+        e.starts_with("s.toml: `simulation.model`: unknown variant `fancy`, expected one of `linear`, `corotational`, `nonlinear`, `stvk`"),
         "{e}"
     );
     let e = err("version = 2\n");
