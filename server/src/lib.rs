@@ -3,15 +3,22 @@
 //!
 //! * [`session`] — the session logic, sans IO (joins, roles, relay decisions, ownership);
 //! * [`coordinator`] — the async shell: [`Coordinator::bind`] → ([`CoordinatorHandle`], address);
+//! * [`state`] — the state directory: invitation key, revocations ([`state::mint`]);
+//! * [`ratelimit`] — failed joins per source address;
+//! * [`admin`] — `cosurg invite`: mint an invitation through a running coordinator;
 //! * [`tls`] — certificates, fingerprints, QUIC/TLS configs for both sides
 //!   ([`tls::client_config_pinned`], [`tls::client_config_ca`]);
 //! * [`link`] — site-side helpers: connect, join, frames, datagrams, streams;
 //! * [`cli`] — the `cosurg-server` command line ([`cli::main`]).
 
+pub mod admin;
+pub mod admission;
 pub mod cli;
 pub mod coordinator;
 pub mod link;
+pub mod ratelimit;
 pub mod session;
+pub mod state;
 pub mod tls;
 
 pub use coordinator::{
