@@ -43,7 +43,12 @@ impl Drop for Server {
 }
 
 fn start_server() -> Server {
-    let state = tempfile::tempdir().unwrap();
+    start_server_in(tempfile::tempdir().unwrap())
+}
+
+/// A coordinator with `state` as its state directory (certificate, invitation key,
+/// revocations).
+fn start_server_in(state: tempfile::TempDir) -> Server {
     let scene = sim_core::sim_scene::builtin::cholecystectomy();
     let mut child = Command::new(env!("CARGO_BIN_EXE_cosurg-server"))
         .args([
@@ -83,24 +88,55 @@ fn start_server() -> Server {
     }
 }
 
-/// `cosurg join` for `server` with the common flags.
+impl Server {
+    /// `cosurg-server invite` on the coordinator's state directory: an invitation for
+    /// `role`, bound to `site` if given.
+    fn invite(&self, role: &str, site: Option<&str>, expires: &str) -> String {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_cosurg-server"));
+        c.args(["invite", "--role", role, "--expires", expires])
+            .arg("--state-dir")
+            .arg(self._state.path());
+        if let Some(s) = site {
+            c.args(["--site", s]);
+        }
+        let out = c.output().expect("cosurg-server invite");
+        assert!(out.status.success(), "{out:?}");
+        let text = String::from_utf8(out.stdout).unwrap();
+        assert_eq!(text.lines().count(), 1, "one line: {text}");
+        text.trim().to_string()
+    }
+}
+
+/// `cosurg join` for `server` with the common flags: the instructor with the token, the
+/// other roles with an invitation bound to their site name.
 fn join(server: &Server, site: &str, role: &str) -> Command {
-    join_with_token(server, site, role, TOKEN)
+    if role == "instructor" {
+        join_with_token(server, site, role, TOKEN)
+    } else {
+        join_with_invite(server, site, role, &server.invite(role, Some(site), "1h"))
+    }
+}
+
+fn join_base(server: &Server, site: &str, role: &str) -> Command {
+    let mut c = cosurg();
+    c.arg("join")
+        .args(["--server", &server.addr, "--session", SESSION])
+        .args(["--role", role, "--site", site, "--pin", &server.fingerprint])
+        .args(["--dt", "0.004", "--no-haptics", "--vtu-interval", "0"])
+        .env_remove("COSURG_TOKEN")
+        .env_remove("COSURG_INVITE");
+    c
 }
 
 fn join_with_token(server: &Server, site: &str, role: &str, token: &str) -> Command {
-    let mut c = cosurg();
-    c.arg("join")
-        .args([
-            "--server",
-            &server.addr,
-            "--session",
-            SESSION,
-            "--token",
-            token,
-        ])
-        .args(["--role", role, "--site", site, "--pin", &server.fingerprint])
-        .args(["--dt", "0.004", "--no-haptics", "--vtu-interval", "0"]);
+    let mut c = join_base(server, site, role);
+    c.args(["--token", token]);
+    c
+}
+
+fn join_with_invite(server: &Server, site: &str, role: &str, invite: &str) -> Command {
+    let mut c = join_base(server, site, role);
+    c.args(["--invite", invite]);
     c
 }
 
@@ -156,7 +192,7 @@ fn wrong_token_version_and_scene_are_refused_with_reasons() {
     let _serial = serial();
     let server = start_server();
     refused(
-        join_with_token(&server, "intruder", "trainee", "not-the-token"),
+        join_with_token(&server, "intruder", "instructor", "not-the-token"),
         "WrongToken",
     );
 
@@ -419,8 +455,9 @@ fn garbage_from_one_site_does_not_disturb_the_others() {
         let scene = sim_core::sim_scene::builtin::cholecystectomy();
         let cfg = server::tls::client_config_pinned(&server.fingerprint).unwrap();
         let endpoint = server::link::client_endpoint(cfg).unwrap();
+        let invite = proto::Credential::Invitation(server.invite("trainee", Some("rogue"), "1h"));
         let join =
-            server::link::join_message("rogue", proto::Role::Trainee, SESSION, TOKEN, &scene.hash);
+            server::link::join_message("rogue", proto::Role::Trainee, SESSION, invite, &scene.hash);
         let addr = server.addr.parse().unwrap();
         let mut site = tokio::time::timeout(
             Duration::from_secs(10),
@@ -555,4 +592,119 @@ fn total_outage_then_recovery_resynchronises() {
         "the trainee reconnected after the outage"
     );
     assert_receiver_follows(r_i, r_t, false, "after the outage");
+}
+
+/// A site that joins, runs one simulated second and leaves: exit code 0.
+fn joins(mut cmd: Command) {
+    cmd.args(["--seconds", "1", "--no-tool", "--no-realtime"]);
+    let out = run_bounded(cmd, Duration::from_secs(60));
+    assert!(
+        out.status.success(),
+        "joined and left; stderr: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+#[test]
+fn invitations_admit_their_site_and_every_bad_credential_is_refused() {
+    let _serial = serial();
+    let server = start_server();
+    // minted on the coordinator's host, and through the running coordinator by the
+    // instructor (`cosurg invite`)
+    joins(join_with_invite(
+        &server,
+        "kyoto",
+        "trainee",
+        &server.invite("trainee", Some("kyoto"), "1h"),
+    ));
+    let out = cosurg()
+        .args(["invite", "--server", &server.addr, "--session", SESSION])
+        .args(["--token", TOKEN, "--role", "observer", "--expires", "10m"])
+        .args(["--pin", &server.fingerprint])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{out:?}");
+    let minted = String::from_utf8(out.stdout).unwrap().trim().to_string();
+    assert!(minted.starts_with("csi1."), "{minted}");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("observer invitation"));
+    joins(join_with_invite(&server, "gallery", "observer", &minted));
+
+    // the instructor token admits the instructor only
+    refused(
+        join_with_token(&server, "sneaky", "trainee", TOKEN),
+        "WrongRole",
+    );
+    // forged: one character of the signature changed
+    let good = server.invite("trainee", None, "1h");
+    let mut forged = good.clone().into_bytes();
+    let i = forged.len() - 3;
+    forged[i] = if forged[i] == b'A' { b'B' } else { b'A' };
+    refused(
+        join_with_invite(
+            &server,
+            "forger",
+            "trainee",
+            &String::from_utf8(forged).unwrap(),
+        ),
+        "InvalidInvitation",
+    );
+    // bound to another site name
+    refused(
+        join_with_invite(
+            &server,
+            "osaka",
+            "trainee",
+            &server.invite("trainee", Some("kobe"), "1h"),
+        ),
+        "WrongSite",
+    );
+    // expired
+    let short = server.invite("trainee", None, "1s");
+    std::thread::sleep(Duration::from_millis(2100));
+    refused(
+        join_with_invite(&server, "late", "trainee", &short),
+        "InvitationExpired",
+    );
+    // revoked on the coordinator's host while it runs
+    let out = Command::new(env!("CARGO_BIN_EXE_cosurg-server"))
+        .args(["revoke", &good])
+        .arg("--state-dir")
+        .arg(server._state.path())
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{out:?}");
+    std::thread::sleep(Duration::from_millis(1200)); // the coordinator polls every 0.5 s
+    refused(
+        join_with_invite(&server, "nara", "trainee", &good),
+        "InvitationRevoked",
+    );
+    // five failures so far: the next one blocks this address, and the one after that is
+    // refused as rate limited whatever its credential
+    refused(
+        join_with_token(&server, "guess", "instructor", "guess"),
+        "WrongToken",
+    );
+    refused(
+        join_with_invite(
+            &server,
+            "kyoto",
+            "trainee",
+            &server.invite("trainee", Some("kyoto"), "1h"),
+        ),
+        "rate limited",
+    );
+}
+
+#[test]
+fn restarted_coordinator_keeps_its_fingerprint_and_honours_earlier_invitations() {
+    let _serial = serial();
+    let server = start_server();
+    let invitation = server.invite("trainee", Some("kyoto"), "1h");
+    let fingerprint = server.fingerprint.clone();
+    let mut server = server;
+    let state = std::mem::replace(&mut server._state, tempfile::tempdir().unwrap());
+    drop(server); // kills the coordinator
+    let server = start_server_in(state);
+    assert_eq!(server.fingerprint, fingerprint);
+    joins(join_with_invite(&server, "kyoto", "trainee", &invitation));
 }

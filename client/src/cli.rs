@@ -24,6 +24,8 @@ pub enum Command {
     Demo(crate::demo::DemoArgs),
     /// Join a session as one site.
     Join(Box<crate::join::JoinArgs>),
+    /// Mint an invitation through a running coordinator (instructor token); prints it.
+    Invite(crate::invite::InviteArgs),
     /// Simulate a scene on this machine alone and write VTU/PVD + OBJ results.
     Run(crate::run::RunArgs),
     /// Static equilibrium of a scene under its loads and gravity.
@@ -136,6 +138,7 @@ pub fn dispatch(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Demo(a) => crate::demo::demo(a),
         Command::Join(a) => crate::join::join(*a),
+        Command::Invite(a) => crate::invite::invite(a),
         Command::Run(a) => crate::run::run(a),
         Command::Solve(a) => crate::solve::solve(a),
         Command::Bench(a) => crate::bench::run(a),
