@@ -678,11 +678,37 @@ fn invitations_admit_their_site_and_every_bad_credential_is_refused() {
         join_with_invite(&server, "nara", "trainee", &good),
         "InvitationRevoked",
     );
-    // five failures so far: the next one blocks this address, and the one after that is
-    // refused as rate limited whatever its credential
-    refused(
-        join_with_token(&server, "guess", "instructor", "guess"),
-        "WrongToken",
+    // Guessing quickly: after a burst of failures the address is blocked, and every attempt
+    // during the block doubles it; then even a valid invitation is refused as rate limited.
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let reasons = rt.block_on(async {
+        let scene = sim_core::sim_scene::builtin::cholecystectomy();
+        let cfg = server::tls::client_config_pinned(&server.fingerprint).unwrap();
+        let endpoint = server::link::client_endpoint(cfg).unwrap();
+        let addr = server.addr.parse().unwrap();
+        let mut reasons = Vec::new();
+        for _ in 0..12 {
+            let join = server::link::join_message(
+                "guess",
+                proto::Role::Instructor,
+                SESSION,
+                proto::Credential::Token("guess".into()),
+                &scene.hash,
+            );
+            match server::link::connect_and_join(&endpoint, addr, "localhost", &join).await {
+                Err(server::link::LinkError::Refused(r)) => reasons.push(r.reason),
+                other => panic!("expected a refusal, got {:?}", other.err()),
+            }
+        }
+        reasons
+    });
+    assert_eq!(reasons[0], proto::RefusalReason::WrongToken);
+    assert!(
+        matches!(reasons.last(), Some(proto::RefusalReason::RateLimited { retry_after_ms }) if *retry_after_ms > 10_000),
+        "{reasons:?}"
     );
     refused(
         join_with_invite(

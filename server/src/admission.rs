@@ -1,6 +1,6 @@
 //! What the coordinator checks before a connection becomes a site, besides the session's
 //! own join validation ([`proto::JoinHandshake`]): failed joins rate-limited per source
-//! address, the revocation list of the state directory (re-read when it changes, so that
+//! address (attempts while blocked count as failures), the revocation list of the state directory (re-read when it changes, so that
 //! `cosurg-server revoke` takes effect on a running coordinator), and administrative
 //! requests (minting an invitation with the instructor token, see [`crate::admin`]).
 
@@ -55,9 +55,12 @@ impl Admission {
         self.limiter.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// The refusal for an address that is currently blocked, if it is.
+    /// The refusal for an address that is currently blocked, if it is. An attempt during a
+    /// block is itself a failure: hammering extends the block exponentially.
     pub fn blocked(&self, ip: IpAddr, now_us: u64) -> Option<Refusal> {
-        let retry = self.limiter().check(ip, now_us).err()?;
+        let mut limiter = self.limiter();
+        let retry = limiter.check(ip, now_us).err()?;
+        let retry = limiter.failure(ip, now_us).unwrap_or(retry);
         let retry_after_ms = retry.as_millis().max(1) as u64;
         Some(Refusal {
             reason: RefusalReason::RateLimited { retry_after_ms },

@@ -5,7 +5,8 @@
 //! malformed Join) takes a token. With the bucket empty, every further failure blocks the
 //! address for an exponentially growing time (`base_block`, doubling, at most `max_block`);
 //! joins from a blocked address are refused with "rate limited" before their credential is
-//! looked at. A full bucket forgets the address. Successful joins cost nothing.
+//! looked at (and, see [`crate::admission`], count as failures themselves). A full bucket
+//! forgets the address. Successful joins cost nothing.
 
 use std::collections::HashMap;
 use std::net::IpAddr;
