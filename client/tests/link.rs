@@ -809,6 +809,7 @@ async fn kicked_site_is_refused_and_stops() {
         let (coord, addr, _) = coordinator().await;
         let mut icfg = config(addr, &coord, "instructor");
         icfg.role = Role::Instructor;
+        icfg.credential = proto::Credential::Token(TOKEN.into());
         let instructor = start(icfg);
         welcome(&instructor, Duration::from_secs(5)).await;
         let trainee = start(config(addr, &coord, "trainee"));
