@@ -258,7 +258,7 @@ pub fn invite(a: InviteArgs) -> anyhow::Result<()> {
 pub fn describe(session: &str, i: &proto::InvitationIssued) -> String {
     let expires = std::time::UNIX_EPOCH + Duration::from_secs(i.expires_unix_s);
     format!(
-        "{} invitation for session {session:?}{}, expires {} UTC, nonce {}",
+        "{} invitation for session {session:?}{}, expires {}, nonce {}",
         i.role,
         i.site
             .as_ref()
