@@ -150,8 +150,15 @@ echo "== sites (cosurg join, $seconds simulated seconds each)"
 site_pids=()
 for i in 0 1 2; do
     n=$((i + 1))
+    # The instructor joins with the token; the others with an invitation bound to their name.
+    if [[ "${roles[$i]}" == instructor ]]; then
+        credential=(--token "$token")
+    else
+        credential=(--invite "$("$bin/cosurg-server" invite --role "${roles[$i]}" \
+            --site "${names[$i]}" --expires 2h --state-dir "$work/state")")
+    fi
     ip netns exec "${hosp[$i]}" timeout "$limit" "$bin/cosurg" join \
-        --server 127.0.0.1:4433 --session "$session" --token "$token" \
+        --server 127.0.0.1:4433 --session "$session" "${credential[@]}" \
         --role "${roles[$i]}" --site "${names[$i]}" --pin "$fp" \
         --tool "${tools[$i]}" --script-start "${starts[$i]}" \
         --seconds "$seconds" --expect-sites 3 --seed "$n" \

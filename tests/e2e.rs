@@ -44,7 +44,12 @@ impl Drop for Server {
 }
 
 fn start_server() -> Server {
-    let state = tempfile::tempdir().unwrap();
+    start_server_in(tempfile::tempdir().unwrap())
+}
+
+/// A coordinator with `state` as its state directory (certificate, invitation key,
+/// revocations).
+fn start_server_in(state: tempfile::TempDir) -> Server {
     let scene = sim_core::sim_scene::builtin::cholecystectomy();
     // `cosurg-server` belongs to another package: no CARGO_BIN_EXE_ for it here.
     let server_exe = test_support::exe::sibling_exe(env!("CARGO_BIN_EXE_cosurg"), "cosurg-server");
@@ -86,24 +91,58 @@ fn start_server() -> Server {
     }
 }
 
-/// `cosurg join` for `server` with the common flags.
+impl Server {
+    /// `cosurg-server invite` on the coordinator's state directory: an invitation for
+    /// `role`, bound to `site` if given.
+    fn invite(&self, role: &str, site: Option<&str>, expires: &str) -> String {
+        let mut c = Command::new(test_support::exe::sibling_exe(
+            env!("CARGO_BIN_EXE_cosurg"),
+            "cosurg-server",
+        ));
+        c.args(["invite", "--role", role, "--expires", expires])
+            .arg("--state-dir")
+            .arg(self._state.path());
+        if let Some(s) = site {
+            c.args(["--site", s]);
+        }
+        let out = c.output().expect("cosurg-server invite");
+        assert!(out.status.success(), "{out:?}");
+        let text = String::from_utf8(out.stdout).unwrap();
+        assert_eq!(text.lines().count(), 1, "one line: {text}");
+        text.trim().to_string()
+    }
+}
+
+/// `cosurg join` for `server` with the common flags: the instructor with the token, the
+/// other roles with an invitation bound to their site name.
 fn join(server: &Server, site: &str, role: &str) -> Command {
-    join_with_token(server, site, role, TOKEN)
+    if role == "instructor" {
+        join_with_token(server, site, role, TOKEN)
+    } else {
+        join_with_invite(server, site, role, &server.invite(role, Some(site), "1h"))
+    }
+}
+
+fn join_base(server: &Server, site: &str, role: &str) -> Command {
+    let mut c = cosurg();
+    c.arg("join")
+        .args(["--server", &server.addr, "--session", SESSION])
+        .args(["--role", role, "--site", site, "--pin", &server.fingerprint])
+        .args(["--dt", "0.004", "--no-haptics", "--vtu-interval", "0"])
+        .env_remove("COSURG_TOKEN")
+        .env_remove("COSURG_INVITE");
+    c
 }
 
 fn join_with_token(server: &Server, site: &str, role: &str, token: &str) -> Command {
-    let mut c = cosurg();
-    c.arg("join")
-        .args([
-            "--server",
-            &server.addr,
-            "--session",
-            SESSION,
-            "--token",
-            token,
-        ])
-        .args(["--role", role, "--site", site, "--pin", &server.fingerprint])
-        .args(["--dt", "0.004", "--no-haptics", "--vtu-interval", "0"]);
+    let mut c = join_base(server, site, role);
+    c.args(["--token", token]);
+    c
+}
+
+fn join_with_invite(server: &Server, site: &str, role: &str, invite: &str) -> Command {
+    let mut c = join_base(server, site, role);
+    c.args(["--invite", invite]);
     c
 }
 
@@ -159,7 +198,7 @@ fn wrong_token_version_and_scene_are_refused_with_reasons() {
     let _serial = serial();
     let server = start_server();
     refused(
-        join_with_token(&server, "intruder", "trainee", "not-the-token"),
+        join_with_token(&server, "intruder", "instructor", "not-the-token"),
         "WrongToken",
     );
 
@@ -422,7 +461,8 @@ fn garbage_from_one_site_does_not_disturb_the_others() {
         let scene = sim_core::sim_scene::builtin::cholecystectomy();
         let cfg = server::tls::client_config_pinned(&server.fingerprint).unwrap();
         let endpoint = wire::client_endpoint(cfg).unwrap();
-        let join = wire::join_message("rogue", proto::Role::Trainee, SESSION, TOKEN, &scene.hash);
+        let invite = proto::Credential::Invitation(server.invite("trainee", Some("rogue"), "1h"));
+        let join = wire::join_message("rogue", proto::Role::Trainee, SESSION, invite, &scene.hash);
         let addr = server.addr.parse().unwrap();
         let mut site = tokio::time::timeout(
             Duration::from_secs(10),
@@ -557,4 +597,148 @@ fn total_outage_then_recovery_resynchronises() {
         "the trainee reconnected after the outage"
     );
     assert_receiver_follows(r_i, r_t, false, "after the outage");
+}
+
+/// A site that joins, runs one simulated second and leaves: exit code 0.
+fn joins(mut cmd: Command) {
+    cmd.args(["--seconds", "1", "--no-tool", "--no-realtime"]);
+    let out = run_bounded(cmd, Duration::from_secs(60));
+    assert!(
+        out.status.success(),
+        "joined and left; stderr: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+#[test]
+fn invitations_admit_their_site_and_every_bad_credential_is_refused() {
+    let _serial = serial();
+    let server = start_server();
+    // minted on the coordinator's host, and through the running coordinator by the
+    // instructor (`cosurg invite`)
+    joins(join_with_invite(
+        &server,
+        "kyoto",
+        "trainee",
+        &server.invite("trainee", Some("kyoto"), "1h"),
+    ));
+    let out = cosurg()
+        .args(["invite", "--server", &server.addr, "--session", SESSION])
+        .args(["--token", TOKEN, "--role", "observer", "--expires", "10m"])
+        .args(["--pin", &server.fingerprint])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{out:?}");
+    let minted = String::from_utf8(out.stdout).unwrap().trim().to_string();
+    assert!(minted.starts_with("csi1."), "{minted}");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("observer invitation"));
+    joins(join_with_invite(&server, "gallery", "observer", &minted));
+
+    // the instructor token admits the instructor only
+    refused(
+        join_with_token(&server, "sneaky", "trainee", TOKEN),
+        "WrongRole",
+    );
+    // forged: one character of the signature changed
+    let good = server.invite("trainee", None, "1h");
+    let mut forged = good.clone().into_bytes();
+    let i = forged.len() - 3;
+    forged[i] = if forged[i] == b'A' { b'B' } else { b'A' };
+    refused(
+        join_with_invite(
+            &server,
+            "forger",
+            "trainee",
+            &String::from_utf8(forged).unwrap(),
+        ),
+        "InvalidInvitation",
+    );
+    // bound to another site name
+    refused(
+        join_with_invite(
+            &server,
+            "osaka",
+            "trainee",
+            &server.invite("trainee", Some("kobe"), "1h"),
+        ),
+        "WrongSite",
+    );
+    // expired
+    let short = server.invite("trainee", None, "1s");
+    std::thread::sleep(Duration::from_millis(2100));
+    refused(
+        join_with_invite(&server, "late", "trainee", &short),
+        "InvitationExpired",
+    );
+    // revoked on the coordinator's host while it runs
+    let out = Command::new(test_support::exe::sibling_exe(
+        env!("CARGO_BIN_EXE_cosurg"),
+        "cosurg-server",
+    ))
+    .args(["revoke", &good])
+    .arg("--state-dir")
+    .arg(server._state.path())
+    .output()
+    .unwrap();
+    assert!(out.status.success(), "{out:?}");
+    std::thread::sleep(Duration::from_millis(1200)); // the coordinator polls every 0.5 s
+    refused(
+        join_with_invite(&server, "nara", "trainee", &good),
+        "InvitationRevoked",
+    );
+    // Guessing quickly: after a burst of failures the address is blocked, and every attempt
+    // during the block doubles it; then even a valid invitation is refused as rate limited.
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let reasons = rt.block_on(async {
+        let scene = sim_core::sim_scene::builtin::cholecystectomy();
+        let cfg = server::tls::client_config_pinned(&server.fingerprint).unwrap();
+        let endpoint = wire::client_endpoint(cfg).unwrap();
+        let addr = server.addr.parse().unwrap();
+        let mut reasons = Vec::new();
+        for _ in 0..12 {
+            let join = wire::join_message(
+                "guess",
+                proto::Role::Instructor,
+                SESSION,
+                proto::Credential::Token("guess".into()),
+                &scene.hash,
+            );
+            match wire::connect_and_join(&endpoint, addr, "localhost", &join).await {
+                Err(wire::LinkError::Refused(r)) => reasons.push(r.reason),
+                other => panic!("expected a refusal, got {:?}", other.err()),
+            }
+        }
+        reasons
+    });
+    assert_eq!(reasons[0], proto::RefusalReason::WrongToken);
+    assert!(
+        matches!(reasons.last(), Some(proto::RefusalReason::RateLimited { retry_after_ms }) if *retry_after_ms > 10_000),
+        "{reasons:?}"
+    );
+    refused(
+        join_with_invite(
+            &server,
+            "kyoto",
+            "trainee",
+            &server.invite("trainee", Some("kyoto"), "1h"),
+        ),
+        "rate limited",
+    );
+}
+
+#[test]
+fn restarted_coordinator_keeps_its_fingerprint_and_honours_earlier_invitations() {
+    let _serial = serial();
+    let server = start_server();
+    let invitation = server.invite("trainee", Some("kyoto"), "1h");
+    let fingerprint = server.fingerprint.clone();
+    let mut server = server;
+    let state = std::mem::replace(&mut server._state, tempfile::tempdir().unwrap());
+    drop(server); // kills the coordinator
+    let server = start_server_in(state);
+    assert_eq!(server.fingerprint, fingerprint);
+    joins(join_with_invite(&server, "kyoto", "trainee", &invitation));
 }

@@ -22,6 +22,8 @@ pub enum Command {
     Demo(cosurg::demo::DemoArgs),
     /// Join a session as one site.
     Join(Box<cosurg::join::JoinArgs>),
+    /// Mint an invitation through a running coordinator (instructor token); prints it.
+    Invite(cosurg::invite::InviteArgs),
     /// Simulate a scene on this machine alone and write VTU/PVD + OBJ results.
     Run(cosurg::run::RunArgs),
     /// Static equilibrium of a scene under its loads and gravity.
@@ -40,6 +42,7 @@ pub fn dispatch(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Demo(a) => cosurg::demo::demo(a),
         Command::Join(a) => cosurg::join::join(*a),
+        Command::Invite(a) => cosurg::invite::invite(a),
         Command::Run(a) => cosurg::run::run(a),
         Command::Solve(a) => cosurg::solve::solve(a),
         Command::Bench(a) => bench::run(a),

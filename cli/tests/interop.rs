@@ -30,7 +30,7 @@ fn python_join_encoding_matches_proto() {
         role: proto::Role::Trainee,
         site_name: "kyōto-1".into(),
         session: "lap-chole".into(),
-        token: "s3cret".into(),
+        credential: proto::Credential::Invitation("csi1.abc".into()),
     };
     let out = Command::new("python3")
         .arg(repo().join("deploy/interop/aioquic_join.py"))
@@ -40,6 +40,8 @@ fn python_join_encoding_matches_proto() {
             "lap-chole",
             "--token",
             "s3cret",
+            "--invite",
+            "csi1.abc",
             "--scene-hash",
         ])
         .arg("ab".repeat(32))

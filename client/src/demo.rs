@@ -177,6 +177,10 @@ pub fn run_session(run: &SessionRun) -> Result<(Vec<SiteReport>, Vec<Series>)> {
     let token = format!("demo-{}", std::process::id());
     let mut session = proto::SessionConfig::new("demo", token.clone());
     session.scene_hash = Some(scene.hash.clone());
+    // The coordinator lives as long as this demo: an in-memory invitation key, and one
+    // invitation per trainee or observer, bound to its site name.
+    let invite_key = proto::InviteKey::from_bytes(rand::random());
+    session.invite_key = Some(invite_key.clone());
     let config = server::CoordinatorConfig::ephemeral(session)?;
     let (handle, addr) = runtime.block_on(async { server::Coordinator::bind(config) })?;
     let fingerprint = handle.fingerprint().to_string();
@@ -194,7 +198,6 @@ pub fn run_session(run: &SessionRun) -> Result<(Vec<SiteReport>, Vec<Series>)> {
         cmd.arg("join")
             .args(["--server", &addr.to_string()])
             .args(["--session", "demo"])
-            .args(["--token", &token])
             .args(["--role", site.role])
             .args(["--site", &site.name])
             .args(["--pin", &fingerprint])
@@ -216,6 +219,20 @@ pub fn run_session(run: &SessionRun) -> Result<(Vec<SiteReport>, Vec<Series>)> {
                 "COSURG_LOG",
                 std::env::var("COSURG_SITE_LOG").unwrap_or_else(|_| "warn,cosurg::=info".into()),
             );
+        let role: proto::Role = site.role.parse().map_err(|e: String| anyhow::anyhow!(e))?;
+        if role == proto::Role::Instructor {
+            cmd.env("COSURG_TOKEN", &token).env_remove("COSURG_INVITE");
+        } else {
+            let issued = server::state::mint(
+                &invite_key,
+                "demo",
+                role,
+                Some(&site.name),
+                (run.seconds * 4.0 + 3600.0) as u64,
+                server::state::unix_now_s(),
+            )?;
+            cmd.env("COSURG_INVITE", issued.invitation);
+        }
         match site.tool {
             Some(t) => cmd.args(["--tool", t]),
             None => cmd.arg("--no-tool"),

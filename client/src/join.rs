@@ -39,9 +39,13 @@ pub struct JoinArgs {
     /// Session name.
     #[arg(long)]
     pub session: String,
-    /// Session token (or COSURG_TOKEN).
+    /// The instructor's token (or COSURG_TOKEN); admits the instructor role only.
     #[arg(long, env = "COSURG_TOKEN", hide_env_values = true)]
-    pub token: String,
+    pub token: Option<String>,
+    /// Invitation (csi1.…, from `cosurg-server invite` or `cosurg invite`) for a trainee or
+    /// observer (or COSURG_INVITE). Takes precedence over --token.
+    #[arg(long, env = "COSURG_INVITE", hide_env_values = true)]
+    pub invite: Option<String>,
     /// This site's role.
     #[arg(long, value_enum)]
     pub role: RoleArg,
@@ -182,11 +186,18 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
         (None, Some(ca)) => Trust::Ca(ca.clone()),
         (None, None) => bail!("give --pin FINGERPRINT (printed by cosurg-server) or --ca PEM"),
     };
+    let credential = match (&args.invite, &args.token) {
+        (Some(i), _) => proto::Credential::Invitation(i.trim().to_string()),
+        (None, Some(t)) => proto::Credential::Token(t.clone()),
+        (None, None) => {
+            bail!("give --invite INVITATION (trainee, observer) or --token TOKEN (instructor)")
+        }
+    };
     let mut link = LinkConfig::new(
         resolve(&args.server)?,
         "",
         &args.session,
-        &args.token,
+        credential,
         args.role.into(),
         &args.site,
         &scene.hash,

@@ -6,6 +6,7 @@ pub mod cli;
 pub mod demo;
 pub mod divergence;
 pub mod haptic;
+pub mod invite;
 pub mod join;
 pub mod link;
 pub mod output;

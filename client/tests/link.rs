@@ -38,6 +38,7 @@ async fn within<F: Future<Output = ()>>(secs: u64, f: F) {
 fn session_config() -> SessionConfig {
     SessionConfig {
         scene_hash: Some(SCENE.into()),
+        invite_key: Some(invite_key()),
         ..SessionConfig::new(SESSION, TOKEN)
     }
 }
@@ -67,12 +68,30 @@ async fn coordinator() -> (CoordinatorHandle, SocketAddr, Identity) {
     (h, addr, id)
 }
 
+fn invite_key() -> proto::InviteKey {
+    proto::InviteKey::from_bytes([3; 32])
+}
+
+/// A trainee invitation valid for an hour.
+fn invitation() -> proto::Credential {
+    let issued = server::state::mint(
+        &invite_key(),
+        SESSION,
+        Role::Trainee,
+        None,
+        3600,
+        server::state::unix_now_s(),
+    )
+    .unwrap();
+    proto::Credential::Invitation(issued.invitation)
+}
+
 fn config(addr: SocketAddr, h: &CoordinatorHandle, name: &str) -> LinkConfig {
     LinkConfig::new(
         addr,
         h.fingerprint(),
         SESSION,
-        TOKEN,
+        invitation(),
         Role::Trainee,
         name,
         SCENE,
@@ -312,7 +331,7 @@ async fn wrong_token_is_refused_without_reconnect() {
     within(15, async {
         let (coord, addr, _) = coordinator().await;
         let mut cfg = config(addr, &coord, "intruder");
-        cfg.token = "guess".into();
+        cfg.credential = proto::Credential::Token("guess".into());
         assert!(cfg.reconnect);
         let link = start(cfg);
         match wait_for(&link, Duration::from_secs(5), |e| {
@@ -649,7 +668,7 @@ async fn malformed_input_is_counted_not_fatal() {
             addr,
             &id.fingerprint(),
             SESSION,
-            TOKEN,
+            invitation(),
             Role::Trainee,
             "victim",
             SCENE,
@@ -791,6 +810,7 @@ async fn kicked_site_is_refused_and_stops() {
         let (coord, addr, _) = coordinator().await;
         let mut icfg = config(addr, &coord, "instructor");
         icfg.role = Role::Instructor;
+        icfg.credential = proto::Credential::Token(TOKEN.into());
         let instructor = start(icfg);
         welcome(&instructor, Duration::from_secs(5)).await;
         let trainee = start(config(addr, &coord, "trainee"));

@@ -173,6 +173,8 @@ fn instructor_act_guides_a_trainee_through_the_session() {
         .unwrap();
     let mut session = proto::SessionConfig::new("teach", "tok".to_string());
     session.scene_hash = Some(scene.hash.clone());
+    let key = proto::InviteKey::from_bytes([4; 32]);
+    session.invite_key = Some(key.clone());
     let mut config = server::CoordinatorConfig::ephemeral(session).unwrap();
     config.status_interval = None;
     let (handle, addr) = runtime
@@ -182,11 +184,26 @@ fn instructor_act_guides_a_trainee_through_the_session() {
     let out = tempfile::tempdir().unwrap();
 
     let link = |role, name: &str| {
+        let credential = match role {
+            Role::Instructor => proto::Credential::Token("tok".into()),
+            role => proto::Credential::Invitation(
+                server::state::mint(
+                    &key,
+                    "teach",
+                    role,
+                    Some(name),
+                    3600,
+                    server::state::unix_now_s(),
+                )
+                .unwrap()
+                .invitation,
+            ),
+        };
         Some(LinkConfig::new(
             addr,
             &fingerprint,
             "teach",
-            "tok",
+            credential,
             role,
             name,
             &scene.hash,

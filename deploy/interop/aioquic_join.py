@@ -12,13 +12,14 @@ first frame:
                          connection closed with application error 8 (MALFORMED);
 * ``--mode wrong-token`` a correct ``Join`` with a wrong token -> Refusal ``WrongToken``,
                          application error 1 (WRONG_TOKEN);
-* ``--mode join``        a correct ``Join`` -> ``Welcome``; then one coordinator heartbeat
+* ``--mode join``        a correct ``Join`` (with ``--invite INVITATION`` for a trainee or
+                         observer, from ``cosurg-server invite``) -> ``Welcome``; then one coordinator heartbeat
                          datagram is awaited and one is sent (datagrams are only negotiated
                          because the client sets ``max_datagram_frame_size``), then ``Leave``
                          -> closed with application error 0 (NORMAL).
 
 Wire format (see ``proto/src/codec.rs``): a stream frame is a 4-byte big-endian length and
-the message; a message is the wire tag byte (the protocol version, 1) followed by the postcard
+the message; a message is the wire tag byte (the protocol version, 2) followed by the postcard
 encoding of ``proto::Message`` (enum variant index as varint, integers as LEB128 varints,
 strings as varint length + UTF-8). ``--print-join-hex`` prints an encoded Join frame without
 touching the network (the Rust test compares it with ``proto::encode_frame``).
@@ -36,8 +37,8 @@ import struct
 import sys
 import time
 
-WIRE_TAG = 1
-PROTOCOL_VERSION = 1
+WIRE_TAG = 2
+PROTOCOL_VERSION = 2
 ALPN = "cosurg/1"
 
 # proto::Message variant indices (append-only within a protocol version).
@@ -46,16 +47,19 @@ MSG = {
     "ToolPose": 6, "Keyframe": 7, "TreeDelta": 8, "KeyframeAck": 9, "OwnershipRequest": 10,
     "OwnershipGrant": 11, "OwnershipRelease": 12, "OwnershipDeny": 13, "Snapshot": 14,
     "Teaching": 15, "Command": 16, "Leave": 17, "Heartbeat": 18, "Status": 19,
-    "SiteJoined": 20,
+    "SiteJoined": 20, "Admin": 21, "Invitation": 22,
 }
 MSG_NAME = {v: k for k, v in MSG.items()}
 ROLES = ["instructor", "trainee", "observer"]
 REFUSAL_REASONS = ["WrongToken", "WrongVersion", "WrongScene", "WrongSession", "NameTaken",
-                   "Full", "Kicked", "Malformed"]
+                   "Full", "Kicked", "Malformed", "InvalidInvitation", "InvitationExpired",
+                   "InvitationRevoked", "WrongRole", "WrongSite", "RateLimited"]
 # proto::close_code
 CLOSE_CODES = {0: "NORMAL", 1: "WRONG_TOKEN", 2: "WRONG_VERSION", 3: "WRONG_SCENE",
                4: "WRONG_SESSION", 5: "NAME_TAKEN", 6: "FULL", 7: "KICKED", 8: "MALFORMED",
-               9: "PROTOCOL_ERROR", 10: "JOIN_TIMEOUT", 11: "OVERLOADED", 12: "TIMED_OUT"}
+               9: "PROTOCOL_ERROR", 10: "JOIN_TIMEOUT", 11: "OVERLOADED", 12: "TIMED_OUT",
+               13: "INVALID_INVITATION", 14: "INVITATION_EXPIRED", 15: "INVITATION_REVOKED",
+               16: "WRONG_ROLE", 17: "WRONG_SITE", 18: "RATE_LIMITED"}
 
 
 # ---------------------------------------------------------------- postcard encoding ----
@@ -85,11 +89,13 @@ def frame(msg: bytes) -> bytes:
 
 
 def join_frame(site: str, role: str, session: str, token: str, scene_hash: str,
-               version: int = PROTOCOL_VERSION) -> bytes:
+               version: int = PROTOCOL_VERSION, invite: str | None = None) -> bytes:
     # struct Join { protocol_version: u16, scene_hash: String, role: Role, site_name: String,
-    #               session: String, token: String }
+    #               session: String, credential: Credential }
+    # enum Credential { Token(String), Invitation(String) }
+    credential = varint(1) + pstr(invite) if invite else varint(0) + pstr(token)
     body = (varint(version) + pstr(scene_hash) + varint(ROLES.index(role)) + pstr(site)
-            + pstr(session) + pstr(token))
+            + pstr(session) + credential)
     return frame(message("Join", body))
 
 
@@ -265,7 +271,9 @@ async def run(args) -> int:
             expect = ("Malformed", 8)
         else:
             token = args.token if args.mode == "join" else args.token + "-wrong"
-            first = join_frame(args.site, args.role, args.session, token, args.scene_hash)
+            invite = args.invite if args.mode == "join" else None
+            first = join_frame(args.site, args.role, args.session, token, args.scene_hash,
+                               invite=invite)
             expect = ("WrongToken", 1) if args.mode == "wrong-token" else (None, 0)
         out("sent", f"{args.mode} frame on control stream {sid} ({len(first)} bytes): "
             f"{first.hex()}")
@@ -319,6 +327,7 @@ def main() -> int:
     p.add_argument("--mode", choices=["garbage", "wrong-token", "join"], default="garbage")
     p.add_argument("--session", default="interop")
     p.add_argument("--token", default="interop-token")
+    p.add_argument("--invite", help="invitation for --mode join (trainee or observer)")
     p.add_argument("--site", default="aioquic")
     p.add_argument("--role", choices=ROLES, default="observer")
     p.add_argument("--scene-hash", default="00" * 32)
@@ -327,7 +336,8 @@ def main() -> int:
                    help="print the encoded Join frame (no network) and exit")
     args = p.parse_args()
     if args.print_join_hex:
-        print(join_frame(args.site, args.role, args.session, args.token, args.scene_hash).hex())
+        print(join_frame(args.site, args.role, args.session, args.token, args.scene_hash,
+                         invite=args.invite).hex())
         return 0
     if not args.pin and not args.ca:
         p.error("one of --pin or --ca is required")

@@ -105,7 +105,9 @@ run_client() {
 run_client garbage --pin "$fp" --mode garbage
 run_client wrong-token --pin "$fp" --mode wrong-token
 run_client wrong-token-ca --ca "$work/state/coordinator-cert.pem" --mode wrong-token
-run_client join --pin "$fp" --mode join
+invite="$("$bin/cosurg-server" invite --role observer --site aioquic --expires 10m \
+    --state-dir "$work/state")"
+run_client join --pin "$fp" --mode join --invite "$invite"
 
 # A wrong pin: the client must abort after the handshake, before sending anything.
 echo

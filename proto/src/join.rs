@@ -3,7 +3,14 @@
 //! Checks, in this order (the first failing one is reported):
 //! 1. protocol version → [`RefusalReason::WrongVersion`]
 //! 2. session name → [`RefusalReason::WrongSession`]
-//! 3. token (constant-time comparison) → [`RefusalReason::WrongToken`]
+//! 3. credential:
+//!    * the instructor token (constant-time comparison) → [`RefusalReason::WrongToken`];
+//!      it admits the instructor role only → [`RefusalReason::WrongRole`];
+//!    * an invitation ([`crate::invite`]): signature → [`RefusalReason::InvalidInvitation`],
+//!      its session → [`RefusalReason::WrongSession`], its role →
+//!      [`RefusalReason::WrongRole`], its bound site name → [`RefusalReason::WrongSite`],
+//!      expiry → [`RefusalReason::InvitationExpired`], revocation →
+//!      [`RefusalReason::InvitationRevoked`];
 //! 4. scene hash (case-insensitive hex) → [`RefusalReason::WrongScene`]; checked after the
 //!    token so that the expected hash is only revealed to token holders
 //! 5. site name empty / too long / control characters → [`RefusalReason::Malformed`]
@@ -15,7 +22,13 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
-use crate::msg::{Join, Refusal, RefusalReason, Role, SessionInfo, SiteEntry, SiteId, Welcome};
+use subtle::ConstantTimeEq;
+
+use crate::invite::{InviteKey, Nonce};
+use crate::msg::{
+    AdminRequest, Credential, Join, Refusal, RefusalReason, Role, SessionInfo, SiteEntry, SiteId,
+    Welcome,
+};
 
 /// Maximum site-name length in bytes.
 pub const MAX_SITE_NAME: usize = 64;
@@ -26,7 +39,10 @@ pub const DEFAULT_HEARTBEAT_INTERVAL_US: u64 = 500_000;
 #[derive(Debug, Clone, PartialEq)]
 pub struct SessionConfig {
     pub name: String,
+    /// The instructor's secret.
     pub token: String,
+    /// Key that signs and verifies invitations; `None`: invitations are refused.
+    pub invite_key: Option<InviteKey>,
     /// Required scene hash (hex SHA-256); `None`: the first site to join fixes it.
     pub scene_hash: Option<String>,
     pub max_sites: u16,
@@ -38,6 +54,7 @@ impl SessionConfig {
         Self {
             name: name.into(),
             token: token.into(),
+            invite_key: None,
             scene_hash: None,
             max_sites: 16,
             heartbeat_interval_us: DEFAULT_HEARTBEAT_INTERVAL_US,
@@ -45,12 +62,16 @@ impl SessionConfig {
     }
 }
 
+/// Constant-time equality (`subtle`); the length is not secret.
 fn ct_eq(a: &[u8], b: &[u8]) -> bool {
-    // Length is not secret; the content comparison does not short-circuit.
-    if a.len() != b.len() {
-        return false;
+    a.ct_eq(b).into()
+}
+
+fn refusal(reason: RefusalReason, text: impl Into<String>) -> Refusal {
+    Refusal {
+        reason,
+        text: text.into(),
     }
-    a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
 fn valid_site_name(name: &str) -> bool {
@@ -63,6 +84,10 @@ pub struct JoinHandshake {
     config: SessionConfig,
     sites: BTreeMap<SiteId, SiteEntry>,
     kicked: BTreeSet<String>,
+    /// Nonces of revoked invitations.
+    revoked: BTreeSet<Nonce>,
+    /// The invitation each member joined with.
+    invitations: BTreeMap<SiteId, Nonce>,
     next_id: SiteId,
 }
 
@@ -72,6 +97,8 @@ impl JoinHandshake {
             config,
             sites: BTreeMap::new(),
             kicked: BTreeSet::new(),
+            revoked: BTreeSet::new(),
+            invitations: BTreeMap::new(),
             next_id: 1,
         }
     }
@@ -95,31 +122,155 @@ impl JoinHandshake {
         }
     }
 
-    /// Check a join without changing anything.
-    pub fn validate(&self, join: &Join) -> Result<(), Refusal> {
+    /// Replace the set of revoked invitation nonces. Returns the members that joined with
+    /// an invitation now revoked (the caller removes them).
+    pub fn set_revoked(&mut self, revoked: BTreeSet<Nonce>) -> Vec<SiteId> {
+        self.revoked = revoked;
+        self.invitations
+            .iter()
+            .filter(|(_, n)| self.revoked.contains(*n))
+            .map(|(&s, _)| s)
+            .collect()
+    }
+
+    fn check_version(&self, version: u16) -> Result<(), Refusal> {
+        if version == crate::PROTOCOL_VERSION {
+            return Ok(());
+        }
+        Err(refusal(
+            RefusalReason::WrongVersion {
+                server: crate::PROTOCOL_VERSION,
+                client: version,
+            },
+            format!(
+                "protocol version {version} not supported; the coordinator speaks {}",
+                crate::PROTOCOL_VERSION
+            ),
+        ))
+    }
+
+    fn check_session(&self, session: &str) -> Result<(), Refusal> {
+        if session == self.config.name {
+            return Ok(());
+        }
+        Err(refusal(
+            RefusalReason::WrongSession,
+            format!("no session named {session:?} here"),
+        ))
+    }
+
+    fn check_token(&self, token: &str) -> Result<(), Refusal> {
+        if ct_eq(token.as_bytes(), self.config.token.as_bytes()) {
+            return Ok(());
+        }
+        Err(refusal(RefusalReason::WrongToken, "wrong instructor token"))
+    }
+
+    /// Check the credential of a join for `role` and `site_name` at Unix time
+    /// `now_unix_s`. Returns the invitation's nonce when admitted by an invitation.
+    pub fn check_credential(
+        &self,
+        credential: &Credential,
+        role: Role,
+        site_name: &str,
+        now_unix_s: u64,
+    ) -> Result<Option<Nonce>, Refusal> {
+        match credential {
+            Credential::Token(token) => {
+                self.check_token(token)?;
+                if role != Role::Instructor {
+                    return Err(refusal(
+                        RefusalReason::WrongRole,
+                        format!(
+                            "the instructor token admits the instructor role only; a {role} joins with an invitation (cosurg-server invite / cosurg invite)"
+                        ),
+                    ));
+                }
+                Ok(None)
+            }
+            Credential::Invitation(text) => {
+                let Some(key) = &self.config.invite_key else {
+                    return Err(refusal(
+                        RefusalReason::InvalidInvitation,
+                        "this coordinator accepts no invitations (no invitation key)",
+                    ));
+                };
+                let claims = key
+                    .verify(text)
+                    .map_err(|e| refusal(RefusalReason::InvalidInvitation, e.to_string()))?;
+                if claims.session != self.config.name {
+                    return Err(refusal(
+                        RefusalReason::WrongSession,
+                        format!(
+                            "invitation is for session {:?}, not {:?}",
+                            claims.session, self.config.name
+                        ),
+                    ));
+                }
+                if claims.role != role {
+                    return Err(refusal(
+                        RefusalReason::WrongRole,
+                        format!("invitation is for a {}, not a {role}", claims.role),
+                    ));
+                }
+                if let Some(bound) = &claims.site
+                    && bound != site_name
+                {
+                    return Err(refusal(
+                        RefusalReason::WrongSite,
+                        format!("invitation is for site {bound:?}, not {site_name:?}"),
+                    ));
+                }
+                if now_unix_s >= claims.expires_unix_s {
+                    return Err(refusal(
+                        RefusalReason::InvitationExpired,
+                        format!(
+                            "invitation expired {} s ago",
+                            now_unix_s - claims.expires_unix_s
+                        ),
+                    ));
+                }
+                if self.revoked.contains(&claims.nonce) {
+                    return Err(refusal(
+                        RefusalReason::InvitationRevoked,
+                        format!(
+                            "invitation {} was revoked",
+                            crate::invite::hex(&claims.nonce)
+                        ),
+                    ));
+                }
+                Ok(Some(claims.nonce))
+            }
+        }
+    }
+
+    /// Check an administrative request: version, session, and the instructor token (an
+    /// invitation never authorises administration).
+    pub fn validate_admin(&self, req: &AdminRequest) -> Result<(), Refusal> {
+        self.check_version(req.protocol_version)?;
+        self.check_session(&req.session)?;
+        match &req.credential {
+            Credential::Token(t) => self.check_token(t),
+            Credential::Invitation(_) => Err(refusal(
+                RefusalReason::WrongRole,
+                "administration needs the instructor token, not an invitation",
+            )),
+        }
+    }
+
+    /// Check a join without changing anything; `now_us` is the coordinator clock (µs since
+    /// the Unix epoch, for invitation expiry). Returns the invitation nonce it was admitted
+    /// with, if any.
+    pub fn validate(&self, join: &Join, now_us: u64) -> Result<Option<Nonce>, Refusal> {
         let refuse = |reason: RefusalReason, text: String| Err(Refusal { reason, text });
-        if join.protocol_version != crate::PROTOCOL_VERSION {
-            return refuse(
-                RefusalReason::WrongVersion {
-                    server: crate::PROTOCOL_VERSION,
-                    client: join.protocol_version,
-                },
-                format!(
-                    "protocol version {} not supported; the coordinator speaks {}",
-                    join.protocol_version,
-                    crate::PROTOCOL_VERSION
-                ),
-            );
-        }
-        if join.session != self.config.name {
-            return refuse(
-                RefusalReason::WrongSession,
-                format!("no session named {:?} here", join.session),
-            );
-        }
-        if !ct_eq(join.token.as_bytes(), self.config.token.as_bytes()) {
-            return refuse(RefusalReason::WrongToken, "wrong session token".into());
-        }
+        self.check_version(join.protocol_version)?;
+        self.check_session(&join.session)?;
+        let nonce = self.check_credential(
+            &join.credential,
+            join.role,
+            &join.site_name,
+            now_us / 1_000_000,
+        )?;
         if let Some(expected) = &self.config.scene_hash
             && !expected.eq_ignore_ascii_case(&join.scene_hash)
         {
@@ -160,13 +311,13 @@ impl JoinHandshake {
                 format!("session is full ({} sites)", self.config.max_sites),
             );
         }
-        Ok(())
+        Ok(nonce)
     }
 
     /// Validate and, on success, admit the site: returns the [`Welcome`] to send.
     /// `now_us` is the coordinator clock.
     pub fn handle_join(&mut self, join: &Join, now_us: u64) -> Result<Welcome, Refusal> {
-        self.validate(join)?;
+        let nonce = self.validate(join, now_us)?;
         if self.config.scene_hash.is_none() {
             self.config.scene_hash = Some(join.scene_hash.to_ascii_lowercase());
         }
@@ -182,6 +333,9 @@ impl JoinHandshake {
                 role: join.role,
             },
         );
+        if let Some(n) = nonce {
+            self.invitations.insert(id, n);
+        }
         Ok(Welcome {
             site: id,
             session: self.info(),
@@ -207,6 +361,7 @@ impl JoinHandshake {
 
     /// A site left (or its connection was lost). Returns its entry if it was a member.
     pub fn leave(&mut self, site: SiteId) -> Option<SiteEntry> {
+        self.invitations.remove(&site);
         self.sites.remove(&site)
     }
 
@@ -214,6 +369,7 @@ impl JoinHandshake {
     /// refusal to send it before closing its connection, or `None` if no such site.
     pub fn kick(&mut self, site: SiteId, text: &str) -> Option<(SiteEntry, Refusal)> {
         let entry = self.sites.remove(&site)?;
+        self.invitations.remove(&site);
         self.kicked.insert(entry.name.clone());
         Some((
             entry,
@@ -246,148 +402,4 @@ impl JoinHandshake {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::PROTOCOL_VERSION;
-
-    const SCENE: &str = "ab12";
-
-    fn cfg() -> SessionConfig {
-        SessionConfig {
-            scene_hash: Some(SCENE.into()),
-            max_sites: 3,
-            ..SessionConfig::new("lap-chole", "s3cret")
-        }
-    }
-
-    fn join(name: &str) -> Join {
-        Join {
-            protocol_version: PROTOCOL_VERSION,
-            scene_hash: SCENE.into(),
-            role: Role::Trainee,
-            site_name: name.into(),
-            session: "lap-chole".into(),
-            token: "s3cret".into(),
-        }
-    }
-
-    fn reason(h: &mut JoinHandshake, j: Join) -> RefusalReason {
-        h.handle_join(&j, 0).unwrap_err().reason
-    }
-
-    #[test]
-    fn welcome_assigns_ids_and_lists_sites() {
-        let mut h = JoinHandshake::new(cfg());
-        let w1 = h.handle_join(&join("kyoto"), 10).unwrap();
-        let w2 = h.handle_join(&join("osaka"), 20).unwrap();
-        assert_eq!(w1.site, 1);
-        assert_eq!(w2.site, 2);
-        assert_eq!(w2.sites.len(), 2);
-        assert_eq!(w2.coordinator_time_us, 20);
-        assert_eq!(w2.session.scene_hash, SCENE);
-        assert_eq!(w2.session.protocol_version, PROTOCOL_VERSION);
-    }
-
-    #[test]
-    fn refusals_in_order() {
-        let mut h = JoinHandshake::new(cfg());
-        let mut j = join("a");
-        j.protocol_version = 99;
-        j.token = "bad".into();
-        assert_eq!(
-            reason(&mut h, j),
-            RefusalReason::WrongVersion {
-                server: PROTOCOL_VERSION,
-                client: 99
-            }
-        );
-        let mut j = join("a");
-        j.session = "other".into();
-        assert_eq!(reason(&mut h, j), RefusalReason::WrongSession);
-        let mut j = join("a");
-        j.token = "s3creT".into();
-        j.scene_hash = "ffff".into();
-        assert_eq!(reason(&mut h, j), RefusalReason::WrongToken);
-        let mut j = join("a");
-        j.scene_hash = "ffff".into();
-        assert_eq!(
-            reason(&mut h, j),
-            RefusalReason::WrongScene {
-                expected: SCENE.into()
-            }
-        );
-        assert_eq!(reason(&mut h, join("")), RefusalReason::Malformed);
-        assert_eq!(reason(&mut h, join("a\nb")), RefusalReason::Malformed);
-        assert_eq!(
-            reason(&mut h, join(&"x".repeat(65))),
-            RefusalReason::Malformed
-        );
-        assert!(h.is_empty());
-    }
-
-    #[test]
-    fn scene_hash_case_insensitive() {
-        let mut h = JoinHandshake::new(cfg());
-        let mut j = join("a");
-        j.scene_hash = "AB12".into();
-        assert!(h.handle_join(&j, 0).is_ok());
-    }
-
-    #[test]
-    fn name_taken_then_free_after_leave() {
-        let mut h = JoinHandshake::new(cfg());
-        let w = h.handle_join(&join("a"), 0).unwrap();
-        assert_eq!(reason(&mut h, join("a")), RefusalReason::NameTaken);
-        assert!(h.leave(w.site).is_some());
-        assert!(h.leave(w.site).is_none());
-        let w2 = h.handle_join(&join("a"), 0).unwrap();
-        assert_ne!(w2.site, w.site, "ids are not reused immediately");
-    }
-
-    #[test]
-    fn capacity() {
-        let mut h = JoinHandshake::new(cfg());
-        for n in ["a", "b", "c"] {
-            h.handle_join(&join(n), 0).unwrap();
-        }
-        assert_eq!(reason(&mut h, join("d")), RefusalReason::Full);
-    }
-
-    #[test]
-    fn kicked_name_cannot_rejoin() {
-        let mut h = JoinHandshake::new(cfg());
-        let w = h.handle_join(&join("a"), 0).unwrap();
-        let (entry, r) = h.kick(w.site, "bye").unwrap();
-        assert_eq!(entry.name, "a");
-        assert_eq!(r.reason, RefusalReason::Kicked);
-        assert!(h.kick(w.site, "again").is_none());
-        assert_eq!(reason(&mut h, join("a")), RefusalReason::Kicked);
-    }
-
-    #[test]
-    fn first_join_fixes_scene_when_unset() {
-        let mut h = JoinHandshake::new(SessionConfig::new("lap-chole", "s3cret"));
-        let mut j = join("a");
-        j.scene_hash = "CAFE".into();
-        let w = h.handle_join(&j, 0).unwrap();
-        assert_eq!(w.session.scene_hash, "cafe");
-        assert_eq!(
-            reason(&mut h, join("b")),
-            RefusalReason::WrongScene {
-                expected: "cafe".into()
-            }
-        );
-    }
-
-    #[test]
-    fn id_allocation_wraps_and_skips_used() {
-        let mut h = JoinHandshake::new(SessionConfig {
-            max_sites: 10,
-            ..cfg()
-        });
-        h.next_id = u16::MAX;
-        let a = h.handle_join(&join("a"), 0).unwrap().site;
-        let b = h.handle_join(&join("b"), 0).unwrap().site;
-        assert_eq!((a, b), (u16::MAX, 1));
-    }
-}
+mod tests;

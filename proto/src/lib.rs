@@ -9,6 +9,7 @@
 //!   length-prefixed stream frames, datagram budget checks;
 //! * [`quant`] — quantised node states with a stated, tested error bound;
 //! * [`join`] — [`JoinHandshake`]: validate a join against the [`SessionConfig`];
+//! * [`invite`] — invitations: [`InviteKey`] signs and verifies `csi1.…` credentials;
 //! * [`ownership`] — [`OwnershipArbiter`]: region ownership, instructor first, then earlier claim;
 //! * [`baseline`] — [`BaselineTracker`]: which keyframes each receiver acknowledged;
 //! * [`clock`] — [`ClockFilter`]: NTP-style offset/RTT with minimum-delay window and slewing;
@@ -20,10 +21,12 @@
 //! | session-control bidi stream (opened by the site), frames | Join, Welcome, Refusal, KeyframeAck, Ownership*, Teaching, Command, Leave, Status, SiteJoined (and TreeDelta too big for a datagram) |
 //! | datagrams (≤ 1100 B) | ClockPing/Pong, SimTime, ToolPose, TreeDelta, Heartbeat |
 //! | one uni stream per message, one frame | Keyframe, Snapshot |
+//! | control stream of an admin connection (not a site): one request, one answer | Admin → Invitation or Refusal |
 
 pub mod baseline;
 pub mod clock;
 pub mod codec;
+pub mod invite;
 pub mod join;
 pub mod liveness;
 pub mod msg;
@@ -31,7 +34,10 @@ pub mod ownership;
 pub mod quant;
 
 /// Protocol version carried in [`msg::Join`]; its low byte is the wire tag of every message.
-pub const PROTOCOL_VERSION: u16 = 1;
+///
+/// Version 2: `Join` carries a [`msg::Credential`] (instructor token or invitation) instead of
+/// one shared token; refusals for invitations and rate limiting; admin requests.
+pub const PROTOCOL_VERSION: u16 = 2;
 
 /// A keyframe stream is reset in favour of a newer keyframe of the same region only after
 /// it has been in flight this long. Resetting younger streams starves paths whose round
@@ -61,6 +67,12 @@ pub mod close_code {
     pub const OVERLOADED: u32 = 11;
     /// The peer stopped sending heartbeats (after having sent some).
     pub const TIMED_OUT: u32 = 12;
+    pub const INVALID_INVITATION: u32 = 13;
+    pub const INVITATION_EXPIRED: u32 = 14;
+    pub const INVITATION_REVOKED: u32 = 15;
+    pub const WRONG_ROLE: u32 = 16;
+    pub const WRONG_SITE: u32 = 17;
+    pub const RATE_LIMITED: u32 = 18;
 }
 
 /// QUIC stream error codes (`SendStream::reset`, `RecvStream::stop`).
@@ -79,6 +91,7 @@ pub use codec::{
     DEFAULT_DATAGRAM_BUDGET, DEFAULT_MAX_FRAME, DatagramTooLarge, DecodeError, FrameDecoder,
     FrameError, decode, encode, encode_datagram, encode_frame,
 };
+pub use invite::{InvitationClaims, InviteError, InviteKey, Nonce};
 pub use join::{JoinHandshake, SessionConfig};
 pub use liveness::{LivenessEvent, PeerLiveness};
 pub use msg::*;

@@ -77,8 +77,28 @@ pub struct Join {
     pub site_name: String,
     /// Session name the site wants to join.
     pub session: String,
-    /// Shared session secret.
-    pub token: String,
+    /// What admits the site: the instructor's token or an invitation.
+    pub credential: Credential,
+}
+
+/// A site's credential in [`Join`].
+#[derive(Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Credential {
+    /// The session's instructor secret (`cosurg-server --token`); admits the instructor role
+    /// only.
+    Token(String),
+    /// An invitation (`csi1.…`, see [`crate::invite`]) for a trainee or observer.
+    Invitation(String),
+}
+
+impl std::fmt::Debug for Credential {
+    /// Never prints the secret (logs show `Join`s).
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Credential::Token(_) => f.write_str("Token(…)"),
+            Credential::Invitation(_) => f.write_str("Invitation(…)"),
+        }
+    }
 }
 
 /// Description of the session a site joined.
@@ -117,13 +137,32 @@ pub struct Welcome {
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub enum RefusalReason {
     WrongToken,
-    WrongVersion { server: u16, client: u16 },
-    WrongScene { expected: String },
+    WrongVersion {
+        server: u16,
+        client: u16,
+    },
+    WrongScene {
+        expected: String,
+    },
     WrongSession,
     NameTaken,
     Full,
     Kicked,
     Malformed,
+    /// The invitation does not verify (garbage, altered, forged or minted by another
+    /// coordinator).
+    InvalidInvitation,
+    InvitationExpired,
+    InvitationRevoked,
+    /// The credential does not admit the requested role (the instructor token admits the
+    /// instructor only; an invitation its own role only).
+    WrongRole,
+    /// The invitation is bound to another site name.
+    WrongSite,
+    /// Too many failed joins from this address; retry after the given time.
+    RateLimited {
+        retry_after_ms: u64,
+    },
 }
 
 impl RefusalReason {
@@ -140,6 +179,12 @@ impl RefusalReason {
             RefusalReason::Full => FULL,
             RefusalReason::Kicked => KICKED,
             RefusalReason::Malformed => MALFORMED,
+            RefusalReason::InvalidInvitation => INVALID_INVITATION,
+            RefusalReason::InvitationExpired => INVITATION_EXPIRED,
+            RefusalReason::InvitationRevoked => INVITATION_REVOKED,
+            RefusalReason::WrongRole => WRONG_ROLE,
+            RefusalReason::WrongSite => WRONG_SITE,
+            RefusalReason::RateLimited { .. } => RATE_LIMITED,
         }
     }
 }
@@ -378,7 +423,44 @@ pub struct Status {
     pub sites: Vec<SiteStatus>,
 }
 
-/// Every message of protocol version 1. Append new variants at the end only.
+/// An administrative request on a connection of its own (not a site): the first and only
+/// message the client sends on its control stream; the coordinator answers with
+/// [`Message::Invitation`] or a [`Refusal`] and closes. Authenticated by the instructor
+/// token; nothing of the session (site table, relaying) sees the connection.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AdminRequest {
+    pub protocol_version: u16,
+    pub session: String,
+    pub credential: Credential,
+    pub action: AdminAction,
+}
+
+/// What an [`AdminRequest`] asks for.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub enum AdminAction {
+    /// Mint an invitation for `role` (trainee or observer), optionally bound to one site
+    /// name, valid for `valid_for_s` seconds.
+    MintInvitation {
+        role: Role,
+        site: Option<String>,
+        valid_for_s: u64,
+    },
+}
+
+/// A minted invitation (answer to [`AdminAction::MintInvitation`]).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct InvitationIssued {
+    /// The invitation (`csi1.…`), to hand to the site.
+    pub invitation: String,
+    pub role: Role,
+    pub site: Option<String>,
+    /// Expiry, Unix time (s).
+    pub expires_unix_s: u64,
+    /// The nonce as hex (what `cosurg-server revoke` accepts).
+    pub nonce_hex: String,
+}
+
+/// Every message of protocol version 2. Append new variants at the end only.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum Message {
     Join(Join),
@@ -403,6 +485,10 @@ pub enum Message {
     Status(Status),
     /// A site joined (coordinator → others, control stream).
     SiteJoined(SiteEntry),
+    /// Administrative request (first message of an admin connection).
+    Admin(AdminRequest),
+    /// Answer to an [`AdminRequest`] minting an invitation.
+    Invitation(InvitationIssued),
 }
 
 /// Which transport a message normally travels on.
@@ -441,6 +527,8 @@ impl Message {
             Message::Heartbeat(_) => "heartbeat",
             Message::Status(_) => "status",
             Message::SiteJoined(_) => "site-joined",
+            Message::Admin(_) => "admin",
+            Message::Invitation(_) => "invitation",
         }
     }
 

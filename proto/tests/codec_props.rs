@@ -39,6 +39,12 @@ fn reason() -> impl Strategy<Value = RefusalReason> {
         Just(RefusalReason::Full),
         Just(RefusalReason::Kicked),
         Just(RefusalReason::Malformed),
+        Just(RefusalReason::InvalidInvitation),
+        Just(RefusalReason::InvitationExpired),
+        Just(RefusalReason::InvitationRevoked),
+        Just(RefusalReason::WrongRole),
+        Just(RefusalReason::WrongSite),
+        any::<u64>().prop_map(|retry_after_ms| RefusalReason::RateLimited { retry_after_ms }),
     ]
 }
 fn nodes() -> impl Strategy<Value = QuantisedNodes> {
@@ -103,16 +109,47 @@ fn command() -> impl Strategy<Value = Command> {
 
 fn message() -> impl Strategy<Value = Message> {
     prop_oneof![
-        (any::<u16>(), s(), role(), s(), s(), s()).prop_map(|(v, h, role, n, sess, tok)| {
-            Message::Join(Join {
-                protocol_version: v,
-                scene_hash: h,
-                role,
-                site_name: n,
-                session: sess,
-                token: tok,
-            })
-        }),
+        (any::<u16>(), s(), role(), s(), s(), s(), any::<bool>()).prop_map(
+            |(v, h, role, n, sess, tok, invited)| {
+                Message::Join(Join {
+                    protocol_version: v,
+                    scene_hash: h,
+                    role,
+                    site_name: n,
+                    session: sess,
+                    credential: if invited {
+                        Credential::Invitation(tok)
+                    } else {
+                        Credential::Token(tok)
+                    },
+                })
+            }
+        ),
+        (s(), role(), proptest::option::of(s()), any::<u64>(), s()).prop_map(
+            |(sess, role, site, valid_for_s, tok)| {
+                Message::Admin(AdminRequest {
+                    protocol_version: PROTOCOL_VERSION,
+                    session: sess,
+                    credential: Credential::Token(tok),
+                    action: AdminAction::MintInvitation {
+                        role,
+                        site,
+                        valid_for_s,
+                    },
+                })
+            }
+        ),
+        (s(), role(), proptest::option::of(s()), any::<u64>(), s()).prop_map(
+            |(invitation, role, site, expires_unix_s, nonce_hex)| {
+                Message::Invitation(InvitationIssued {
+                    invitation,
+                    role,
+                    site,
+                    expires_unix_s,
+                    nonce_hex,
+                })
+            }
+        ),
         (
             any::<u16>(),
             s(),

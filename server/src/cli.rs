@@ -4,23 +4,98 @@
 //! cosurg-server --listen 0.0.0.0:4433 --session lap-chole --token s3cret \
 //!     [--cert cert.pem --key key.pem] [--scene-hash HEX] [--state-dir DIR] \
 //!     [--max-sites N] [--status-interval S] [--seconds S]
+//! cosurg-server invite --role trainee|observer [--site NAME] [--expires DURATION] \
+//!     [--session NAME] [--state-dir DIR]
+//! cosurg-server revoke INVITATION|NONCE [--state-dir DIR]
 //! ```
-//! Without `--cert/--key` a self-signed certificate is created in the state directory on
-//! first start and reused afterwards (default state directory: `$XDG_DATA_HOME/cosurg`, else
-//! `~/.local/share/cosurg`, else `./.cosurg`). The certificate's SHA-256 fingerprint is
-//! printed on standard output (`fingerprint: AB:CD:…`) for sites to pin.
+//! The token is the instructor's secret and admits the instructor role only; trainees and
+//! observers join with invitations signed by the key in the state directory (default:
+//! `$XDG_DATA_HOME/cosurg`, else `~/.local/share/cosurg`, else `./.cosurg`), which also holds
+//! the self-signed certificate (created on first start when no `--cert/--key` is given, so
+//! the fingerprint survives restarts) and the revocation list (see [`crate::state`]). The
+//! certificate's SHA-256 fingerprint is printed on standard output (`fingerprint: AB:CD:…`)
+//! for sites to pin.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::Context;
-use clap::Parser;
+use clap::{Parser, Subcommand};
+use proto::Role;
 
 use crate::coordinator::{Coordinator, CoordinatorConfig};
+use crate::state::StateDir;
 use crate::tls::{self, Identity};
 
 /// The cosurg coordinator: relays simulation clocks and state between sites over QUIC.
+/// Without a subcommand it serves a session.
+#[derive(Debug, Parser)]
+#[command(
+    name = "cosurg-server",
+    version,
+    args_conflicts_with_subcommands = true,
+    subcommand_negates_reqs = true
+)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Option<Sub>,
+    #[command(flatten)]
+    pub serve: Args,
+}
+
+/// Subcommands working on the state directory (run them on the coordinator's host).
+#[derive(Debug, Subcommand)]
+pub enum Sub {
+    /// Mint an invitation for a trainee or observer; prints it as one line.
+    Invite(InviteArgs),
+    /// Revoke an invitation (also takes effect on a running coordinator within a second).
+    Revoke(RevokeArgs),
+}
+
+/// `cosurg-server invite`.
+#[derive(Debug, clap::Args)]
+pub struct InviteArgs {
+    /// Role the invitation admits: trainee or observer.
+    #[arg(long, value_parser = parse_invite_role)]
+    pub role: Role,
+    /// Admit only a site of this name.
+    #[arg(long)]
+    pub site: Option<String>,
+    /// Lifetime, e.g. 90m, 12h, 7d.
+    #[arg(long, default_value = "24h", value_parser = humantime::parse_duration)]
+    pub expires: Duration,
+    /// Session the invitation is for (default: the session the coordinator with this state
+    /// directory serves or last served).
+    #[arg(long)]
+    pub session: Option<String>,
+    /// State directory holding the invitation key.
+    #[arg(long)]
+    pub state_dir: Option<PathBuf>,
+}
+
+/// `cosurg-server revoke`.
+#[derive(Debug, clap::Args)]
+pub struct RevokeArgs {
+    /// The invitation (csi1.…) or its nonce (32 hex digits, printed when it was minted).
+    pub invitation: String,
+    /// State directory holding the revocation list.
+    #[arg(long)]
+    pub state_dir: Option<PathBuf>,
+}
+
+/// Role of an invitation: trainee or observer.
+pub fn parse_invite_role(s: &str) -> Result<Role, String> {
+    match s.parse::<Role>()? {
+        Role::Instructor => Err(
+            "the instructor joins with the session token; invitations are for trainee or observer"
+                .into(),
+        ),
+        r => Ok(r),
+    }
+}
+
+/// Serving a session.
 #[derive(Debug, Parser)]
 #[command(name = "cosurg-server", version)]
 pub struct Args {
@@ -28,11 +103,12 @@ pub struct Args {
     #[arg(long, default_value = "0.0.0.0:4433")]
     pub listen: SocketAddr,
     /// Session name sites must give.
-    #[arg(long)]
-    pub session: String,
-    /// Session token (shared secret). Also read from $COSURG_TOKEN.
-    #[arg(long, env = "COSURG_TOKEN", hide_env_values = true)]
-    pub token: String,
+    #[arg(long, required = true)]
+    pub session: Option<String>,
+    /// The instructor's secret: admits the instructor role only (trainees and observers
+    /// join with invitations). Also read from $COSURG_TOKEN.
+    #[arg(long, env = "COSURG_TOKEN", hide_env_values = true, required = true)]
+    pub token: Option<String>,
     /// Certificate chain (PEM). Requires --key.
     #[arg(long, requires = "key")]
     pub cert: Option<PathBuf>,
@@ -42,7 +118,7 @@ pub struct Args {
     /// Required scene hash (hex SHA-256). Default: the first site to join fixes it.
     #[arg(long)]
     pub scene_hash: Option<String>,
-    /// Directory for the persisted self-signed certificate.
+    /// State directory: self-signed certificate, invitation key, revocation list.
     #[arg(long)]
     pub state_dir: Option<PathBuf>,
     /// Maximum number of sites (all roles).
@@ -58,13 +134,16 @@ pub struct Args {
 
 /// Run the coordinator with the given arguments until Ctrl-C or `--seconds`.
 pub async fn run(args: Args) -> anyhow::Result<()> {
+    let name = args.session.clone().context("--session is required")?;
+    let token = args.token.clone().context("--token is required")?;
+    let dir = args
+        .state_dir
+        .clone()
+        .unwrap_or_else(tls::default_state_dir);
+    let state = StateDir::new(&dir);
     let identity = match (&args.cert, &args.key) {
         (Some(c), Some(k)) => Identity::load(c, k).context("loading --cert/--key")?,
         _ => {
-            let dir = args
-                .state_dir
-                .clone()
-                .unwrap_or_else(tls::default_state_dir);
             let (id, created) = Identity::load_or_create(&dir)
                 .with_context(|| format!("certificate in state dir {}", dir.display()))?;
             if created {
@@ -78,17 +157,30 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
             id
         }
     };
-    let mut session = proto::SessionConfig::new(args.session.clone(), args.token.clone());
+    let (invite_key, created) = state
+        .invite_key()
+        .context("invitation key in the state directory")?;
+    println!(
+        "{} invitation key {}",
+        if created { "created" } else { "using" },
+        dir.join(crate::state::INVITE_KEY_FILE).display()
+    );
+    state
+        .record_session(&name)
+        .context("recording the session name")?;
+    let mut session = proto::SessionConfig::new(name.clone(), token);
+    session.invite_key = Some(invite_key);
     session.scene_hash = args.scene_hash.as_ref().map(|h| h.to_ascii_lowercase());
     session.max_sites = args.max_sites;
     let mut config = CoordinatorConfig::new(session, identity);
     config.listen = args.listen;
+    config.state_dir = Some(dir.clone());
     config.status_interval =
         (args.status_interval > 0.0).then(|| Duration::from_secs_f64(args.status_interval));
     let (handle, addr) = Coordinator::bind(config)?;
     println!("listening: {addr}");
     println!("fingerprint: {}", handle.fingerprint());
-    println!("session: {}", args.session);
+    println!("session: {name}");
     let stop = async {
         match args.seconds {
             Some(s) => tokio::time::sleep(Duration::from_secs_f64(s.max(0.0))).await,
@@ -108,7 +200,13 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
 /// Entry point of the `cosurg-server` binary: parse arguments, set up logging
 /// (`RUST_LOG`, default `info`), run.
 pub fn main() -> anyhow::Result<()> {
-    let args = Args::parse();
+    let cli = Cli::parse();
+    match cli.command {
+        Some(Sub::Invite(a)) => return invite(a),
+        Some(Sub::Revoke(a)) => return revoke(a),
+        None => {}
+    }
+    let args = cli.serve;
     let _ = tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
@@ -122,6 +220,65 @@ pub fn main() -> anyhow::Result<()> {
         .build()
         .context("starting the tokio runtime")?;
     rt.block_on(run(args))
+}
+
+/// `cosurg-server invite`: mint with the state directory's key and print the invitation
+/// (one line on stdout; what it grants on stderr).
+pub fn invite(a: InviteArgs) -> anyhow::Result<()> {
+    let dir = a.state_dir.unwrap_or_else(tls::default_state_dir);
+    let state = StateDir::new(&dir);
+    let session = match a.session.or_else(|| state.session()) {
+        Some(s) => s,
+        None => anyhow::bail!(
+            "no session recorded in {}; give --session NAME",
+            dir.display()
+        ),
+    };
+    let (key, created) = state.invite_key()?;
+    if created {
+        eprintln!(
+            "created invitation key {}",
+            dir.join(crate::state::INVITE_KEY_FILE).display()
+        );
+    }
+    let issued = crate::state::mint(
+        &key,
+        &session,
+        a.role,
+        a.site.as_deref(),
+        a.expires.as_secs(),
+        crate::state::unix_now_s(),
+    )?;
+    eprintln!("{}", describe(&session, &issued));
+    println!("{}", issued.invitation);
+    Ok(())
+}
+
+/// One line saying what an invitation grants.
+pub fn describe(session: &str, i: &proto::InvitationIssued) -> String {
+    let expires = std::time::UNIX_EPOCH + Duration::from_secs(i.expires_unix_s);
+    format!(
+        "{} invitation for session {session:?}{}, expires {}, nonce {}",
+        i.role,
+        i.site
+            .as_ref()
+            .map(|s| format!(", site {s:?} only"))
+            .unwrap_or_default(),
+        humantime::format_rfc3339_seconds(expires),
+        i.nonce_hex
+    )
+}
+
+/// `cosurg-server revoke`.
+pub fn revoke(a: RevokeArgs) -> anyhow::Result<()> {
+    let dir = a.state_dir.unwrap_or_else(tls::default_state_dir);
+    let nonce = StateDir::new(&dir).revoke(&a.invitation)?;
+    println!(
+        "revoked {} (in {})",
+        proto::invite::hex(&nonce),
+        dir.join(crate::state::REVOKED_FILE).display()
+    );
+    Ok(())
 }
 
 #[cfg(test)]

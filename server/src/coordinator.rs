@@ -28,6 +28,7 @@
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -42,6 +43,8 @@ use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinSet;
 use tracing::{debug, info, warn};
 
+use crate::admission::Admission;
+use crate::ratelimit::RateLimitConfig;
 use crate::session::{Action, DatagramVerdict, Session, Target};
 use crate::tls::{Identity, TlsError};
 
@@ -79,6 +82,10 @@ pub struct CoordinatorConfig {
     pub join_timeout: Duration,
     /// Maximum frame size on streams (bytes).
     pub max_frame: usize,
+    /// State directory whose revocation list is watched (`None`: no revocations).
+    pub state_dir: Option<PathBuf>,
+    /// Failed joins per source address.
+    pub rate_limit: RateLimitConfig,
 }
 
 impl CoordinatorConfig {
@@ -91,6 +98,8 @@ impl CoordinatorConfig {
             status_interval: Some(Duration::from_secs(5)),
             join_timeout: Duration::from_secs(10),
             max_frame: proto::DEFAULT_MAX_FRAME,
+            state_dir: None,
+            rate_limit: RateLimitConfig::default(),
         }
     }
 
@@ -254,6 +263,7 @@ struct Shared {
     counters: Counters,
     max_frame: usize,
     join_timeout: Duration,
+    admission: Admission,
 }
 
 impl Shared {
@@ -350,7 +360,12 @@ impl Coordinator {
             counters: Counters::default(),
             max_frame: config.max_frame,
             join_timeout: config.join_timeout,
+            admission: Admission::new(
+                config.rate_limit,
+                config.state_dir.clone().map(crate::state::StateDir::new),
+            ),
         });
+        apply_revocations(&shared);
         let mut tasks = JoinSet::new();
         tasks.spawn(accept_loop(shared.clone(), endpoint.clone()));
         tasks.spawn(housekeeping(
@@ -433,6 +448,7 @@ async fn housekeeping(shared: Arc<Shared>, interval: Duration) {
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         tick.tick().await;
+        apply_revocations(&shared);
         let now = shared.clock.now_us();
         let mut st = shared.lock();
         let st = &mut *st;
@@ -452,6 +468,51 @@ async fn housekeeping(shared: Arc<Shared>, interval: Duration) {
             }
         }
         shared.execute(st, actions);
+    }
+}
+
+/// Load the state directory's revocation list if it changed; members admitted by a revoked
+/// invitation are removed.
+fn apply_revocations(shared: &Shared) {
+    if let Some(revoked) = shared.admission.poll_revocations() {
+        let mut st = shared.lock();
+        let st = &mut *st;
+        let actions = st.session.set_revoked(revoked);
+        for a in &actions {
+            if let Action::Close { site, .. } = a {
+                warn!(site, "site removed: its invitation was revoked");
+            }
+        }
+        shared.execute(st, actions);
+    }
+}
+
+/// Answer an administrative connection (see [`crate::admin`]): one request, one answer,
+/// closed. It never becomes a site.
+async fn handle_admin(
+    shared: &Shared,
+    conn: &Connection,
+    send: &mut SendStream,
+    remote: SocketAddr,
+    req: proto::AdminRequest,
+) {
+    let now = shared.clock.now_us();
+    let answer = crate::admission::answer_admin(&shared.lock().session, &req, now);
+    match answer {
+        Ok(issued) => {
+            info!(%remote, role = %issued.role, site = ?issued.site, nonce = %issued.nonce_hex, expires_unix_s = issued.expires_unix_s, "invitation minted by the instructor");
+            let frame = proto::encode_frame(&Message::Invitation(issued));
+            if send.write_all(&frame).await.is_ok() && send.finish().is_ok() {
+                let _ = tokio::time::timeout(Duration::from_secs(2), send.stopped()).await;
+            }
+            conn.close(VarInt::from_u32(close_code::NORMAL), b"done");
+        }
+        Err(refusal) => {
+            inc(&shared.counters.refused);
+            info!(%remote, reason = ?refusal.reason, "admin request refused");
+            shared.admission.record(remote.ip(), &refusal, now);
+            refuse(conn, Some(send), refusal).await;
+        }
     }
 }
 
@@ -581,35 +642,63 @@ async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
     };
     let mut dec = FrameDecoder::new(shared.max_frame.min(64 * 1024));
     let first = tokio::time::timeout_at(deadline, read_one(&mut recv, &mut dec)).await;
+    let now = shared.clock.now_us();
+    if let Ok(Ok(_)) = &first
+        && let Some(refusal) = shared.admission.blocked(remote.ip(), now)
+    {
+        inc(&shared.counters.refused);
+        debug!(%remote, "join from a blocked address refused");
+        refuse(&conn, Some(&mut send), refusal).await;
+        return;
+    }
     let join = match first {
         Ok(Ok(Message::Join(j))) => j,
+        Ok(Ok(Message::Admin(req))) => {
+            handle_admin(&shared, &conn, &mut send, remote, req).await;
+            return;
+        }
         Ok(Ok(other)) => {
             inc(&shared.counters.refused);
             warn!(%remote, kind = other.kind(), "first control message is not a Join");
-            refuse(
-                &conn,
-                Some(&mut send),
-                proto::Refusal {
-                    reason: proto::RefusalReason::Malformed,
-                    text: format!("expected Join, got {}", other.kind()),
-                },
-            )
-            .await;
+            let refusal = proto::Refusal {
+                reason: proto::RefusalReason::Malformed,
+                text: format!("expected Join, got {}", other.kind()),
+            };
+            shared.admission.record(remote.ip(), &refusal, now);
+            refuse(&conn, Some(&mut send), refusal).await;
             return;
         }
         Ok(Err(e)) => {
             inc(&shared.counters.refused);
-            inc(&shared.counters.malformed_control);
-            warn!(%remote, error = %e, "bad Join");
-            refuse(
-                &conn,
-                Some(&mut send),
-                proto::Refusal {
-                    reason: proto::RefusalReason::Malformed,
-                    text: format!("bad Join: {e}"),
+            let refusal = match e {
+                // A peer of another protocol version: its messages carry another wire tag.
+                FirstMessageError::Frame(FrameError::Decode(
+                    proto::DecodeError::UnknownVersion { got },
+                )) => proto::Refusal {
+                    reason: proto::RefusalReason::WrongVersion {
+                        server: proto::PROTOCOL_VERSION,
+                        client: got.into(),
+                    },
+                    text: format!(
+                        "protocol version {got} not supported; the coordinator speaks {}",
+                        proto::PROTOCOL_VERSION
+                    ),
                 },
-            )
-            .await;
+                e => {
+                    inc(&shared.counters.malformed_control);
+                    warn!(%remote, error = %e, "bad Join");
+                    proto::Refusal {
+                        reason: proto::RefusalReason::Malformed,
+                        text: format!("bad Join: {e}"),
+                    }
+                }
+            };
+            if let Some(blocked) = shared.admission.blocked(remote.ip(), now) {
+                refuse(&conn, Some(&mut send), blocked).await;
+                return;
+            }
+            shared.admission.record(remote.ip(), &refusal, now);
+            refuse(&conn, Some(&mut send), refusal).await;
             return;
         }
         Err(_) => {
@@ -624,7 +713,6 @@ async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
     // after the Join stay buffered in `dec`.
     dec.set_max_frame(shared.max_frame);
 
-    let now = shared.clock.now_us();
     let (tx, rx) = mpsc::channel(CONTROL_QUEUE);
     let joined = {
         let mut st = shared.lock();
@@ -655,6 +743,7 @@ async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
         Err(refusal) => {
             inc(&shared.counters.refused);
             info!(%remote, site = %join.site_name, reason = ?refusal.reason, "join refused");
+            shared.admission.record(remote.ip(), &refusal, now);
             refuse(&conn, Some(&mut send), refusal).await;
             return;
         }
@@ -705,13 +794,25 @@ async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
     info!(site, %reason, "site left");
 }
 
+/// Why the first message of a connection could not be read.
+#[derive(Debug, thiserror::Error)]
+enum FirstMessageError {
+    #[error(transparent)]
+    Frame(FrameError),
+    #[error("{0}")]
+    Stream(String),
+}
+
 /// Read exactly one message from a stream (used for the Join).
-async fn read_one(recv: &mut RecvStream, dec: &mut FrameDecoder) -> Result<Message, String> {
+async fn read_one(
+    recv: &mut RecvStream,
+    dec: &mut FrameDecoder,
+) -> Result<Message, FirstMessageError> {
     loop {
         match dec.next_message() {
             Ok(Some(m)) => return Ok(m),
             Ok(None) => {}
-            Err(e) => return Err(e.to_string()),
+            Err(e) => return Err(FirstMessageError::Frame(e)),
         }
         match recv
             .read_chunk(dec.wanted().clamp(1, 64 * 1024), true)
@@ -719,12 +820,12 @@ async fn read_one(recv: &mut RecvStream, dec: &mut FrameDecoder) -> Result<Messa
         {
             Ok(Some(c)) => dec.push(&c.bytes),
             Ok(None) => {
-                return Err(dec
-                    .finish()
-                    .err()
-                    .map_or("control stream ended before Join".into(), |e| e.to_string()));
+                return Err(dec.finish().err().map_or(
+                    FirstMessageError::Stream("control stream ended before Join".into()),
+                    FirstMessageError::Frame,
+                ));
             }
-            Err(e) => return Err(e.to_string()),
+            Err(e) => return Err(FirstMessageError::Stream(e.to_string())),
         }
     }
 }

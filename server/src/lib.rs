@@ -3,13 +3,20 @@
 //!
 //! * [`session`] — the session logic, sans IO (joins, roles, relay decisions, ownership);
 //! * [`coordinator`] — the async shell: [`Coordinator::bind`] → ([`CoordinatorHandle`], address);
+//! * [`state`] — the state directory: invitation key, revocations ([`state::mint`]);
+//! * [`ratelimit`] — failed joins per source address;
+//! * [`admin`] — `cosurg invite`: mint an invitation through a running coordinator;
 //! * [`tls`] — certificates, fingerprints, QUIC/TLS configs for both sides
 //!   ([`tls::client_config_pinned`], [`tls::client_config_ca`]);
 //! * [`cli`] — the `cosurg-server` command line ([`cli::main`]); the binary is `src/main.rs`.
 
+pub mod admin;
+pub mod admission;
 pub mod cli;
 pub mod coordinator;
+pub mod ratelimit;
 pub mod session;
+pub mod state;
 pub mod tls;
 
 pub use coordinator::{

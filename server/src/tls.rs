@@ -185,6 +185,11 @@ impl Identity {
 }
 
 fn write_private(path: &Path, data: &[u8]) -> Result<(), TlsError> {
+    write_private_file(path, data).map_err(io_err(path))
+}
+
+/// Write a secret file, readable by its owner only (mode 0600 on Unix).
+pub fn write_private_file(path: &Path, data: &[u8]) -> std::io::Result<()> {
     use std::io::Write;
     let mut opts = std::fs::OpenOptions::new();
     opts.write(true).create(true).truncate(true);
@@ -193,8 +198,7 @@ fn write_private(path: &Path, data: &[u8]) -> Result<(), TlsError> {
         use std::os::unix::fs::OpenOptionsExt;
         opts.mode(0o600);
     }
-    let mut f = opts.open(path).map_err(io_err(path))?;
-    f.write_all(data).map_err(io_err(path))
+    opts.open(path)?.write_all(data)
 }
 
 /// This machine's host name, if it can be found (`/proc/sys/kernel/hostname`,

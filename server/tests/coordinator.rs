@@ -35,6 +35,7 @@ fn start_with(f: impl FnOnce(&mut CoordinatorConfig)) -> Fixture {
         scene_hash: Some(SCENE.into()),
         max_sites: 8,
         heartbeat_interval_us: 200_000,
+        invite_key: Some(invite_key()),
         ..SessionConfig::new("lap-chole", "s3cret")
     };
     let mut cfg = CoordinatorConfig::ephemeral(session).unwrap();
@@ -54,8 +55,28 @@ fn start() -> Fixture {
     start_with(|_| {})
 }
 
+fn invite_key() -> InviteKey {
+    InviteKey::from_bytes([42; 32])
+}
+
+/// The instructor's token, or an invitation for the other roles.
+fn credential(role: Role) -> Credential {
+    match role {
+        Role::Instructor => Credential::Token("s3cret".into()),
+        role => Credential::Invitation(
+            cosurg_server::state::mint(&invite_key(), "lap-chole", role, None, 3600, now_s())
+                .unwrap()
+                .invitation,
+        ),
+    }
+}
+
+fn now_s() -> u64 {
+    cosurg_server::state::unix_now_s()
+}
+
 fn join_msg(name: &str, role: Role) -> Join {
-    link::join_message(name, role, "lap-chole", "s3cret", SCENE)
+    link::join_message(name, role, "lap-chole", credential(role), SCENE)
 }
 
 impl Fixture {
@@ -187,8 +208,8 @@ async fn wrong_token_version_scene_session_are_refused() {
         let cases: Vec<(Join, RefusalReason, u32)> = vec![
             (
                 Join {
-                    token: "nope".into(),
-                    ..join_msg("a", Role::Trainee)
+                    credential: Credential::Token("nope".into()),
+                    ..join_msg("a", Role::Instructor)
                 },
                 RefusalReason::WrongToken,
                 close_code::WRONG_TOKEN,
@@ -241,8 +262,8 @@ async fn wrong_token_version_scene_session_are_refused() {
             f.addr,
             "localhost",
             &Join {
-                token: "x".into(),
-                ..join_msg("a", Role::Trainee)
+                credential: Credential::Token("x".into()),
+                ..join_msg("a", Role::Instructor)
             },
         )
         .await
@@ -319,6 +340,7 @@ async fn ca_validation_with_persisted_certificate() {
         let (id, _) = tls::Identity::load_or_create(dir.path()).unwrap();
         let session = SessionConfig {
             scene_hash: Some(SCENE.into()),
+            invite_key: Some(invite_key()),
             ..SessionConfig::new("lap-chole", "s3cret")
         };
         let (handle, addr) = Coordinator::bind(CoordinatorConfig::new(session, id)).unwrap();

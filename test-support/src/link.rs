@@ -7,7 +7,8 @@
 //! use server::tls;
 //! let cfg = tls::client_config_pinned("AB:CD:...")?;
 //! let endpoint = link::client_endpoint(cfg)?;
-//! let join = link::join_message("kyoto", proto::Role::Trainee, "lap-chole", "s3cret", "<scene sha-256>");
+//! let invitation = proto::Credential::Invitation("csi1.…".into());
+//! let join = link::join_message("kyoto", proto::Role::Trainee, "lap-chole", invitation, "<scene sha-256>");
 //! let mut site = link::connect_and_join(&endpoint, "127.0.0.1:4433".parse()?, "localhost", &join).await?;
 //! println!("joined as site {}", site.welcome.site);
 //! // site.conn.read_datagram(), site.next_control(), site.conn.accept_uni() ...
@@ -18,7 +19,7 @@ use std::net::SocketAddr;
 use std::time::Duration;
 
 use bytes::Bytes;
-use proto::{FrameDecoder, Join, Message, Refusal, Role, Welcome};
+use proto::{Credential, FrameDecoder, Join, Message, Refusal, Role, Welcome};
 use quinn::{Connection, Endpoint, RecvStream, SendStream};
 
 /// Errors of a site link.
@@ -66,12 +67,13 @@ pub fn client_endpoint_on(
     Ok(e)
 }
 
-/// A `Join` for the current protocol version.
+/// A `Join` for the current protocol version (`credential`: the instructor token or an
+/// invitation).
 pub fn join_message(
     site_name: &str,
     role: Role,
     session: &str,
-    token: &str,
+    credential: Credential,
     scene_hash: &str,
 ) -> Join {
     Join {
@@ -80,7 +82,7 @@ pub fn join_message(
         role,
         site_name: site_name.to_string(),
         session: session.to_string(),
-        token: token.to_string(),
+        credential,
     }
 }
 

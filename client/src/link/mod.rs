@@ -116,7 +116,8 @@ pub struct LinkConfig {
     /// TLS server name (checked only with [`Trust::Ca`]).
     pub server_name: String,
     pub session: String,
-    pub token: String,
+    /// The instructor token or an invitation.
+    pub credential: proto::Credential,
     pub role: Role,
     /// Site name, unique within the session.
     pub site_name: String,
@@ -155,7 +156,7 @@ impl LinkConfig {
         server: SocketAddr,
         fingerprint: &str,
         session: &str,
-        token: &str,
+        credential: proto::Credential,
         role: Role,
         site_name: &str,
         scene_hash: &str,
@@ -164,7 +165,7 @@ impl LinkConfig {
             server,
             server_name: "localhost".into(),
             session: session.into(),
-            token: token.into(),
+            credential,
             role,
             site_name: site_name.into(),
             scene_hash: scene_hash.into(),
@@ -189,7 +190,7 @@ impl LinkConfig {
             role: self.role,
             site_name: self.site_name.clone(),
             session: self.session.clone(),
-            token: self.token.clone(),
+            credential: self.credential.clone(),
         }
     }
 }

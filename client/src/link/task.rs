@@ -87,6 +87,12 @@ fn refusal_from_close(code: u64, text: &str) -> Option<Refusal> {
         close_code::FULL => RefusalReason::Full,
         close_code::KICKED => RefusalReason::Kicked,
         close_code::MALFORMED => RefusalReason::Malformed,
+        close_code::INVALID_INVITATION => RefusalReason::InvalidInvitation,
+        close_code::INVITATION_EXPIRED => RefusalReason::InvitationExpired,
+        close_code::INVITATION_REVOKED => RefusalReason::InvitationRevoked,
+        close_code::WRONG_ROLE => RefusalReason::WrongRole,
+        close_code::WRONG_SITE => RefusalReason::WrongSite,
+        close_code::RATE_LIMITED => RefusalReason::RateLimited { retry_after_ms: 0 },
         _ => return None,
     };
     Some(Refusal {
