@@ -11,6 +11,7 @@ pub mod link;
 pub mod output;
 pub mod plot;
 pub mod run;
+pub mod run_window;
 pub mod scene_arg;
 pub mod site;
 pub mod solve;
