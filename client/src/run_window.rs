@@ -96,6 +96,117 @@ impl LocalHands {
     }
 }
 
+/// One site without network whose tools follow the window's commands (or, in teaching
+/// replay, the scene's scripts).
+pub struct LocalSite {
+    scene: LoadedScene,
+    options: SimOptions,
+    /// The simulation.
+    pub sim: Simulation,
+    /// Tools and contact.
+    pub interaction: Interaction,
+    hands: LocalHands,
+    /// Teaching replay: the scripts drive the tools.
+    pub teaching: bool,
+}
+
+impl LocalSite {
+    /// A fresh site; `teaching`: start with the scripts driving the tools.
+    pub fn new(scene: LoadedScene, options: SimOptions, teaching: bool) -> Result<Self> {
+        let (sim, interaction) = new_site(&scene, &options)?;
+        Ok(LocalSite {
+            scene,
+            options,
+            sim,
+            interaction,
+            hands: LocalHands {
+                active: 0,
+                target: None,
+                jaw_closed: false,
+            },
+            teaching,
+        })
+    }
+
+    /// Name of the tool the hands drive.
+    pub fn active_tool(&self) -> String {
+        self.interaction
+            .tools
+            .tools
+            .get(self.hands.active)
+            .map(|t| t.name.clone())
+            .unwrap_or_default()
+    }
+
+    /// Applies a command from the window; returns `false` when the window closed.
+    pub fn apply(&mut self, cmd: ViewerCommand) -> Result<bool> {
+        match cmd {
+            ViewerCommand::Closed => return Ok(false),
+            ViewerCommand::Tool(ToolCommand::MoveTo(p)) => self.hands.target = Some(p),
+            ViewerCommand::Tool(ToolCommand::Jaw(closed)) => self.hands.jaw_closed = closed,
+            ViewerCommand::Tool(ToolCommand::NextTool) => {
+                let n = self.interaction.tools.tools.len().max(1);
+                self.hands.active = (self.hands.active + 1) % n;
+                self.hands.target = None;
+                self.hands.jaw_closed = false;
+            }
+            ViewerCommand::Session(SessionCommand::Reset) => {
+                (self.sim, self.interaction) = new_site(&self.scene, &self.options)?;
+                self.hands.target = None;
+                self.hands.jaw_closed = false;
+                tracing::info!("scene reset");
+            }
+            ViewerCommand::Session(SessionCommand::TeachingStart) => self.teaching = true,
+            ViewerCommand::Session(SessionCommand::TeachingStop) => {
+                self.teaching = false;
+                // the hands take over where the replay left the tool
+                self.hands.target = None;
+            }
+        }
+        Ok(true)
+    }
+
+    /// One step with the tools driven by the hands (or the scripts in teaching replay).
+    pub fn step(&mut self) -> Result<()> {
+        let inputs = if self.teaching {
+            self.interaction.scripted_inputs(&self.sim, self.sim.time())
+        } else {
+            self.hands.inputs(&self.interaction, self.options.dt)
+        };
+        self.interaction.before_step(&mut self.sim, &inputs)?;
+        self.sim.step()?;
+        Ok(())
+    }
+
+    /// The frame to publish.
+    pub fn frame(
+        &self,
+        builder: &mut FrameBuilder,
+        with_lattice: bool,
+        step_p99_ms: Option<f64>,
+    ) -> viewer::ViewFrame {
+        let name = self.active_tool();
+        let mut frame = builder.build(
+            &self.sim,
+            Some(&self.interaction),
+            with_lattice,
+            HudInfo {
+                site: "local".into(),
+                role: Role::Instructor,
+                sim_time: self.sim.time(),
+                step_p99_ms,
+                teaching: self.teaching,
+                active_tool: Some(name.clone()),
+                ..Default::default()
+            },
+        );
+        if self.teaching {
+            frame.guide = guide_path(&self.scene, &name);
+        }
+        frame
+    }
+}
+
 /// The guide path of a tool's script (sampled every 20 ms), empty without a script.
 fn guide_path(scene: &LoadedScene, tool: &str) -> Vec<Vector3<f64>> {
     let Some(script) = scene.scripts.get(tool) else {
@@ -116,40 +227,12 @@ pub fn run_with_window(
     scripted: bool,
     size: (u32, u32),
 ) -> Result<()> {
-    let (mut sim, mut interaction) = new_site(&scene, &options)?;
-    let dt = options.dt;
-    let mut builder = FrameBuilder::new(&sim)?;
-    let mut teaching = scripted;
-    let hud = |sim: &Simulation, p99: Option<f64>, teaching: bool, active: &str| HudInfo {
-        site: "local".into(),
-        role: Role::Instructor,
-        sim_time: sim.time(),
-        step_p99_ms: p99,
-        teaching,
-        active_tool: Some(active.to_string()),
-        ..Default::default()
-    };
-    let tool_name = |i: &Interaction, k: usize| {
-        i.tools
-            .tools
-            .get(k)
-            .map(|t| t.name.clone())
-            .unwrap_or_default()
-    };
-    let mut hands = LocalHands {
-        active: 0,
-        target: None,
-        jaw_closed: false,
-    };
-    let slot = ViewSlot::new(builder.build(
-        &sim,
-        Some(&interaction),
-        false,
-        hud(&sim, None, teaching, &tool_name(&interaction, 0)),
-    ));
+    let title = format!("cosurg run — {}", scene.file);
+    let mut site = LocalSite::new(scene, options, scripted)?;
+    let mut builder = FrameBuilder::new(&site.sim)?;
+    let slot = ViewSlot::new(site.frame(&mut builder, false, None));
     let (tx, rx) = mpsc::channel();
     let window_slot = slot.clone();
-    let title = format!("cosurg run — {}", scene.file);
     let render = std::thread::Builder::new()
         .name("window".into())
         .spawn(move || {
@@ -169,44 +252,21 @@ pub fn run_with_window(
     let mut recent: std::collections::VecDeque<f64> = Default::default();
     let mut last_publish = Instant::now();
     let mut wall_start = Instant::now();
-    let mut sim_start = sim.time();
+    let mut sim_start = site.sim.time();
     'outer: loop {
         for cmd in rx.try_iter() {
-            match cmd {
-                ViewerCommand::Closed => break 'outer,
-                ViewerCommand::Tool(ToolCommand::MoveTo(p)) => hands.target = Some(p),
-                ViewerCommand::Tool(ToolCommand::Jaw(closed)) => hands.jaw_closed = closed,
-                ViewerCommand::Tool(ToolCommand::NextTool) => {
-                    let n = interaction.tools.tools.len().max(1);
-                    hands.active = (hands.active + 1) % n;
-                    hands.target = None;
-                    hands.jaw_closed = false;
-                }
-                ViewerCommand::Session(SessionCommand::Reset) => {
-                    (sim, interaction) = new_site(&scene, &options)?;
-                    builder = FrameBuilder::new(&sim)?;
-                    hands.target = None;
-                    hands.jaw_closed = false;
-                    wall_start = Instant::now();
-                    sim_start = sim.time();
-                    tracing::info!("scene reset");
-                }
-                ViewerCommand::Session(SessionCommand::TeachingStart) => teaching = true,
-                ViewerCommand::Session(SessionCommand::TeachingStop) => {
-                    teaching = false;
-                    // the hands take over where the replay left the tool
-                    hands.target = None;
-                }
+            let reset = cmd == ViewerCommand::Session(SessionCommand::Reset);
+            if !site.apply(cmd)? {
+                break 'outer;
+            }
+            if reset {
+                builder = FrameBuilder::new(&site.sim)?;
+                wall_start = Instant::now();
+                sim_start = site.sim.time();
             }
         }
         let t0 = Instant::now();
-        let inputs = if teaching {
-            interaction.scripted_inputs(&sim, sim.time())
-        } else {
-            hands.inputs(&interaction, dt)
-        };
-        interaction.before_step(&mut sim, &inputs)?;
-        sim.step()?;
+        site.step()?;
         let ms = t0.elapsed().as_secs_f64() * 1e3;
         step_ms.push(ms);
         recent.push_back(ms);
@@ -216,20 +276,14 @@ pub fn run_with_window(
         if last_publish.elapsed().as_secs_f64() >= PUBLISH_PERIOD {
             last_publish = Instant::now();
             let window: Vec<f64> = recent.iter().copied().collect();
-            let name = tool_name(&interaction, hands.active);
-            let mut frame = builder.build(
-                &sim,
-                Some(&interaction),
+            slot.publish(site.frame(
+                &mut builder,
                 slot.wants_lattice(),
-                hud(&sim, Some(percentile(&window, 99.0)), teaching, &name),
-            );
-            if teaching {
-                frame.guide = guide_path(&scene, &name);
-            }
-            slot.publish(frame);
+                Some(percentile(&window, 99.0)),
+            ));
         }
         // real time: never run ahead of the wall clock
-        let ahead = (sim.time() - sim_start) - wall_start.elapsed().as_secs_f64();
+        let ahead = (site.sim.time() - sim_start) - wall_start.elapsed().as_secs_f64();
         if ahead > 0.0 {
             std::thread::sleep(Duration::from_secs_f64(ahead));
         }
@@ -241,7 +295,7 @@ pub fn run_with_window(
     }
     println!(
         "simulated {:.3} s in {} steps: step p50 {:.3} ms, p99 {:.3} ms",
-        sim.time(),
+        site.sim.time(),
         step_ms.len(),
         percentile(&step_ms, 50.0),
         percentile(&step_ms, 99.0)
@@ -260,50 +314,25 @@ pub fn run_screenshot(
     lattice: bool,
     path: &Path,
 ) -> Result<()> {
-    let (mut sim, mut interaction) = new_site(&scene, &options)?;
     let steps = (at / options.dt).round() as u64;
+    let mut site = LocalSite::new(scene, options, scripted)?;
     let mut step_ms = Vec::with_capacity(steps as usize);
     for _ in 0..steps {
         let t0 = Instant::now();
-        if scripted {
-            let inputs = interaction.scripted_inputs(&sim, sim.time());
-            interaction.before_step(&mut sim, &inputs)?;
-        }
-        sim.step()?;
+        site.step()?;
         step_ms.push(t0.elapsed().as_secs_f64() * 1e3);
     }
-    let mut builder = FrameBuilder::new(&sim)?;
-    let name = interaction
-        .tools
-        .tools
-        .first()
-        .map(|t| t.name.clone())
-        .unwrap_or_default();
-    let mut frame = builder.build(
-        &sim,
-        Some(&interaction),
-        lattice,
-        HudInfo {
-            site: "local".into(),
-            role: Role::Instructor,
-            sim_time: sim.time(),
-            step_p99_ms: (!step_ms.is_empty()).then(|| percentile(&step_ms, 99.0)),
-            teaching: scripted,
-            active_tool: Some(name.clone()),
-            ..Default::default()
-        },
-    );
-    if scripted {
-        frame.guide = guide_path(&scene, &name);
-    }
+    let mut builder = FrameBuilder::new(&site.sim)?;
+    let p99 = (!step_ms.is_empty()).then(|| percentile(&step_ms, 99.0));
+    let frame = site.frame(&mut builder, lattice, p99);
     viewer::screenshot(&frame, size, path)
-        .with_context(|| format!("screenshot at t = {:.3} s", sim.time()))?;
+        .with_context(|| format!("screenshot at t = {:.3} s", site.sim.time()))?;
     println!(
         "wrote {} ({}x{}, t = {:.3} s)",
         path.display(),
         size.0,
         size.1,
-        sim.time()
+        site.sim.time()
     );
     Ok(())
 }

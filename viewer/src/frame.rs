@@ -7,7 +7,7 @@
 //!
 //! Units: SI (m, s, N), world frame of the scene (+z up).
 
-use std::collections::HashSet;
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
@@ -447,21 +447,21 @@ pub fn tool_view(
 pub fn lattice_edges(sim: &Simulation) -> Vec<LatticeEdge> {
     let lattice = sim.lattice();
     let x = sim.positions();
-    let mut seen: HashSet<(u32, u32)> = HashSet::new();
+    // edge (lower node, higher node) → index into `edges`
+    let mut index: HashMap<(u32, u32), usize> = HashMap::new();
     let mut edges: Vec<((u32, u32), u8)> = Vec::new();
-    let mut index = std::collections::HashMap::new();
     for &t in lattice.leaves() {
         let level = lattice.tet_level(t);
         let n = lattice.tet_nodes(t);
         for i in 0..4 {
             for j in (i + 1)..4 {
-                let (a, b) = (n[i].0.min(n[j].0), n[i].0.max(n[j].0));
-                if seen.insert((a, b)) {
-                    index.insert((a, b), edges.len());
-                    edges.push(((a, b), level));
-                } else if let Some(&k) = index.get(&(a, b)) {
-                    let e: &mut ((u32, u32), u8) = &mut edges[k];
-                    e.1 = e.1.max(level);
+                let key = (n[i].0.min(n[j].0), n[i].0.max(n[j].0));
+                match index.get(&key) {
+                    Some(&k) => edges[k].1 = edges[k].1.max(level),
+                    None => {
+                        index.insert(key, edges.len());
+                        edges.push((key, level));
+                    }
                 }
             }
         }

@@ -25,4 +25,6 @@ pub use frame::{
     SessionCommand, SurfaceTopology, TissueKind, ToolCommand, ToolView, ViewFrame, ViewSlot,
     ViewerCommand,
 };
-pub use window::{Picture, ViewerError, WindowOptions, render_picture, run_window, screenshot};
+/// The graphics stack, re-exported so that callers can build input events for tests.
+pub use three_d;
+pub use window::{Hands, Picture, ViewerError, WindowOptions, render_picture, run_window, screenshot};

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use nalgebra::Vector3;
 use three_d::{
-    ColorTexture, Context, DepthTexture2D, Event, GUI, Interpolation, Key, MouseButton,
+    Context, DepthTexture2D, Event, GUI, Interpolation, Key, MouseButton,
     RenderTarget, Texture2D, Viewport, WindowedContext, Wrapping,
 };
 use winit::event::{Event as WinitEvent, WindowEvent};
@@ -391,7 +391,7 @@ pub fn render_picture(frame: &ViewFrame, size: (u32, u32)) -> Result<Picture, Vi
     .map_err(|e| ViewerError::Window(e.to_string()))?;
     let context: Context = (*gl).clone();
     let (w, h) = size;
-    let mut color = Texture2D::new_empty::<[u8; 4]>(
+    let color = Texture2D::new_empty::<[u8; 4]>(
         &context,
         w,
         h,
@@ -401,7 +401,7 @@ pub fn render_picture(frame: &ViewFrame, size: (u32, u32)) -> Result<Picture, Vi
         Wrapping::ClampToEdge,
         Wrapping::ClampToEdge,
     );
-    let mut depth =
+    let depth =
         DepthTexture2D::new::<f32>(&context, w, h, Wrapping::ClampToEdge, Wrapping::ClampToEdge);
     let viewport = Viewport::new_at_origo(w, h);
     let renderer = Renderer::new(&context);
@@ -429,7 +429,6 @@ pub fn render_picture(frame: &ViewFrame, size: (u32, u32)) -> Result<Picture, Vi
         .map_err(|e| ViewerError::Window(e.to_string()))?;
     let pixels: Vec<[u8; 4]> = target.read_color();
     drop(target);
-    let _ = (&mut color, &mut depth);
     // OpenGL rows start at the bottom
     let mut rgba = Vec::with_capacity(pixels.len() * 4);
     for row in (0..h as usize).rev() {
@@ -468,5 +467,5 @@ pub fn screenshot(frame: &ViewFrame, size: (u32, u32), path: &Path) -> Result<Pi
     Ok(picture)
 }
 
-#[allow(dead_code)]
-fn _assert_types(_: ColorTexture<'_>) {}
+#[cfg(test)]
+mod tests;
