@@ -65,10 +65,18 @@ pub fn run(args: RunArgs) -> Result<()> {
     if let Some(path) = &args.screenshot {
         let at = args.at.unwrap_or(args.seconds);
         if !(at.is_finite() && at >= 0.0) {
-            anyhow::bail!("--at {at}: the screenshot time must be a non-negative number of seconds");
+            anyhow::bail!(
+                "--at {at}: the screenshot time must be a non-negative number of seconds"
+            );
         }
         return crate::run_window::run_screenshot(
-            scene, options, args.script, at, args.size, args.lattice, path,
+            scene,
+            options,
+            args.script,
+            at,
+            args.size,
+            args.lattice,
+            path,
         );
     }
     if !args.headless {

@@ -82,7 +82,11 @@ impl LocalHands {
                         let here = tool.pose().translation.vector;
                         let d = target - here;
                         let max = HAND_SPEED * dt;
-                        let step = if d.norm() > max { d * (max / d.norm()) } else { d };
+                        let step = if d.norm() > max {
+                            d * (max / d.norm())
+                        } else {
+                            d
+                        };
                         input.pose = Isometry3::from_parts(
                             Translation3::from(here + step),
                             tool.pose().rotation,

@@ -30,7 +30,14 @@ fn start_xvfb() -> Xvfb {
             continue;
         }
         let child = match Command::new("Xvfb")
-            .args([&format!(":{n}"), "-screen", "0", "1280x720x24", "-nolisten", "tcp"])
+            .args([
+                &format!(":{n}"),
+                "-screen",
+                "0",
+                "1280x720x24",
+                "-nolisten",
+                "tcp",
+            ])
             .stdout(Stdio::null())
             .stderr(Stdio::null())
             .spawn()
@@ -80,7 +87,7 @@ fn screenshot(x: &Xvfb, dir: &Path, name: &str, extra: &[&str]) -> (u32, u32, Ve
         std::fs::File::open(&path).expect("PNG written"),
     ));
     let mut reader = decoder.read_info().expect("a PNG");
-    let mut buf = vec![0; reader.output_buffer_size().expect("size")];
+    let mut buf = vec![0; reader.output_buffer_size()];
     let info = reader.next_frame(&mut buf).expect("PNG decodes");
     assert_eq!(info.color_type, png::ColorType::Rgba);
     buf.truncate(info.buffer_size());
@@ -121,8 +128,13 @@ fn screenshot_shows_the_organ_and_the_lift_moves_the_gallbladder() {
         "gallbladder covers {:.2} % of the picture",
         gall * 100.0
     );
-    let distinct: std::collections::HashSet<_> = rgba.chunks(4).map(|p| [p[0], p[1], p[2]]).collect();
-    assert!(distinct.len() > 200, "only {} colours: not shaded", distinct.len());
+    let distinct: std::collections::HashSet<_> =
+        rgba.chunks(4).map(|p| [p[0], p[1], p[2]]).collect();
+    assert!(
+        distinct.len() > 200,
+        "only {} colours: not shaded",
+        distinct.len()
+    );
 
     // before and after the scripted grasp-and-lift (lift ends at 3 s): the
     // gallbladder's silhouette moves

@@ -83,22 +83,38 @@ fn mouse_and_keyboard_grasp_and_lift_the_gallbladder() {
     assert!((hands.tool_target.unwrap() - grasp_at).norm() < 1e-4);
     run_for(&mut site, 0.5);
     let tip = site.interaction.tools.tools[0].tip();
-    assert!((tip - grasp_at).norm() < 2e-3, "the forceps reached {tip}, not {grasp_at}");
+    assert!(
+        (tip - grasp_at).norm() < 2e-3,
+        "the forceps reached {tip}, not {grasp_at}"
+    );
 
     // 2. the jaw key closes the forceps on the fundus
-    feed(&mut site, &mut builder, &mut hands, &[Event::KeyPress {
-        kind: Key::Space,
-        modifiers: Modifiers::default(),
-        handled: false,
-    }]);
+    feed(
+        &mut site,
+        &mut builder,
+        &mut hands,
+        &[Event::KeyPress {
+            kind: Key::Space,
+            modifiers: Modifiers::default(),
+            handled: false,
+        }],
+    );
     run_for(&mut site, 0.3);
-    assert!(site.interaction.contact.is_grasping(0), "the forceps did not grasp");
+    assert!(
+        site.interaction.contact.is_grasping(0),
+        "the forceps did not grasp"
+    );
     let before = fundus(&site);
 
     // 3. drag 3 cm up the screen and hold
     let target = hands.tool_target.unwrap();
     let mpp = view.metres_per_pixel(view.depth_of(&target), HEIGHT_PX);
-    feed(&mut site, &mut builder, &mut hands, &[drag_px(0.0, -0.03 / mpp)]);
+    feed(
+        &mut site,
+        &mut builder,
+        &mut hands,
+        &[drag_px(0.0, -0.03 / mpp)],
+    );
     run_for(&mut site, 0.6);
     assert!(site.interaction.contact.is_grasping(0), "the grasp let go");
     let lifted = (fundus(&site) - before).dot(&view.image_up());

@@ -1286,8 +1286,14 @@ point = [0.4, 0.05, 0.05]
             e.starts_with("s.toml: `camera.fov_deg`: 180 is outside (1, 170) degrees"),
             "{e}"
         );
-        let e = err(&format!("{EXAMPLE}\n[camera]\nposition = [0.0, 0.0, 0.0]\n"));
-        assert!(e.contains("`camera.target`: missing field `target`") || e.contains("missing field `target`"), "{e}");
+        let e = err(&format!(
+            "{EXAMPLE}\n[camera]\nposition = [0.0, 0.0, 0.0]\n"
+        ));
+        assert!(
+            e.contains("`camera.target`: missing field `target`")
+                || e.contains("missing field `target`"),
+            "{e}"
+        );
     }
 
     fn err(text: &str) -> String {

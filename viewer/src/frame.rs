@@ -188,9 +188,11 @@ impl ViewFrame {
     /// Axis-aligned bounds of the surface `(min, max)` (m); `None` without vertices.
     pub fn surface_bounds(&self) -> Option<(V3, V3)> {
         let first = self.positions.first()?;
-        Some(self.positions.iter().fold((*first, *first), |(lo, hi), p| {
-            (lo.inf(p), hi.sup(p))
-        }))
+        Some(
+            self.positions
+                .iter()
+                .fold((*first, *first), |(lo, hi), p| (lo.inf(p), hi.sup(p))),
+        )
     }
 }
 
@@ -286,7 +288,11 @@ fn tissue_of_inclusion(name: Option<&str>, material: &str, capsules: bool) -> Ti
     let text = format!("{} {}", name.unwrap_or(""), material).to_lowercase();
     if text.contains("gall") {
         TissueKind::Gallbladder
-    } else if capsules || ["vessel", "duct", "artery", "vein"].iter().any(|w| text.contains(w)) {
+    } else if capsules
+        || ["vessel", "duct", "artery", "vein"]
+            .iter()
+            .any(|w| text.contains(w))
+    {
         TissueKind::Vessel
     } else {
         TissueKind::Parenchyma
@@ -320,11 +326,7 @@ impl FrameBuilder {
             for (p, n) in mesh.vertices.iter().zip(&normals) {
                 vertex_tissue.push(tissue_at(scene, &(p - n * TISSUE_PROBE_DEPTH)));
             }
-            triangles.extend(
-                mesh.triangles
-                    .iter()
-                    .map(|t| t.map(|i| i + base as u32)),
-            );
+            triangles.extend(mesh.triangles.iter().map(|t| t.map(|i| i + base as u32)));
         }
         let mut points = Vec::new();
         let mut vessel_segments = Vec::new();

@@ -50,9 +50,18 @@ pub fn hud(
                 row("lag", opt(h.lag, |v| format!("{:.0} ms", v * 1e3)));
                 row("step p99", opt(h.step_p99_ms, |v| format!("{v:.2} ms")));
                 row("keyframes/s", opt(h.keyframes_per_s, |v| format!("{v:.1}")));
-                row("bytes/s", opt(h.bytes_per_s, |v| format!("{:.1} kB/s", v / 1e3)));
-                row("divergence", opt(h.divergence, |v| format!("{:.2} mm", v * 1e3)));
-                row("teaching", if h.teaching { "on" } else { "off" }.to_string());
+                row(
+                    "bytes/s",
+                    opt(h.bytes_per_s, |v| format!("{:.1} kB/s", v / 1e3)),
+                );
+                row(
+                    "divergence",
+                    opt(h.divergence, |v| format!("{:.2} mm", v * 1e3)),
+                );
+                row(
+                    "teaching",
+                    if h.teaching { "on" } else { "off" }.to_string(),
+                );
                 row(
                     "camera",
                     if orbit { "orbit" } else { "laparoscope" }.to_string(),
@@ -82,7 +91,11 @@ pub fn hud(
             ui.separator();
             ui.horizontal(|ui| {
                 swatch(ui, tissue_colour(crate::TissueKind::Parenchyma), "liver");
-                swatch(ui, tissue_colour(crate::TissueKind::Gallbladder), "gallbladder");
+                swatch(
+                    ui,
+                    tissue_colour(crate::TissueKind::Gallbladder),
+                    "gallbladder",
+                );
                 swatch(ui, tissue_colour(crate::TissueKind::Vessel), "vessels");
             });
             if wireframe {

@@ -27,4 +27,6 @@ pub use frame::{
 };
 /// The graphics stack, re-exported so that callers can build input events for tests.
 pub use three_d;
-pub use window::{Hands, Picture, ViewerError, WindowOptions, render_picture, run_window, screenshot};
+pub use window::{
+    Hands, Picture, ViewerError, WindowOptions, render_picture, run_window, screenshot,
+};

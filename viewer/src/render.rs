@@ -3,9 +3,9 @@
 //! and force arrows. All tubes are instances of one unit cylinder.
 
 use three_d::{
-    AmbientLight, Camera, ClearState, Context, CpuMaterial, CpuMesh, DirectionalLight, Gm,
-    Indices, InstancedMesh, Instances, Mat4, Mesh, Object, PhysicalMaterial, Positions, Quat,
-    RenderTarget, Srgba, Vec3, Viewport, radians, vec3,
+    AmbientLight, Camera, ClearState, Context, CpuMaterial, CpuMesh, DirectionalLight, Gm, Indices,
+    InstancedMesh, Instances, Mat4, Mesh, Object, PhysicalMaterial, Positions, Quat, RenderTarget,
+    Srgba, Vec3, Viewport, radians, vec3,
 };
 
 use crate::camera::View;
@@ -260,7 +260,8 @@ impl Renderer {
 
         let ambient = AmbientLight::new(&self.context, 0.35, Srgba::WHITE);
         // the laparoscope carries its own light: a headlight along the view direction
-        let headlight = DirectionalLight::new(&self.context, 2.2, Srgba::WHITE, v3(&view.forward()));
+        let headlight =
+            DirectionalLight::new(&self.context, 2.2, Srgba::WHITE, v3(&view.forward()));
         let top = DirectionalLight::new(&self.context, 0.8, Srgba::WHITE, vec3(0.2, 0.3, -1.0));
 
         let mut objects: Vec<&dyn Object> = vec![&surface];

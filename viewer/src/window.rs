@@ -11,8 +11,8 @@ use std::time::{Duration, Instant};
 
 use nalgebra::Vector3;
 use three_d::{
-    Context, DepthTexture2D, Event, GUI, Interpolation, Key, MouseButton,
-    RenderTarget, Texture2D, Viewport, WindowedContext, Wrapping,
+    Context, DepthTexture2D, Event, GUI, Interpolation, Key, MouseButton, RenderTarget, Texture2D,
+    Viewport, WindowedContext, Wrapping,
 };
 use winit::event::{Event as WinitEvent, WindowEvent};
 use winit::event_loop::{ControlFlow, EventLoop, EventLoopBuilder};
@@ -70,16 +70,14 @@ fn event_loop() -> Result<EventLoop<()>, ViewerError> {
         use winit::platform::x11::EventLoopBuilderExtX11;
         EventLoopBuilderExtX11::with_any_thread(&mut builder, true);
     }
-    std::panic::catch_unwind(std::panic::AssertUnwindSafe(move || builder.build())).map_err(
-        |e| {
-            let msg = e
-                .downcast_ref::<String>()
-                .cloned()
-                .or_else(|| e.downcast_ref::<&str>().map(|s| s.to_string()))
-                .unwrap_or_else(|| "winit could not connect to a display".into());
-            ViewerError::Window(msg)
-        },
-    )
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(move || builder.build())).map_err(|e| {
+        let msg = e
+            .downcast_ref::<String>()
+            .cloned()
+            .or_else(|| e.downcast_ref::<&str>().map(|s| s.to_string()))
+            .unwrap_or_else(|| "winit could not connect to a display".into());
+        ViewerError::Window(msg)
+    })
 }
 
 /// What the user's hands do to the view and the local tool; fed with three-d events.
@@ -421,7 +419,13 @@ pub fn render_picture(frame: &ViewFrame, size: (u32, u32)) -> Result<Picture, Vi
     // egui lays out on its first pass and paints windows on the second
     for _ in 0..2 {
         gui.update(&mut [], 0.0, viewport, 1.0, |ui| {
-            hud(ui.ctx(), frame, hands.active_tool, frame.lattice.is_some(), false);
+            hud(
+                ui.ctx(),
+                frame,
+                hands.active_tool,
+                frame.lattice.is_some(),
+                false,
+            );
         });
     }
     target
@@ -461,7 +465,11 @@ pub fn write_png(picture: &Picture, path: &Path) -> Result<(), ViewerError> {
 }
 
 /// Renders `frame` off-screen and writes it to `path` (PNG).
-pub fn screenshot(frame: &ViewFrame, size: (u32, u32), path: &Path) -> Result<Picture, ViewerError> {
+pub fn screenshot(
+    frame: &ViewFrame,
+    size: (u32, u32),
+    path: &Path,
+) -> Result<Picture, ViewerError> {
     let picture = render_picture(frame, size)?;
     write_png(&picture, path)?;
     Ok(picture)

@@ -33,7 +33,10 @@ fn laparoscope_sits_at_the_port_and_looks_at_the_target() {
     let cam = three_d_camera(&v, 640, 480);
     let t = port().target;
     let px = cam.pixel_at_position(vec3(t.x as f32, t.y as f32, t.z as f32));
-    assert!((px.x - 320.0).abs() < 0.01 && (px.y - 240.0).abs() < 0.01, "{px:?}");
+    assert!(
+        (px.x - 320.0).abs() < 0.01 && (px.y - 240.0).abs() < 0.01,
+        "{px:?}"
+    );
     // the image's up vector has a positive world-z component (the horizon is level)
     assert!(v.image_up().z > 0.0);
     assert!(v.right().z.abs() < 1e-12);

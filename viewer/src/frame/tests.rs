@@ -78,7 +78,10 @@ fn frame_of_the_builtin_scene() {
     let max_depth = sim.scene().scene.bodies[0].max_depth as u8;
     assert!(edges.iter().all(|e| e.level <= max_depth));
     assert!(edges.iter().any(|e| e.level == 0));
-    assert!(edges.iter().any(|e| e.level > 0), "inclusion boundaries are refined");
+    assert!(
+        edges.iter().any(|e| e.level > 0),
+        "inclusion boundaries are refined"
+    );
 
     // without asking, no wireframe
     let plain = builder.build(&sim, Some(&interaction), false, HudInfo::default());
@@ -143,7 +146,11 @@ fn default_port_looks_at_the_organ() {
     assert!((port.position - port.target - V3::new(0.0, -0.25, -0.15)).norm() < 1e-12);
     // the built-in scene sets its own port
     let builtin = builtin::cholecystectomy();
-    let cam = builtin.scene.camera.as_ref().expect("built-in scene has a [camera]");
+    let cam = builtin
+        .scene
+        .camera
+        .as_ref()
+        .expect("built-in scene has a [camera]");
     assert_eq!(port_of(&builtin).position, cam.position);
 }
 

@@ -71,8 +71,20 @@ fn left_drag_moves_the_active_tool_in_the_view_plane() {
     let mut hands = Hands::default();
     let mut out = Vec::new();
     let start = f.tools[0].pose.translation.vector;
-    hands.handle(&drag(MouseButton::Left, 30.0, -12.0), &f, 720.0, 1.0, &mut out);
-    hands.handle(&drag(MouseButton::Left, 10.0, 2.0), &f, 720.0, 1.0, &mut out);
+    hands.handle(
+        &drag(MouseButton::Left, 30.0, -12.0),
+        &f,
+        720.0,
+        1.0,
+        &mut out,
+    );
+    hands.handle(
+        &drag(MouseButton::Left, 10.0, 2.0),
+        &f,
+        720.0,
+        1.0,
+        &mut out,
+    );
     let view = camera::laparoscope(&f.port);
     // two drags add up to one of (40, -10) pixels (the plane's scale is set by the
     // unchanged depth)
@@ -98,10 +110,7 @@ fn keys_close_jaws_and_cycle_local_tools() {
     let mut out = Vec::new();
     hands.handle(&key(Key::Space), &f, 720.0, 1.0, &mut out);
     hands.handle(&key(Key::Space), &f, 720.0, 1.0, &mut out);
-    assert_eq!(
-        out,
-        [ToolCommand::Jaw(true), ToolCommand::Jaw(false)]
-    );
+    assert_eq!(out, [ToolCommand::Jaw(true), ToolCommand::Jaw(false)]);
     out.clear();
     hands.handle(&key(Key::T), &f, 720.0, 1.0, &mut out);
     // the remote tool (index 1) is skipped: the hands only hold local tools
@@ -117,7 +126,13 @@ fn right_drag_orbits_at_constant_distance_and_c_returns_to_the_laparoscope() {
     let mut hands = Hands::default();
     let mut out = Vec::new();
     let lap = camera::laparoscope(&f.port);
-    hands.handle(&drag(MouseButton::Right, 50.0, 20.0), &f, 720.0, 1.0, &mut out);
+    hands.handle(
+        &drag(MouseButton::Right, 50.0, 20.0),
+        &f,
+        720.0,
+        1.0,
+        &mut out,
+    );
     assert!(out.is_empty(), "the camera button does not move the tool");
     let v = hands.view(&f);
     assert!(matches!(hands.mode, CameraMode::Orbit(_)));
