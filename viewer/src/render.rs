@@ -55,7 +55,8 @@ fn srgba(c: [u8; 3], a: u8) -> Srgba {
 fn tube(a: Vec3, b: Vec3, radius: f32) -> Option<Mat4> {
     let d = b - a;
     let len = (d.x * d.x + d.y * d.y + d.z * d.z).sqrt();
-    if !(len > 1e-7) {
+    // also rejects NaN lengths
+    if len.is_nan() || len <= 1e-7 {
         return None;
     }
     let dir = d / len;

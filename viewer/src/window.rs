@@ -209,18 +209,16 @@ impl Hands {
                     self.jaw_closed = !self.jaw_closed;
                     out.push(ToolCommand::Jaw(self.jaw_closed));
                 }
-                Key::T | Key::Tab => {
-                    if !local.is_empty() {
-                        let pos = self
-                            .active_tool
-                            .and_then(|a| local.iter().position(|&i| i == a))
-                            .map(|p| (p + 1) % local.len())
-                            .unwrap_or(0);
-                        self.active_tool = Some(local[pos]);
-                        self.tool_target = None;
-                        self.jaw_closed = false;
-                        out.push(ToolCommand::NextTool);
-                    }
+                Key::T | Key::Tab if !local.is_empty() => {
+                    let pos = self
+                        .active_tool
+                        .and_then(|a| local.iter().position(|&i| i == a))
+                        .map(|p| (p + 1) % local.len())
+                        .unwrap_or(0);
+                    self.active_tool = Some(local[pos]);
+                    self.tool_target = None;
+                    self.jaw_closed = false;
+                    out.push(ToolCommand::NextTool);
                 }
                 Key::C => {
                     self.mode = match self.mode {
