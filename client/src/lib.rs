@@ -14,6 +14,7 @@ pub mod plot;
 pub mod record;
 pub mod replay;
 pub mod run;
+pub mod run_window;
 pub mod scene_arg;
 pub mod score;
 pub mod site;

@@ -1,5 +1,7 @@
-//! `cosurg run`: one site, no network. Simulates a scene for a number of simulated
-//! seconds and writes the lattice, surfaces and tools as a VTU/PVD series plus OBJ.
+//! `cosurg run`: one site, no network. With a display it opens the window and the user's
+//! mouse and keyboard drive the local tool (`run_window`); `--headless` (or no display)
+//! simulates a scene for a number of simulated seconds and writes the lattice, surfaces
+//! and tools as a VTU/PVD series plus OBJ; `--screenshot` renders one picture.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -27,9 +29,29 @@ pub struct RunArgs {
     /// Simulated time between written frames (s).
     #[arg(long, default_value_t = 0.05)]
     pub frame_interval: f64,
-    /// Do not drive the scene's tools by their scripts.
+    /// Do not drive the scene's tools by their scripts (headless runs).
     #[arg(long)]
     pub no_tools: bool,
+    /// No window: simulate `--seconds`, tools scripted, write VTU/PVD + OBJ (also the
+    /// behaviour when no display is available).
+    #[arg(long)]
+    pub headless: bool,
+    /// With a window or `--screenshot`: the scene's scripts drive the tools (teaching
+    /// replay) instead of the mouse and keyboard.
+    #[arg(long)]
+    pub script: bool,
+    /// Render one picture (PNG) at `--at` seconds and exit; needs a display (Xvfb will do).
+    #[arg(long, value_name = "FILE.png")]
+    pub screenshot: Option<PathBuf>,
+    /// Simulated time of the screenshot (s; default: `--seconds`).
+    #[arg(long, requires = "screenshot")]
+    pub at: Option<f64>,
+    /// Window or screenshot size in pixels.
+    #[arg(long, default_value = "1280x720", value_parser = crate::run_window::parse_size)]
+    pub size: (u32, u32),
+    /// Draw the lattice wireframe in the screenshot (coloured by refinement level).
+    #[arg(long, requires = "screenshot")]
+    pub lattice: bool,
     #[command(flatten)]
     pub knobs: SimKnobs,
 }
@@ -40,6 +62,29 @@ pub fn run(args: RunArgs) -> Result<()> {
     let hash = scene.hash.clone();
     let mut options = SimOptions::from_scene(&scene.scene);
     args.knobs.apply(&mut options);
+    if let Some(path) = &args.screenshot {
+        let at = args.at.unwrap_or(args.seconds);
+        if !(at.is_finite() && at >= 0.0) {
+            anyhow::bail!(
+                "--at {at}: the screenshot time must be a non-negative number of seconds"
+            );
+        }
+        return crate::run_window::run_screenshot(
+            scene,
+            options,
+            args.script,
+            at,
+            args.size,
+            args.lattice,
+            path,
+        );
+    }
+    if !args.headless {
+        if crate::run_window::display_available() {
+            return crate::run_window::run_with_window(scene, options, args.script, args.size);
+        }
+        eprintln!("no display (DISPLAY is not set): running headless");
+    }
     let dt = options.dt;
     let mut sim = Simulation::new(scene, options)?;
     let dir = out_dir(&args.out, "run");

@@ -35,8 +35,8 @@ pub mod vtk;
 
 pub use mesh::{MeshError, MeshFormat, TriMesh};
 pub use scene::{
-    Aabb, Body, BodyShape, Capsule, FORMAT_VERSION, Features, FileReader, Fix, Inclusion,
-    InclusionShape, Load, LoadedScene, Material, Model, NodeSelection, PolarMethod, Probe, Scene,
-    SceneError, SimulationSettings, ToolKind, ToolSpec, scene_hash,
+    Aabb, Body, BodyShape, CameraSpec, Capsule, DEFAULT_CAMERA_FOV_DEG, FORMAT_VERSION, Features,
+    FileReader, Fix, Inclusion, InclusionShape, Load, LoadedScene, Material, Model, NodeSelection,
+    PolarMethod, Probe, Scene, SceneError, SimulationSettings, ToolKind, ToolSpec, scene_hash,
 };
 pub use script::{ScriptError, ToolPose, ToolScript, ToolWaypoint};

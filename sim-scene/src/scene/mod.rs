@@ -535,6 +535,31 @@ pub struct Scene {
     /// Feature switches.
     #[serde(default)]
     pub features: Features,
+    /// The laparoscope's port (`[camera]`, optional): where the window's default camera
+    /// sits and what it looks at.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera: Option<CameraSpec>,
+}
+
+/// Default vertical field of view of the laparoscope (degrees).
+pub const DEFAULT_CAMERA_FOV_DEG: f64 = 50.0;
+
+fn default_fov() -> f64 {
+    DEFAULT_CAMERA_FOV_DEG
+}
+
+/// `[camera]`: the laparoscope port. Without it the window places the camera 25 cm in
+/// front of (−y) and 15 cm below the bodies' centre, looking at that centre.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraSpec {
+    /// Port: the camera's position in m.
+    pub position: Vector3<f64>,
+    /// The point the camera looks at in m (≠ `position`).
+    pub target: Vector3<f64>,
+    /// Vertical field of view in degrees (in (1, 170), default 50).
+    #[serde(default = "default_fov")]
+    pub fov_deg: f64,
 }
 
 /// Supplies a referenced file's bytes, given its path as written in the scene; on failure

@@ -32,6 +32,43 @@ fn load(text: &str) -> Result<LoadedScene, SceneError> {
     Scene::from_str(text, Path::new("/nonexistent-dir"), "s.toml")
 }
 
+#[test]
+fn camera_port() {
+    let ok = load(&format!(
+        "{EXAMPLE}\n[camera]\nposition = [0.2, -0.3, 0.05]\ntarget = [0.2, 0.05, 0.05]\n"
+    ))
+    .unwrap();
+    let cam = ok.scene.camera.as_ref().unwrap();
+    assert_eq!(cam.position, Vector3::new(0.2, -0.3, 0.05));
+    assert_eq!(cam.fov_deg, DEFAULT_CAMERA_FOV_DEG);
+    assert!(load(EXAMPLE).unwrap().scene.camera.is_none());
+    // round trip through TOML keeps it
+    let again = Scene::parse(&ok.scene.to_toml(), "t.toml").unwrap();
+    assert_eq!(again.camera, ok.scene.camera);
+    let e = err(&format!(
+        "{EXAMPLE}\n[camera]\nposition = [0.1, 0.0, 0.0]\ntarget = [0.1, 0.0, 0.0]\n"
+    ));
+    assert!(
+        e.starts_with("s.toml: `camera.target`: must differ from camera.position"),
+        "{e}"
+    );
+    let e = err(&format!(
+        "{EXAMPLE}\n[camera]\nposition = [0.0, 0.0, 0.0]\ntarget = [1.0, 0.0, 0.0]\nfov_deg = 180.0\n"
+    ));
+    assert!(
+        e.starts_with("s.toml: `camera.fov_deg`: 180 is outside (1, 170) degrees"),
+        "{e}"
+    );
+    let e = err(&format!(
+        "{EXAMPLE}\n[camera]\nposition = [0.0, 0.0, 0.0]\n"
+    ));
+    assert!(
+        e.contains("`camera.target`: missing field `target`")
+            || e.contains("missing field `target`"),
+        "{e}"
+    );
+}
+
 fn err(text: &str) -> String {
     load(text).unwrap_err().to_string()
 }

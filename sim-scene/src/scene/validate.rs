@@ -65,6 +65,24 @@ impl Scene {
             ));
         }
         check_vec(file, "gravity", &self.gravity)?;
+        if let Some(cam) = &self.camera {
+            check_vec(file, "camera.position", &cam.position)?;
+            check_vec(file, "camera.target", &cam.target)?;
+            if (cam.position - cam.target).norm() < 1e-6 {
+                return Err(SceneError::invalid(
+                    file,
+                    "camera.target",
+                    "must differ from camera.position (the camera needs a direction)",
+                ));
+            }
+            if !(cam.fov_deg > 1.0 && cam.fov_deg < 170.0) {
+                return Err(SceneError::invalid(
+                    file,
+                    "camera.fov_deg",
+                    format!("{} is outside (1, 170) degrees", cam.fov_deg),
+                ));
+            }
+        }
         for (name, m) in &self.materials {
             let k = |f: &str| format!("material.{name}.{f}");
             check_positive(file, &k("young"), m.young, " Pa")?;

@@ -1,0 +1,356 @@
+//! `cosurg run` with a window (the user's hands drive the local tool) and
+//! `cosurg run --screenshot` (simulate, then render one picture off-screen).
+//!
+//! The simulation runs on the calling thread in real time and publishes a
+//! [`ViewFrame`](viewer::ViewFrame) about 60 times a second into a [`ViewSlot`]; the
+//! window runs on its own thread and only ever reads the slot. Commands come back over a
+//! channel that the simulation drains between steps, so neither side waits for the other.
+
+use std::path::Path;
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use nalgebra::{Isometry3, Translation3, Vector3};
+use sim_core::sim_scene::LoadedScene;
+use sim_core::{Interaction, SimOptions, Simulation, ToolInput};
+use viewer::{
+    FrameBuilder, HudInfo, Role, SessionCommand, ToolCommand, ViewSlot, ViewerCommand,
+    WindowOptions,
+};
+
+use crate::stats::percentile;
+
+/// Jaw opening the hands use for "open" (rad), as the built-in scripts.
+const JAW_OPEN: f64 = 0.6;
+/// Fastest the hands move a tool tip (m/s): a mouse jump becomes a quick, bounded motion.
+const HAND_SPEED: f64 = 0.25;
+/// Wall time between published frames (s).
+const PUBLISH_PERIOD: f64 = 1.0 / 60.0;
+/// Step times kept for the HUD's p99.
+const STEP_WINDOW: usize = 500;
+
+/// Whether a window can be opened (an X11 or Wayland display is named).
+pub fn display_available() -> bool {
+    ["DISPLAY", "WAYLAND_DISPLAY"]
+        .iter()
+        .any(|k| std::env::var_os(k).is_some_and(|v| !v.is_empty()))
+}
+
+/// Parses `WxH`.
+pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("`{s}`: expected WIDTHxHEIGHT, e.g. 1280x720"))?;
+    let p = |v: &str| {
+        v.trim()
+            .parse::<u32>()
+            .ok()
+            .filter(|&n| (16..=8192).contains(&n))
+            .ok_or_else(|| format!("`{s}`: sizes are whole pixels in 16..=8192"))
+    };
+    Ok((p(w)?, p(h)?))
+}
+
+fn new_site(scene: &LoadedScene, options: &SimOptions) -> Result<(Simulation, Interaction)> {
+    let sim = Simulation::new(scene.clone(), options.clone())?;
+    let interaction = Interaction::new(&sim);
+    Ok((sim, interaction))
+}
+
+/// The hands' state in `run`: which tool they hold and where they want it.
+struct LocalHands {
+    active: usize,
+    target: Option<Vector3<f64>>,
+    jaw_closed: bool,
+}
+
+impl LocalHands {
+    fn inputs(&self, interaction: &Interaction, dt: f64) -> Vec<ToolInput> {
+        interaction
+            .tools
+            .tools
+            .iter()
+            .enumerate()
+            .map(|(i, tool)| {
+                let mut input = ToolInput {
+                    pose: *tool.pose(),
+                    jaw: tool.jaw(),
+                };
+                if i == self.active {
+                    if let Some(target) = self.target {
+                        let here = tool.pose().translation.vector;
+                        let d = target - here;
+                        let max = HAND_SPEED * dt;
+                        let step = if d.norm() > max {
+                            d * (max / d.norm())
+                        } else {
+                            d
+                        };
+                        input.pose = Isometry3::from_parts(
+                            Translation3::from(here + step),
+                            tool.pose().rotation,
+                        );
+                    }
+                    input.jaw = if self.jaw_closed { 0.0 } else { JAW_OPEN };
+                }
+                input
+            })
+            .collect()
+    }
+}
+
+/// One site without network whose tools follow the window's commands (or, in teaching
+/// replay, the scene's scripts).
+pub struct LocalSite {
+    scene: LoadedScene,
+    options: SimOptions,
+    /// The simulation.
+    pub sim: Simulation,
+    /// Tools and contact.
+    pub interaction: Interaction,
+    hands: LocalHands,
+    /// Teaching replay: the scripts drive the tools.
+    pub teaching: bool,
+}
+
+impl LocalSite {
+    /// A fresh site; `teaching`: start with the scripts driving the tools.
+    pub fn new(scene: LoadedScene, options: SimOptions, teaching: bool) -> Result<Self> {
+        let (sim, interaction) = new_site(&scene, &options)?;
+        Ok(LocalSite {
+            scene,
+            options,
+            sim,
+            interaction,
+            hands: LocalHands {
+                active: 0,
+                target: None,
+                jaw_closed: false,
+            },
+            teaching,
+        })
+    }
+
+    /// Name of the tool the hands drive.
+    pub fn active_tool(&self) -> String {
+        self.interaction
+            .tools
+            .tools
+            .get(self.hands.active)
+            .map(|t| t.name.clone())
+            .unwrap_or_default()
+    }
+
+    /// Applies a command from the window; returns `false` when the window closed.
+    pub fn apply(&mut self, cmd: ViewerCommand) -> Result<bool> {
+        match cmd {
+            ViewerCommand::Closed => return Ok(false),
+            ViewerCommand::Tool(ToolCommand::MoveTo(p)) => self.hands.target = Some(p),
+            ViewerCommand::Tool(ToolCommand::Jaw(closed)) => self.hands.jaw_closed = closed,
+            ViewerCommand::Tool(ToolCommand::NextTool) => {
+                let n = self.interaction.tools.tools.len().max(1);
+                self.hands.active = (self.hands.active + 1) % n;
+                self.hands.target = None;
+                self.hands.jaw_closed = false;
+            }
+            ViewerCommand::Session(SessionCommand::Reset) => {
+                (self.sim, self.interaction) = new_site(&self.scene, &self.options)?;
+                self.hands.target = None;
+                self.hands.jaw_closed = false;
+                tracing::info!("scene reset");
+            }
+            ViewerCommand::Session(SessionCommand::TeachingStart) => self.teaching = true,
+            ViewerCommand::Session(SessionCommand::TeachingStop) => {
+                self.teaching = false;
+                // the hands take over where the replay left the tool
+                self.hands.target = None;
+            }
+        }
+        Ok(true)
+    }
+
+    /// One step with the tools driven by the hands (or the scripts in teaching replay).
+    pub fn step(&mut self) -> Result<()> {
+        let inputs = if self.teaching {
+            self.interaction.scripted_inputs(&self.sim, self.sim.time())
+        } else {
+            self.hands.inputs(&self.interaction, self.options.dt)
+        };
+        self.interaction.before_step(&mut self.sim, &inputs)?;
+        self.sim.step()?;
+        Ok(())
+    }
+
+    /// The frame to publish.
+    pub fn frame(
+        &self,
+        builder: &mut FrameBuilder,
+        with_lattice: bool,
+        step_p99_ms: Option<f64>,
+    ) -> viewer::ViewFrame {
+        let name = self.active_tool();
+        let mut frame = builder.build(
+            &self.sim,
+            Some(&self.interaction),
+            with_lattice,
+            HudInfo {
+                site: "local".into(),
+                role: Role::Instructor,
+                sim_time: self.sim.time(),
+                step_p99_ms,
+                teaching: self.teaching,
+                active_tool: Some(name.clone()),
+                ..Default::default()
+            },
+        );
+        if self.teaching {
+            frame.guide = guide_path(&self.scene, &name);
+        }
+        frame
+    }
+}
+
+/// The guide path of a tool's script (sampled every 20 ms), empty without a script.
+fn guide_path(scene: &LoadedScene, tool: &str) -> Vec<Vector3<f64>> {
+    let Some(script) = scene.scripts.get(tool) else {
+        return Vec::new();
+    };
+    let n = (script.duration() / 0.02).ceil().max(1.0) as usize;
+    (0..=n)
+        .filter_map(|k| script.sample(tool, k as f64 * script.duration() / n as f64))
+        .map(|p| p.position)
+        .collect()
+}
+
+/// `cosurg run` with a window. `scripted`: the tools follow their scripts (else the
+/// hands drive the active tool).
+pub fn run_with_window(
+    scene: LoadedScene,
+    options: SimOptions,
+    scripted: bool,
+    size: (u32, u32),
+) -> Result<()> {
+    let title = format!("cosurg run — {}", scene.file);
+    let mut site = LocalSite::new(scene, options, scripted)?;
+    let mut builder = FrameBuilder::new(&site.sim)?;
+    let slot = ViewSlot::new(site.frame(&mut builder, false, None));
+    let (tx, rx) = mpsc::channel();
+    let window_slot = slot.clone();
+    let render = std::thread::Builder::new()
+        .name("window".into())
+        .spawn(move || {
+            viewer::run_window(
+                window_slot,
+                tx,
+                WindowOptions {
+                    title,
+                    size,
+                    ..Default::default()
+                },
+            )
+        })
+        .context("starting the window thread")?;
+
+    let mut step_ms: Vec<f64> = Vec::new();
+    let mut recent: std::collections::VecDeque<f64> = Default::default();
+    let mut last_publish = Instant::now();
+    let mut wall_start = Instant::now();
+    let mut sim_start = site.sim.time();
+    'outer: loop {
+        for cmd in rx.try_iter() {
+            let reset = cmd == ViewerCommand::Session(SessionCommand::Reset);
+            if !site.apply(cmd)? {
+                break 'outer;
+            }
+            if reset {
+                builder = FrameBuilder::new(&site.sim)?;
+                wall_start = Instant::now();
+                sim_start = site.sim.time();
+            }
+        }
+        let t0 = Instant::now();
+        site.step()?;
+        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        step_ms.push(ms);
+        recent.push_back(ms);
+        if recent.len() > STEP_WINDOW {
+            recent.pop_front();
+        }
+        if last_publish.elapsed().as_secs_f64() >= PUBLISH_PERIOD {
+            last_publish = Instant::now();
+            let window: Vec<f64> = recent.iter().copied().collect();
+            slot.publish(site.frame(
+                &mut builder,
+                slot.wants_lattice(),
+                Some(percentile(&window, 99.0)),
+            ));
+        }
+        // real time: never run ahead of the wall clock
+        let ahead = (site.sim.time() - sim_start) - wall_start.elapsed().as_secs_f64();
+        if ahead > 0.0 {
+            std::thread::sleep(Duration::from_secs_f64(ahead));
+        }
+    }
+    drop(rx);
+    match render.join() {
+        Ok(r) => r?,
+        Err(_) => bail!("the window thread panicked"),
+    }
+    println!(
+        "simulated {:.3} s in {} steps: step p50 {:.3} ms, p99 {:.3} ms",
+        site.sim.time(),
+        step_ms.len(),
+        percentile(&step_ms, 50.0),
+        percentile(&step_ms, 99.0)
+    );
+    Ok(())
+}
+
+/// `cosurg run --screenshot`: simulate to `at` seconds (tools scripted if `scripted`,
+/// else at rest), then render one picture off-screen and write it as PNG.
+pub fn run_screenshot(
+    scene: LoadedScene,
+    options: SimOptions,
+    scripted: bool,
+    at: f64,
+    size: (u32, u32),
+    lattice: bool,
+    path: &Path,
+) -> Result<()> {
+    let steps = (at / options.dt).round() as u64;
+    let mut site = LocalSite::new(scene, options, scripted)?;
+    let mut step_ms = Vec::with_capacity(steps as usize);
+    for _ in 0..steps {
+        let t0 = Instant::now();
+        site.step()?;
+        step_ms.push(t0.elapsed().as_secs_f64() * 1e3);
+    }
+    let mut builder = FrameBuilder::new(&site.sim)?;
+    let p99 = (!step_ms.is_empty()).then(|| percentile(&step_ms, 99.0));
+    let frame = site.frame(&mut builder, lattice, p99);
+    viewer::screenshot(&frame, size, path)
+        .with_context(|| format!("screenshot at t = {:.3} s", site.sim.time()))?;
+    println!(
+        "wrote {} ({}x{}, t = {:.3} s)",
+        path.display(),
+        size.0,
+        size.1,
+        site.sim.time()
+    );
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sizes() {
+        assert_eq!(parse_size("1280x720"), Ok((1280, 720)));
+        assert_eq!(parse_size("64X48"), Ok((64, 48)));
+        assert!(parse_size("1280").unwrap_err().contains("WIDTHxHEIGHT"));
+        assert!(parse_size("0x10").unwrap_err().contains("16..=8192"));
+        assert!(parse_size("axb").is_err());
+    }
+}

@@ -1,0 +1,477 @@
+//! The window (winit + three-d + egui) and off-screen screenshots.
+//!
+//! [`run_window`] runs on the thread that calls it (any thread: the event loop is
+//! created with winit's any-thread option), draws the latest frame of a [`ViewSlot`] at
+//! up to [`WindowOptions::max_fps`] and sends [`ViewerCommand`]s. It never touches the
+//! simulation: the only shared state is the slot's pointer.
+
+use std::path::Path;
+use std::sync::mpsc::Sender;
+use std::time::{Duration, Instant};
+
+use nalgebra::Vector3;
+use three_d::{
+    Context, DepthTexture2D, Event, GUI, Interpolation, Key, MouseButton, RenderTarget, Texture2D,
+    Viewport, WindowedContext, Wrapping,
+};
+use winit::event::{Event as WinitEvent, WindowEvent};
+use winit::event_loop::{ControlFlow, EventLoop, EventLoopBuilder};
+use winit::platform::run_return::EventLoopExtRunReturn;
+
+use crate::camera::{self, CameraMode, Orbit, View};
+use crate::frame::{Role, ToolCommand, ViewFrame, ViewSlot, ViewerCommand};
+use crate::hud::hud;
+use crate::render::{DrawOptions, Renderer};
+
+/// Errors of the window and of screenshots.
+#[derive(Debug, thiserror::Error)]
+pub enum ViewerError {
+    /// No display or no OpenGL context.
+    #[error(
+        "cannot open a window: {0} (is DISPLAY set and an X server running? Under CI run \
+         Xvfb, see DEVELOPERS.md)"
+    )]
+    Window(String),
+    /// Writing the PNG failed.
+    #[error("cannot write {path}: {message}")]
+    Png {
+        /// The file.
+        path: String,
+        /// What went wrong.
+        message: String,
+    },
+}
+
+/// Window settings.
+#[derive(Clone, Debug)]
+pub struct WindowOptions {
+    /// Title bar text.
+    pub title: String,
+    /// Initial inner size (pixels).
+    pub size: (u32, u32),
+    /// Frame-rate cap (the render thread sleeps in between, leaving the cores to the
+    /// simulation).
+    pub max_fps: f64,
+}
+
+impl Default for WindowOptions {
+    fn default() -> Self {
+        WindowOptions {
+            title: "cosurg".into(),
+            size: (1280, 720),
+            max_fps: 60.0,
+        }
+    }
+}
+
+fn event_loop() -> Result<EventLoop<()>, ViewerError> {
+    let mut builder = EventLoopBuilder::new();
+    {
+        use winit::platform::x11::EventLoopBuilderExtX11;
+        EventLoopBuilderExtX11::with_any_thread(&mut builder, true);
+    }
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(move || builder.build())).map_err(|e| {
+        let msg = e
+            .downcast_ref::<String>()
+            .cloned()
+            .or_else(|| e.downcast_ref::<&str>().map(|s| s.to_string()))
+            .unwrap_or_else(|| "winit could not connect to a display".into());
+        ViewerError::Window(msg)
+    })
+}
+
+/// What the user's hands do to the view and the local tool; fed with three-d events.
+#[derive(Clone, Debug)]
+pub struct Hands {
+    /// Camera in use.
+    pub mode: CameraMode,
+    /// Show the lattice wireframe.
+    pub wireframe: bool,
+    /// Index (among the frame's tools) of the tool the hands drive.
+    pub active_tool: Option<usize>,
+    /// Where the active tool is being moved to (m).
+    pub tool_target: Option<Vector3<f64>>,
+    /// Jaws closed.
+    pub jaw_closed: bool,
+}
+
+impl Default for Hands {
+    fn default() -> Self {
+        Hands {
+            mode: CameraMode::Laparoscope,
+            wireframe: false,
+            active_tool: Some(0),
+            tool_target: None,
+            jaw_closed: false,
+        }
+    }
+}
+
+/// Orbit speed (rad per pixel of right-button drag).
+const ORBIT_RAD_PER_PX: f64 = 0.006;
+
+impl Hands {
+    /// The camera for `frame`.
+    pub fn view(&self, frame: &ViewFrame) -> View {
+        match &self.mode {
+            CameraMode::Laparoscope => camera::laparoscope(&frame.port),
+            CameraMode::Orbit(o) => o.view(),
+        }
+    }
+
+    fn local_tools(frame: &ViewFrame) -> Vec<usize> {
+        (0..frame.tools.len())
+            .filter(|&i| frame.tools[i].site.is_none())
+            .collect()
+    }
+
+    /// Handles one event (unless egui handled it); `height_px` is the viewport height in
+    /// physical pixels, `dpr` physical pixels per logical pixel.
+    pub fn handle(
+        &mut self,
+        event: &Event,
+        frame: &ViewFrame,
+        height_px: f64,
+        dpr: f64,
+        out: &mut Vec<ToolCommand>,
+    ) {
+        let local = Self::local_tools(frame);
+        if self.active_tool.is_some_and(|i| !local.contains(&i)) {
+            self.active_tool = local.first().copied();
+        }
+        let view = self.view(frame);
+        let current_tip = |s: &Self| {
+            s.tool_target.or_else(|| {
+                s.active_tool
+                    .and_then(|i| frame.tools.get(i))
+                    .map(|t| t.pose.translation.vector)
+            })
+        };
+        match event {
+            Event::MouseMotion {
+                button: Some(MouseButton::Left),
+                delta,
+                handled: false,
+                ..
+            } => {
+                if let Some(tip) = current_tip(self) {
+                    let moved = camera::drag_in_view_plane(
+                        &view,
+                        &tip,
+                        delta.0 as f64 * dpr,
+                        delta.1 as f64 * dpr,
+                        height_px,
+                    );
+                    self.tool_target = Some(moved);
+                    out.push(ToolCommand::MoveTo(moved));
+                }
+            }
+            Event::MouseMotion {
+                button: Some(MouseButton::Right | MouseButton::Middle),
+                delta,
+                handled: false,
+                ..
+            } => {
+                let mut orbit = match self.mode {
+                    CameraMode::Orbit(o) => o,
+                    CameraMode::Laparoscope => Orbit::from_view(&view),
+                };
+                orbit.rotate(
+                    -delta.0 as f64 * ORBIT_RAD_PER_PX,
+                    delta.1 as f64 * ORBIT_RAD_PER_PX,
+                );
+                self.mode = CameraMode::Orbit(orbit);
+            }
+            Event::MouseWheel {
+                delta,
+                handled: false,
+                modifiers,
+                ..
+            } => {
+                // three-d scales one wheel notch to 24 units
+                let notches = delta.1 as f64 / 24.0;
+                if modifiers.ctrl {
+                    if let CameraMode::Orbit(o) = &mut self.mode {
+                        o.zoom((-notches * 0.1).exp());
+                    }
+                } else if let Some(tip) = current_tip(self) {
+                    let moved = camera::push_along_view(&view, &tip, notches);
+                    self.tool_target = Some(moved);
+                    out.push(ToolCommand::MoveTo(moved));
+                }
+            }
+            Event::KeyPress {
+                kind,
+                handled: false,
+                ..
+            } => match kind {
+                Key::Space | Key::J => {
+                    self.jaw_closed = !self.jaw_closed;
+                    out.push(ToolCommand::Jaw(self.jaw_closed));
+                }
+                Key::T | Key::Tab if !local.is_empty() => {
+                    let pos = self
+                        .active_tool
+                        .and_then(|a| local.iter().position(|&i| i == a))
+                        .map(|p| (p + 1) % local.len())
+                        .unwrap_or(0);
+                    self.active_tool = Some(local[pos]);
+                    self.tool_target = None;
+                    self.jaw_closed = false;
+                    out.push(ToolCommand::NextTool);
+                }
+                Key::C => {
+                    self.mode = match self.mode {
+                        CameraMode::Laparoscope => CameraMode::Orbit(Orbit::from_view(&view)),
+                        CameraMode::Orbit(_) => CameraMode::Laparoscope,
+                    };
+                }
+                Key::W => self.wireframe = !self.wireframe,
+                _ => {}
+            },
+            _ => {}
+        }
+    }
+}
+
+/// Opens a window and shows the slot's latest frame until the user closes it; sends the
+/// user's commands (and [`ViewerCommand::Closed`] at the end). Blocks the calling thread.
+pub fn run_window(
+    slot: ViewSlot,
+    commands: Sender<ViewerCommand>,
+    options: WindowOptions,
+) -> Result<(), ViewerError> {
+    let mut event_loop = event_loop()?;
+    let window = winit::window::WindowBuilder::new()
+        .with_title(&options.title)
+        .with_inner_size(winit::dpi::LogicalSize::new(
+            options.size.0 as f64,
+            options.size.1 as f64,
+        ))
+        .build(&event_loop)
+        .map_err(|e| ViewerError::Window(e.to_string()))?;
+    let gl = WindowedContext::from_winit_window(&window, three_d::SurfaceSettings::default())
+        .or_else(|_| {
+            WindowedContext::from_winit_window(
+                &window,
+                three_d::SurfaceSettings {
+                    multisamples: 0,
+                    ..Default::default()
+                },
+            )
+        })
+        .map_err(|e| ViewerError::Window(e.to_string()))?;
+    let context: Context = (*gl).clone();
+    let renderer = Renderer::new(&context);
+    let mut gui = GUI::new(&context);
+    let mut inputs = three_d::FrameInputGenerator::from_winit_window(&window);
+    let mut hands = Hands::default();
+    let frame_period = Duration::from_secs_f64(1.0 / options.max_fps.max(1.0));
+    let mut next_frame = Instant::now();
+    let mut tool_commands = Vec::new();
+    event_loop.run_return(|event, _, control_flow| match event {
+        WinitEvent::WindowEvent { ref event, .. } => {
+            inputs.handle_winit_window_event(event);
+            match event {
+                WindowEvent::Resized(size) => gl.resize(*size),
+                WindowEvent::ScaleFactorChanged { new_inner_size, .. } => {
+                    gl.resize(**new_inner_size)
+                }
+                WindowEvent::CloseRequested => *control_flow = ControlFlow::Exit,
+                _ => {}
+            }
+        }
+        WinitEvent::MainEventsCleared => {
+            if Instant::now() >= next_frame {
+                window.request_redraw();
+            } else {
+                *control_flow = ControlFlow::WaitUntil(next_frame);
+            }
+        }
+        WinitEvent::RedrawRequested(_) => {
+            next_frame = Instant::now() + frame_period;
+            *control_flow = ControlFlow::WaitUntil(next_frame);
+            let mut input = inputs.generate(&gl);
+            let frame = slot.latest();
+            let mut session = Vec::new();
+            gui.update(
+                &mut input.events,
+                input.accumulated_time,
+                input.viewport,
+                input.device_pixel_ratio,
+                |ui| {
+                    session = hud(
+                        ui.ctx(),
+                        &frame,
+                        hands.active_tool,
+                        hands.wireframe,
+                        matches!(hands.mode, CameraMode::Orbit(_)),
+                    );
+                },
+            );
+            for e in &input.events {
+                hands.handle(
+                    e,
+                    &frame,
+                    input.viewport.height as f64,
+                    input.device_pixel_ratio as f64,
+                    &mut tool_commands,
+                );
+            }
+            slot.set_wants_lattice(hands.wireframe);
+            let mut sent_ok = true;
+            for c in tool_commands.drain(..) {
+                sent_ok &= commands.send(ViewerCommand::Tool(c)).is_ok();
+            }
+            if frame.hud.role == Role::Instructor {
+                for c in session {
+                    sent_ok &= commands.send(ViewerCommand::Session(c)).is_ok();
+                }
+            }
+            if !sent_ok {
+                // the simulation has gone: nothing left to show
+                *control_flow = ControlFlow::Exit;
+            }
+            let screen = input.screen();
+            renderer.draw(
+                &screen,
+                input.viewport,
+                &frame,
+                &hands.view(&frame),
+                DrawOptions {
+                    wireframe: hands.wireframe,
+                    active_tool: hands.active_tool,
+                },
+            );
+            if let Err(e) = screen.write(|| gui.render()) {
+                tracing::warn!("HUD: {e}");
+            }
+            if let Err(e) = gl.swap_buffers() {
+                tracing::warn!("swap buffers: {e}");
+            }
+        }
+        _ => {}
+    });
+    let _ = commands.send(ViewerCommand::Closed);
+    Ok(())
+}
+
+/// An RGBA8 picture, rows from the top.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Picture {
+    /// Width (pixels).
+    pub width: u32,
+    /// Height (pixels).
+    pub height: u32,
+    /// `width * height * 4` bytes, row-major from the top-left.
+    pub rgba: Vec<u8>,
+}
+
+/// Renders `frame` from its laparoscope (with the HUD) off-screen at `size` pixels. Needs
+/// a display for the OpenGL context (an invisible window is created); under CI use Xvfb.
+pub fn render_picture(frame: &ViewFrame, size: (u32, u32)) -> Result<Picture, ViewerError> {
+    let event_loop = event_loop()?;
+    let window = winit::window::WindowBuilder::new()
+        .with_title("cosurg screenshot")
+        .with_visible(false)
+        .with_inner_size(winit::dpi::PhysicalSize::new(size.0, size.1))
+        .build(&event_loop)
+        .map_err(|e| ViewerError::Window(e.to_string()))?;
+    let gl = WindowedContext::from_winit_window(
+        &window,
+        three_d::SurfaceSettings {
+            multisamples: 0,
+            ..Default::default()
+        },
+    )
+    .map_err(|e| ViewerError::Window(e.to_string()))?;
+    let context: Context = (*gl).clone();
+    let (w, h) = size;
+    let color = Texture2D::new_empty::<[u8; 4]>(
+        &context,
+        w,
+        h,
+        Interpolation::Nearest,
+        Interpolation::Nearest,
+        None,
+        Wrapping::ClampToEdge,
+        Wrapping::ClampToEdge,
+    );
+    let depth =
+        DepthTexture2D::new::<f32>(&context, w, h, Wrapping::ClampToEdge, Wrapping::ClampToEdge);
+    let viewport = Viewport::new_at_origo(w, h);
+    let renderer = Renderer::new(&context);
+    let hands = Hands::default();
+    let target = RenderTarget::new(color.as_color_target(None), depth.as_depth_target());
+    renderer.draw(
+        &target,
+        viewport,
+        frame,
+        &hands.view(frame),
+        DrawOptions {
+            wireframe: frame.lattice.is_some(),
+            active_tool: hands.active_tool,
+        },
+    );
+    let mut gui = GUI::new(&context);
+    // egui lays out on its first pass and paints windows on the second
+    for _ in 0..2 {
+        gui.update(&mut [], 0.0, viewport, 1.0, |ui| {
+            hud(
+                ui.ctx(),
+                frame,
+                hands.active_tool,
+                frame.lattice.is_some(),
+                false,
+            );
+        });
+    }
+    target
+        .write(|| gui.render())
+        .map_err(|e| ViewerError::Window(e.to_string()))?;
+    let pixels: Vec<[u8; 4]> = target.read_color();
+    drop(target);
+    // OpenGL rows start at the bottom
+    let mut rgba = Vec::with_capacity(pixels.len() * 4);
+    for row in (0..h as usize).rev() {
+        for p in &pixels[row * w as usize..(row + 1) * w as usize] {
+            rgba.extend_from_slice(&[p[0], p[1], p[2], 255]);
+        }
+    }
+    drop(window);
+    Ok(Picture {
+        width: w,
+        height: h,
+        rgba,
+    })
+}
+
+/// Writes a picture as PNG.
+pub fn write_png(picture: &Picture, path: &Path) -> Result<(), ViewerError> {
+    let err = |m: String| ViewerError::Png {
+        path: path.display().to_string(),
+        message: m,
+    };
+    let file = std::fs::File::create(path).map_err(|e| err(e.to_string()))?;
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), picture.width, picture.height);
+    enc.set_color(png::ColorType::Rgba);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut w = enc.write_header().map_err(|e| err(e.to_string()))?;
+    w.write_image_data(&picture.rgba)
+        .map_err(|e| err(e.to_string()))?;
+    Ok(())
+}
+
+/// Renders `frame` off-screen and writes it to `path` (PNG).
+pub fn screenshot(
+    frame: &ViewFrame,
+    size: (u32, u32),
+    path: &Path,
+) -> Result<Picture, ViewerError> {
+    let picture = render_picture(frame, size)?;
+    write_png(&picture, path)?;
+    Ok(picture)
+}
+
+#[cfg(test)]
+mod tests;
