@@ -20,7 +20,8 @@ use serde::Serialize;
 
 use crate::cli::out_dir;
 use crate::plot::{Chart, Series, write_chart};
-use crate::site::{SiteReport, Strategy};
+use crate::site::SiteReport;
+use sim_core::sync::SyncStrategy;
 
 #[derive(Debug, Args, Clone)]
 pub struct DemoArgs {
@@ -36,9 +37,9 @@ pub struct DemoArgs {
     /// Output folder (default out/demo-<timestamp>).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Sync strategy.
-    #[arg(long, value_enum, default_value = "keyframe")]
-    pub strategy: Strategy,
+    /// Sync strategy: keyframe, full-state[:K] (every K steps), input-only.
+    #[arg(long, default_value = "keyframe")]
+    pub strategy: SyncStrategy,
     /// Network impairment preset applied to every site's link (netem presets: lan,
     /// metro, good, average, poor, intercontinental).
     #[arg(long)]
@@ -153,7 +154,7 @@ pub struct DemoSummary {
 pub struct SessionRun {
     pub cast: Vec<DemoSite>,
     pub seconds: f64,
-    pub strategy: Strategy,
+    pub strategy: SyncStrategy,
     pub preset: Option<String>,
     pub seed: u64,
     pub out: PathBuf,
@@ -199,7 +200,7 @@ pub fn run_session(run: &SessionRun) -> Result<(Vec<SiteReport>, Vec<Series>)> {
             .args(["--site", &site.name])
             .args(["--pin", &fingerprint])
             .args(["--seconds", &run.seconds.to_string()])
-            .args(["--strategy", run.strategy.name()])
+            .args(["--strategy", &run.strategy.to_string()])
             .args(["--script-start", &site.script_start.to_string()])
             .args(["--slowdown", &site.slowdown.to_string()])
             .args(["--expect-sites", &run.cast.len().to_string()])

@@ -12,6 +12,7 @@ pub mod output;
 pub mod plot;
 pub mod run;
 pub mod scene_arg;
+pub mod session;
 pub mod site;
 pub mod solve;
 pub mod stats;

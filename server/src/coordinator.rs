@@ -951,7 +951,7 @@ async fn read_keyframe_stream(shared: Arc<Shared>, site: SiteId, mut recv: RecvS
         (Ok(None), Ok(())) => return bad(&mut recv, "empty stream".into()),
     };
     let region = kf.region;
-    let keyframe_id = kf.keyframe;
+    let keyframe_id = kf.keyframe_id;
     let now = shared.clock.now_us();
     let mut st = shared.lock();
     let st = &mut *st;

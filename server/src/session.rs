@@ -438,7 +438,7 @@ impl Session {
         if self
             .keyframes
             .get(&kf.region)
-            .is_some_and(|k| k.keyframe.keyframe >= kf.keyframe)
+            .is_some_and(|k| k.keyframe.keyframe_id >= kf.keyframe_id)
         {
             return Err(DropReason::StaleKeyframe);
         }
@@ -459,7 +459,7 @@ impl Session {
 
     /// Newest stored keyframe id of a region.
     pub fn latest_keyframe_id(&self, region: RegionId) -> Option<KeyframeId> {
-        self.keyframes.get(&region).map(|k| k.keyframe.keyframe)
+        self.keyframes.get(&region).map(|k| k.keyframe.keyframe_id)
     }
 
     /// Handle a message from `site`'s control stream.
@@ -516,11 +516,18 @@ impl Session {
             }
             Message::Command(c) => {
                 if !instructor {
-                    return Self::drop_action(
-                        site,
-                        &Message::Command(c),
-                        DropReason::NotInstructor,
-                    );
+                    // Refused with a reason the site can show, and counted as dropped.
+                    let refusal = Message::CommandRefused(proto::CommandRefusal {
+                        command: c.name().into(),
+                        reason: format!("only the instructor may {}", c.name()),
+                    });
+                    let mut a =
+                        Self::drop_action(site, &Message::Command(c), DropReason::NotInstructor);
+                    a.push(Action::Control {
+                        to: Target::One(site),
+                        msg: refusal,
+                    });
+                    return a;
                 }
                 self.command(site, c)
             }
@@ -550,14 +557,17 @@ impl Session {
 
     fn command(&mut self, site: SiteId, c: Command) -> Vec<Action> {
         match c {
-            Command::ResetScene { .. } => {
+            Command::ResetScene { sim_time_s, .. } => {
                 self.epoch = self.epoch.wrapping_add(1);
                 self.keyframes.clear();
                 self.arbiter.clear();
                 self.playback = None;
                 vec![Action::Control {
                     to: Target::All,
-                    msg: Message::Command(Command::ResetScene { epoch: self.epoch }),
+                    msg: Message::Command(Command::ResetScene {
+                        epoch: self.epoch,
+                        sim_time_s,
+                    }),
                 }]
             }
             Command::KickSite {
@@ -685,9 +695,9 @@ mod tests {
     fn kf(region: RegionId, id: KeyframeId, owner: SiteId, epoch: u32) -> RegionKeyframe {
         RegionKeyframe {
             region,
-            keyframe: id,
+            keyframe_id: id,
             owner,
-            sim_time_s: 0.0,
+            sim_time: 0.0,
             epoch,
             tree_bits: vec![1],
             nodes: QuantisedNodes::default(),
@@ -797,7 +807,7 @@ mod tests {
             b,
             Message::KeyframeAck(KeyframeAck {
                 region: 4,
-                keyframe: 1,
+                keyframe_id: 1,
                 site: 0,
             }),
             0,
@@ -808,7 +818,7 @@ mod tests {
                 to: Target::One(a),
                 msg: Message::KeyframeAck(KeyframeAck {
                     region: 4,
-                    keyframe: 1,
+                    keyframe_id: 1,
                     site: b
                 })
             }]
@@ -821,7 +831,14 @@ mod tests {
         let i = join(&mut s, "prof", Role::Instructor);
         let a = join(&mut s, "a", Role::Trainee);
         // trainees cannot command
-        let acts = s.on_control(a, Message::Command(Command::ResetScene { epoch: 0 }), 0);
+        let acts = s.on_control(
+            a,
+            Message::Command(Command::ResetScene {
+                epoch: 0,
+                sim_time_s: 2.0,
+            }),
+            0,
+        );
         assert!(matches!(
             acts[0],
             Action::Drop {
@@ -829,14 +846,33 @@ mod tests {
                 ..
             }
         ));
+        // … and told why.
+        assert!(matches!(
+            &acts[1],
+            Action::Control {
+                to: Target::One(to),
+                msg: Message::CommandRefused(r),
+            } if *to == a && r.command == "reset-scene" && r.reason.contains("instructor")
+        ));
+        assert_eq!(s.epoch(), 0);
         // reset bumps epoch and clears keyframes
         s.on_keyframe(a, kf(1, 1, a, 0), Bytes::new(), 0).unwrap();
-        let acts = s.on_control(i, Message::Command(Command::ResetScene { epoch: 0 }), 0);
+        let acts = s.on_control(
+            i,
+            Message::Command(Command::ResetScene {
+                epoch: 0,
+                sim_time_s: 2.0,
+            }),
+            0,
+        );
         assert_eq!(
             acts,
             vec![Action::Control {
                 to: Target::All,
-                msg: Message::Command(Command::ResetScene { epoch: 1 })
+                msg: Message::Command(Command::ResetScene {
+                    epoch: 1,
+                    sim_time_s: 2.0
+                })
             }]
         );
         assert!(s.keyframe(1).is_none());

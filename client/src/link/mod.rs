@@ -531,9 +531,7 @@ impl Link {
     }
 
     /// Send a message as a datagram (tool pose, sim-time stamp, tree delta). Newest wins:
-    /// when the queue is full the oldest entry is dropped. The link fills in the sender's
-    /// site id and, for a [`proto::SimTimeStamp`] with `wall_send_us == 0`, the estimated
-    /// coordinator time at sending. Too large for a datagram, or a message whose
+    /// when the queue is full the oldest entry is dropped. Too large for a datagram, or a message whose
     /// [`proto::Channel`] is not `Datagram`: sent on the control stream.
     pub fn send_datagram(&self, msg: Message) {
         if msg.channel() != proto::Channel::Datagram {

@@ -605,23 +605,6 @@ impl<'a> Session<'a> {
         let _ = tx.send(Bytes::from(frame));
     }
 
-    /// Fill in the fields the link knows better than the caller.
-    fn stamp(&self, msg: &mut Message) {
-        match msg {
-            Message::ToolPose(p) => p.site = self.site,
-            Message::SimTime(s) => {
-                s.site = self.site;
-                if s.wall_send_us == 0 {
-                    s.wall_send_us = self.shared.coordinator_now_us();
-                }
-            }
-            Message::TreeDelta(d) => d.site = self.site,
-            Message::KeyframeAck(a) => a.site = self.site,
-            Message::Leave(l) => l.site = self.site,
-            _ => {}
-        }
-    }
-
     /// Send everything queued by the site.
     fn drain(&mut self) {
         let (control, datagrams, keyframes) = {
@@ -632,12 +615,12 @@ impl<'a> Session<'a> {
                 std::mem::take(&mut o.keyframes),
             )
         };
-        for mut m in control {
-            self.stamp(&mut m);
+        // Senders fill in their own site id (the site's session knows it); the
+        // coordinator checks it.
+        for m in control {
             self.send_control(&m);
         }
-        for mut m in datagrams {
-            self.stamp(&mut m);
+        for m in datagrams {
             self.send_datagram(m);
         }
         for kf in keyframes {
@@ -682,8 +665,7 @@ impl<'a> Session<'a> {
     /// keyframes of a region are then on their way at once — a receiver that runs behind
     /// the owner (playout lag) interpolates between them — instead of one per round trip;
     /// on a path slower than the keyframe rate they still arrive at the path's pace.
-    fn send_keyframe(&mut self, mut kf: RegionKeyframe) {
-        kf.owner = self.site;
+    fn send_keyframe(&mut self, kf: RegionKeyframe) {
         let region = kf.region;
         let frame = Bytes::from(proto::encode_frame(&Message::Keyframe(kf)));
         let stall = self.stall();
