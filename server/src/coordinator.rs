@@ -34,8 +34,8 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use bytes::Bytes;
 use proto::{
-    FrameDecoder, FrameError, Heartbeat, KeyframeId, Message, RegionId, Role, SessionConfig,
-    SiteId, close_code, stream_code,
+    FrameDecoder, FrameError, Heartbeat, KEYFRAME_PRIORITY, KeyframeStreams, Message, Role,
+    STREAM_READ_TIMEOUT, SessionConfig, SiteId, StreamAction, StreamToken, close_code, stream_code,
 };
 use quinn::{Connection, Endpoint, RecvStream, SendStream, VarInt};
 use tokio::sync::{mpsc, oneshot};
@@ -45,13 +45,9 @@ use tracing::{debug, info, warn};
 use crate::session::{Action, DatagramVerdict, Session, Target};
 use crate::tls::{Identity, TlsError};
 
-/// Send priority of relayed keyframe and snapshot streams (the control stream has 0).
-pub const KEYFRAME_PRIORITY: i32 = -1;
 /// Queue length of a site's control-stream writer; a site that lets it overflow is closed
 /// with `close_code::OVERLOADED`.
 pub const CONTROL_QUEUE: usize = 4096;
-/// Time a keyframe stream may take to arrive completely.
-pub const STREAM_READ_TIMEOUT: Duration = Duration::from_secs(30);
 
 /// Coordinator errors.
 #[derive(Debug, thiserror::Error)]
@@ -193,14 +189,16 @@ fn inc(a: &AtomicU64) {
     a.fetch_add(1, Ordering::Relaxed);
 }
 
-/// The coordinator clock: µs since the Unix epoch at start, advanced monotonically.
+/// A session clock: µs since the Unix epoch at creation, advanced by a monotonic clock.
+/// The coordinator's is the session's reference; each site's link keeps one of its own,
+/// built the same way, so that on one machine their offset is near zero.
 #[derive(Debug, Clone, Copy)]
-pub struct CoordinatorClock {
+pub struct WallClock {
     start: Instant,
     base_us: u64,
 }
 
-impl CoordinatorClock {
+impl WallClock {
     pub fn new() -> Self {
         let base_us = SystemTime::now()
             .duration_since(UNIX_EPOCH)
@@ -217,7 +215,7 @@ impl CoordinatorClock {
     }
 }
 
-impl Default for CoordinatorClock {
+impl Default for WallClock {
     fn default() -> Self {
         Self::new()
     }
@@ -228,16 +226,13 @@ enum CtrlItem {
     CloseAfterFlush { code: u32, reason: String },
 }
 
-struct Inflight {
-    keyframe: KeyframeId,
-    token: u64,
-    cancel: oneshot::Sender<()>,
-}
-
 struct Peer {
     conn: Connection,
     ctrl: mpsc::Sender<CtrlItem>,
-    inflight: HashMap<RegionId, Inflight>,
+    /// Relayed keyframe streams to this peer: which goes out now, which waits, which is
+    /// reset (the same scheduler as the sites' links).
+    streams: KeyframeStreams<Bytes>,
+    cancels: HashMap<StreamToken, oneshot::Sender<()>>,
     /// (udp rx bytes, udp tx bytes) at the last status line.
     last_bytes: (u64, u64),
 }
@@ -245,11 +240,10 @@ struct Peer {
 struct State {
     session: Session,
     peers: HashMap<SiteId, Peer>,
-    next_token: u64,
 }
 
 struct Shared {
-    clock: CoordinatorClock,
+    clock: WallClock,
     state: Mutex<State>,
     counters: Counters,
     max_frame: usize,
@@ -341,11 +335,10 @@ impl Coordinator {
         })?;
         let heartbeat_us = config.session.heartbeat_interval_us.max(10_000);
         let shared = Arc::new(Shared {
-            clock: CoordinatorClock::new(),
+            clock: WallClock::new(),
             state: Mutex::new(State {
                 session: Session::new(config.session.clone()),
                 peers: HashMap::new(),
-                next_token: 0,
             }),
             counters: Counters::default(),
             max_frame: config.max_frame,
@@ -444,6 +437,15 @@ async fn housekeeping(shared: Arc<Shared>, interval: Duration) {
             let _ = p.conn.send_datagram(hb.clone());
             st.session
                 .set_rtt(id, p.conn.rtt().as_micros().min(u32::MAX as u128) as u32);
+        }
+        // Stalled keyframe streams with a newer keyframe behind them are reset.
+        let ids: Vec<SiteId> = st.peers.keys().copied().collect();
+        for id in ids {
+            if let Some(p) = st.peers.get_mut(&id) {
+                let stall = proto::stall_time(p.conn.rtt());
+                let more = p.streams.poll(Instant::now(), stall);
+                relay_streams(&shared, p, id, more);
+            }
         }
         let actions = st.session.poll_liveness(now);
         for a in &actions {
@@ -641,7 +643,8 @@ async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
                     Peer {
                         conn: conn.clone(),
                         ctrl: tx,
-                        inflight: HashMap::new(),
+                        streams: KeyframeStreams::default(),
+                        cancels: HashMap::new(),
                         last_bytes: (0, 0),
                     },
                 );
@@ -964,48 +967,64 @@ async fn read_keyframe_stream(shared: Arc<Shared>, site: SiteId, mut recv: RecvS
         }
     };
     inc(&shared.counters.keyframes_in);
-    for (&id, peer) in st.peers.iter_mut() {
-        if id == site {
+    let now = Instant::now();
+    let ids: Vec<SiteId> = st.peers.keys().copied().filter(|&id| id != site).collect();
+    for id in ids {
+        let Some(peer) = st.peers.get_mut(&id) else {
             continue;
-        }
-        if let Some(old) = peer.inflight.remove(&region) {
-            debug!(
-                to = id,
-                region,
-                old = old.keyframe,
-                new = keyframe_id,
-                "superseding keyframe stream"
-            );
-            let _ = old.cancel.send(());
-        }
-        let (ctx, crx) = oneshot::channel();
-        st.next_token += 1;
-        let token = st.next_token;
-        peer.inflight.insert(
-            region,
-            Inflight {
-                keyframe: keyframe_id,
+        };
+        let stall = proto::stall_time(peer.conn.rtt());
+        let actions = peer
+            .streams
+            .submit(region, stored.frame.clone(), now, stall);
+        debug!(to = id, region, keyframe_id, "relaying keyframe");
+        relay_streams(&shared, peer, id, actions);
+    }
+}
+
+/// Carries out the keyframe-stream scheduler's decisions for `peer` (site `id`).
+fn relay_streams(
+    shared: &Arc<Shared>,
+    peer: &mut Peer,
+    id: SiteId,
+    actions: Vec<StreamAction<Bytes>>,
+) {
+    for a in actions {
+        match a {
+            StreamAction::Open {
                 token,
-                cancel: ctx,
-            },
-        );
-        let conn = peer.conn.clone();
-        let frame = stored.frame.clone();
-        let shared = shared.clone();
-        tokio::spawn(async move {
-            let r = send_stream_once(&conn, frame, Some(crx)).await;
-            match &r {
-                Ok(true) => inc(&shared.counters.keyframes_relayed),
-                Ok(false) => inc(&shared.counters.keyframe_streams_reset),
-                Err(e) => debug!(to = id, region, error = %e, "keyframe relay failed"),
+                region,
+                payload,
+            } => {
+                let (ctx, crx) = oneshot::channel();
+                peer.cancels.insert(token, ctx);
+                let conn = peer.conn.clone();
+                let shared = shared.clone();
+                tokio::spawn(async move {
+                    let r = send_stream_once(&conn, payload, Some(crx)).await;
+                    match &r {
+                        Ok(true) => inc(&shared.counters.keyframes_relayed),
+                        Ok(false) => inc(&shared.counters.keyframe_streams_reset),
+                        Err(e) => debug!(to = id, region, error = %e, "keyframe relay failed"),
+                    }
+                    // The stream ended: a waiting keyframe may go out now.
+                    let mut st = shared.lock();
+                    if let Some(p) = st.peers.get_mut(&id) {
+                        p.cancels.remove(&token);
+                        p.streams.finished(region, token);
+                        let stall = proto::stall_time(p.conn.rtt());
+                        let more = p.streams.poll(Instant::now(), stall);
+                        relay_streams(&shared, p, id, more);
+                    }
+                });
             }
-            let mut st = shared.lock();
-            if let Some(p) = st.peers.get_mut(&id)
-                && p.inflight.get(&region).is_some_and(|i| i.token == token)
-            {
-                p.inflight.remove(&region);
+            StreamAction::Reset { token, region } => {
+                debug!(to = id, region, "superseding keyframe stream");
+                if let Some(cancel) = peer.cancels.remove(&token) {
+                    let _ = cancel.send(());
+                }
             }
-        });
+        }
     }
 }
 
@@ -1016,18 +1035,17 @@ async fn send_stream_once(
     frame: Bytes,
     cancel: Option<oneshot::Receiver<()>>,
 ) -> Result<bool, String> {
-    // Superseded only once stalled (see `proto::KEYFRAME_STALL`), judged against this
-    // peer's round trip.
-    let started = tokio::time::Instant::now();
-    let stall = proto::KEYFRAME_STALL.max(conn.rtt() * 4);
+    // Cancelled by the keyframe-stream scheduler (a newer keyframe, this one stalled).
+    // A dropped sender (peer gone) is not a cancellation.
     let cancelled = async move {
         match cancel {
             Some(rx) => {
-                let _ = rx.await;
+                if rx.await.is_err() {
+                    std::future::pending::<()>().await;
+                }
             }
             None => std::future::pending::<()>().await,
         }
-        tokio::time::sleep_until(started + stall).await;
     };
     tokio::pin!(cancelled);
     let mut s = tokio::select! {

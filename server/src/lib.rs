@@ -15,6 +15,6 @@ pub mod session;
 pub mod tls;
 
 pub use coordinator::{
-    Coordinator, CoordinatorConfig, CoordinatorHandle, CoordinatorStats, ServerError,
+    Coordinator, CoordinatorConfig, CoordinatorHandle, CoordinatorStats, ServerError, WallClock,
 };
 pub use proto;

@@ -375,6 +375,7 @@ fn reconnect_drops_ownership_and_takes_the_new_id() {
     assert_eq!(p.a.owned_intervals(t), vec![(r, 0.0, t)]);
     assert_eq!(p.a.baselines.common_baseline(r, [2]), None);
     // Its next claim and time stamp carry the new id.
+    p.sim_a.set_time(t + SIM_TIME_INTERVAL);
     p.a.handle_touched(&p.sim_a, &[r], now);
     p.a.after_step(&p.sim_a, now);
     let out = drain(&mut p.a);
