@@ -57,6 +57,9 @@ pub struct DemoArgs {
     /// time on a 2-core machine; the haptic loop renders at 1 kHz between steps.
     #[arg(long, default_value_t = 0.004)]
     pub dt: f64,
+    /// The instructor resets the scene for every site at this simulated time (s).
+    #[arg(long, value_name = "SECONDS")]
+    pub reset_at: Option<f64>,
     /// Extra arguments passed to every site's `cosurg join` (after `--`).
     #[arg(last = true)]
     pub site_args: Vec<String>,
@@ -137,6 +140,8 @@ pub struct SiteRow {
     pub guide_force_max_n: Option<f64>,
     pub guide_force_mean_n: Option<f64>,
     pub playback_distance_mm: Option<f64>,
+    /// Scene epoch at the end (one per reset).
+    pub epoch: u32,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -164,6 +169,8 @@ pub struct SessionRun {
     pub dt: Option<f64>,
     /// Extra arguments for every site's `cosurg join`.
     pub extra: Vec<String>,
+    /// The instructor resets the scene at this simulated time (s).
+    pub reset_at: Option<f64>,
 }
 
 /// Runs a coordinator in-process and every site as a child process; returns the site
@@ -226,6 +233,11 @@ pub fn run_session(run: &SessionRun) -> Result<(Vec<SiteReport>, Vec<Series>)> {
         }
         if let Some(dt) = run.dt {
             cmd.args(["--dt", &dt.to_string()]);
+        }
+        if let Some(at) = run.reset_at
+            && site.role == "instructor"
+        {
+            cmd.args(["--reset-at", &at.to_string()]);
         }
         cmd.args(&run.extra);
         cmd.args(&site.extra);
@@ -304,6 +316,7 @@ pub fn demo(args: DemoArgs) -> Result<()> {
         progress: !args.json,
         dt: Some(args.dt),
         extra: args.site_args.clone(),
+        reset_at: args.reset_at,
     };
     if !args.json {
         eprintln!(
@@ -335,6 +348,7 @@ pub fn demo(args: DemoArgs) -> Result<()> {
             guide_force_max_n: r.guide_force_max_n,
             guide_force_mean_n: r.guide_force_mean_n,
             playback_distance_mm: r.playback_distance_mm,
+            epoch: r.epoch,
         })
         .collect();
     write_plots(&out, &series, &reports)?;

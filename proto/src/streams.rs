@@ -138,9 +138,8 @@ impl<T> KeyframeStreams<T> {
             let newer_waiting = self.held.contains_key(&region);
             // The newest stream in flight is only superseded by a waiting keyframe.
             let last = streams.len().saturating_sub(usize::from(!newer_waiting));
-            let mut i = 0;
             let mut kept = Vec::with_capacity(streams.len());
-            for s in streams.drain(..) {
+            for (i, s) in streams.drain(..).enumerate() {
                 if i < last && now.saturating_duration_since(s.started) >= stall {
                     actions.push(StreamAction::Reset {
                         token: s.token,
@@ -149,7 +148,6 @@ impl<T> KeyframeStreams<T> {
                 } else {
                     kept.push(s);
                 }
-                i += 1;
             }
             *streams = kept;
         }

@@ -145,6 +145,7 @@ pub fn run(args: SyncArgs) -> Result<()> {
             progress: false,
             dt: Some(0.004),
             extra: vec!["--playout-lag".into(), args.playout_lag.to_string()],
+            reset_at: None,
         };
         let (reports, series) = run_session(&run)?;
         let receivers: Vec<_> = reports

@@ -598,9 +598,8 @@ impl SiteSession {
             return Err(ResetError::NotInstructor(self.cfg.role));
         }
         if self.cfg.linked {
-            let margin = (2.0 * rtt.map_or(0.0, |d| d.as_secs_f64()))
-                .max(RESET_MARGIN)
-                .min(MAX_RESET_MARGIN);
+            let margin =
+                (2.0 * rtt.map_or(0.0, |d| d.as_secs_f64())).clamp(RESET_MARGIN, MAX_RESET_MARGIN);
             info!(
                 epoch = self.epoch,
                 at = t + margin,

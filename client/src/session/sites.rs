@@ -40,6 +40,10 @@ impl SiteTable {
         self.me != Some(site)
     }
 
+    pub fn is_empty(&self) -> bool {
+        self.sites.is_empty()
+    }
+
     /// Sites in the session, ours included.
     pub fn len(&self) -> usize {
         self.sites.len()
