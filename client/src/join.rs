@@ -225,6 +225,19 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
         imp.down.outage = Some(outage);
         link.impairment = Some(imp);
     }
+    // Scene resets: `--reset-at` (simulated time) and the script's `[[command]]`s
+    // (script time).
+    let reset_at = args
+        .reset_at
+        .iter()
+        .copied()
+        .chain(script.iter().flat_map(|s| {
+            s.commands
+                .iter()
+                .filter(|c| c.command == sim_core::sim_scene::SessionCommand::ResetScene)
+                .map(|c| c.t + args.script_start)
+        }))
+        .collect();
     Ok(SiteConfig {
         name: args.site.clone(),
         role: args.role.into(),
@@ -245,7 +258,7 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
         device: crate::haptic::site::DeviceSpec::parse(&args.device)?,
         rt_priority: args.rt_priority,
         on_progress: None,
-        reset_at: args.reset_at.clone(),
+        reset_at,
         status: None,
         scene,
     })

@@ -37,4 +37,4 @@ pub use scene::{
     InclusionShape, Load, LoadedScene, Material, Model, NodeSelection, PolarMethod, Probe, Scene,
     SceneError, SimulationSettings, ToolKind, ToolSpec, scene_hash,
 };
-pub use script::{Keyframe, ScriptError, ToolPose, ToolScript};
+pub use script::{Keyframe, ScriptCommand, ScriptError, SessionCommand, ToolPose, ToolScript};
