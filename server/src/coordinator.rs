@@ -28,9 +28,9 @@
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, MutexGuard};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use proto::{
@@ -42,7 +42,10 @@ use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinSet;
 use tracing::{debug, info, warn};
 
+pub use crate::clock::WallClock;
 use crate::session::{Action, DatagramVerdict, Session, Target};
+pub use crate::stats::CoordinatorStats;
+use crate::stats::{Counters, inc};
 use crate::tls::{Identity, TlsError};
 
 /// Queue length of a site's control-stream writer; a site that lets it overflow is closed
@@ -94,130 +97,6 @@ impl CoordinatorConfig {
     pub fn ephemeral(session: SessionConfig) -> Result<Self, TlsError> {
         let (id, _, _) = Identity::generate_self_signed()?;
         Ok(Self::new(session, id))
-    }
-}
-
-/// Counters (monotonic since start).
-#[derive(Debug, Default)]
-struct Counters {
-    connections: AtomicU64,
-    handshake_failures: AtomicU64,
-    refused: AtomicU64,
-    joined: AtomicU64,
-    resumed: AtomicU64,
-    left: AtomicU64,
-    datagrams_in: AtomicU64,
-    datagrams_relayed: AtomicU64,
-    datagrams_send_failed: AtomicU64,
-    malformed_datagrams: AtomicU64,
-    control_frames_in: AtomicU64,
-    malformed_control: AtomicU64,
-    keyframes_in: AtomicU64,
-    keyframes_relayed: AtomicU64,
-    keyframe_streams_reset: AtomicU64,
-    superseded_streams_in: AtomicU64,
-    malformed_streams: AtomicU64,
-    dropped_messages: AtomicU64,
-    overloaded: AtomicU64,
-}
-
-/// Snapshot of the coordinator's counters.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct CoordinatorStats {
-    /// Incoming QUIC connection attempts.
-    pub connections: u64,
-    /// Failed TLS/QUIC handshakes (e.g. wrong ALPN).
-    pub handshake_failures: u64,
-    /// Joins refused at the application layer.
-    pub refused: u64,
-    pub joined: u64,
-    /// Joins that replaced a silent member of the same name (a quick reconnection; see
-    /// [`crate::session::Session::join`]). Also counted in `joined`.
-    pub resumed: u64,
-    pub left: u64,
-    pub datagrams_in: u64,
-    /// Datagrams sent to recipients (one per recipient).
-    pub datagrams_relayed: u64,
-    pub datagrams_send_failed: u64,
-    pub malformed_datagrams: u64,
-    pub control_frames_in: u64,
-    pub malformed_control: u64,
-    pub keyframes_in: u64,
-    /// Keyframe streams completed to recipients (one per recipient).
-    pub keyframes_relayed: u64,
-    /// Relayed keyframe streams reset because a newer keyframe superseded them.
-    pub keyframe_streams_reset: u64,
-    /// Incoming keyframe streams the sending site reset with `stream_code::SUPERSEDED`
-    /// because a newer keyframe of the region replaced them (normal, not malformed).
-    pub superseded_streams_in: u64,
-    /// Unidirectional streams that were truncated, oversized, undecodable or not a keyframe.
-    pub malformed_streams: u64,
-    /// Well-formed messages dropped by policy (observer, not owner, stale, …).
-    pub dropped_messages: u64,
-    /// Sites closed because their control queue overflowed.
-    pub overloaded: u64,
-}
-
-impl Counters {
-    fn snapshot(&self) -> CoordinatorStats {
-        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
-        CoordinatorStats {
-            connections: g(&self.connections),
-            handshake_failures: g(&self.handshake_failures),
-            refused: g(&self.refused),
-            joined: g(&self.joined),
-            resumed: g(&self.resumed),
-            left: g(&self.left),
-            datagrams_in: g(&self.datagrams_in),
-            datagrams_relayed: g(&self.datagrams_relayed),
-            datagrams_send_failed: g(&self.datagrams_send_failed),
-            malformed_datagrams: g(&self.malformed_datagrams),
-            control_frames_in: g(&self.control_frames_in),
-            malformed_control: g(&self.malformed_control),
-            keyframes_in: g(&self.keyframes_in),
-            keyframes_relayed: g(&self.keyframes_relayed),
-            keyframe_streams_reset: g(&self.keyframe_streams_reset),
-            superseded_streams_in: g(&self.superseded_streams_in),
-            malformed_streams: g(&self.malformed_streams),
-            dropped_messages: g(&self.dropped_messages),
-            overloaded: g(&self.overloaded),
-        }
-    }
-}
-
-fn inc(a: &AtomicU64) {
-    a.fetch_add(1, Ordering::Relaxed);
-}
-
-/// A session clock: µs since the Unix epoch at creation, advanced by a monotonic clock.
-/// The coordinator's is the session's reference; each site's link keeps one of its own,
-/// built the same way, so that on one machine their offset is near zero.
-#[derive(Debug, Clone, Copy)]
-pub struct WallClock {
-    start: Instant,
-    base_us: u64,
-}
-
-impl WallClock {
-    pub fn new() -> Self {
-        let base_us = SystemTime::now()
-            .duration_since(UNIX_EPOCH)
-            .map(|d| d.as_micros() as u64)
-            .unwrap_or(0);
-        Self {
-            start: Instant::now(),
-            base_us,
-        }
-    }
-
-    pub fn now_us(&self) -> u64 {
-        self.base_us + self.start.elapsed().as_micros() as u64
-    }
-}
-
-impl Default for WallClock {
-    fn default() -> Self {
-        Self::new()
     }
 }
 

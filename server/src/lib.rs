@@ -9,9 +9,11 @@
 //! * [`cli`] — the `cosurg-server` command line ([`cli::main`]).
 
 pub mod cli;
+pub mod clock;
 pub mod coordinator;
 pub mod link;
 pub mod session;
+mod stats;
 pub mod tls;
 
 pub use coordinator::{
