@@ -656,6 +656,14 @@ async fn instructor_kicks_a_site() {
         }))
         .await
         .unwrap();
+        // … and is told why.
+        match next_ctrl(&mut tr).await {
+            Message::CommandRefused(r) => {
+                assert_eq!(r.command, "kick-site");
+                assert!(r.reason.contains("instructor"), "{}", r.reason);
+            }
+            m => panic!("{m:?}"),
+        }
         prof.send_control(&Message::Command(Command::KickSite {
             site: tr.welcome.site,
             reason: "disruptive".into(),
@@ -825,12 +833,18 @@ async fn reset_scene_and_teaching_playback_reach_everyone() {
         .unwrap();
         for s in [&mut tr, &mut late] {
             loop {
-                if let Message::Command(Command::ResetScene { epoch, .. }) = next_ctrl(s).await {
+                if let Message::Command(Command::ResetScene { epoch, sim_time_s }) =
+                    next_ctrl(s).await
+                {
                     assert_eq!(epoch, 1);
+                    assert_eq!(sim_time_s, 1.0, "the reset's simulated time is relayed");
                     break;
                 }
             }
         }
+        // A site joining after the reset takes the new epoch from its join snapshot.
+        let (_after, snap) = f.join_with_snapshot("after", Role::Trainee).await;
+        assert_eq!(snap.epoch, 1);
         f.handle.shutdown().await;
     })
     .await
