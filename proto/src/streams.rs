@@ -7,7 +7,7 @@
 //! With all of them busy a newer keyframe waits, replacing any older one waiting, unless
 //! the oldest stream has stalled (in flight for longer than the stall time, see
 //! [`stall_time`]), which is then reset. A stalled stream with a newer keyframe behind it
-//! (in flight or waiting) is reset at the next [`KeyframeStreams::poll`]. On a lossy or
+//! (in flight, delivered or waiting) is reset at the next [`KeyframeStreams::poll`]. On a lossy or
 //! long path several keyframes of a region are then on their way at once — a receiver
 //! that runs behind the owner interpolates between them — instead of one per round trip;
 //! on a path slower than the keyframe rate they still arrive at the path's pace.
@@ -67,6 +67,8 @@ pub struct KeyframeStreams<T> {
     in_flight: HashMap<RegionId, Vec<InFlight>>,
     /// Per region, the newest keyframe waiting for a free stream.
     held: HashMap<RegionId, T>,
+    /// Per region, the stream of the newest keyframe opened (in flight or delivered).
+    newest: HashMap<RegionId, StreamToken>,
     next_token: u64,
     /// Waiting keyframes replaced by newer ones before a stream was free.
     superseded_waiting: u64,
@@ -84,6 +86,7 @@ impl<T> KeyframeStreams<T> {
             max_per_region: max_per_region.max(1),
             in_flight: HashMap::new(),
             held: HashMap::new(),
+            newest: HashMap::new(),
             next_token: 0,
             superseded_waiting: 0,
         }
@@ -136,11 +139,12 @@ impl<T> KeyframeStreams<T> {
         let mut actions = Vec::new();
         for (&region, streams) in self.in_flight.iter_mut() {
             let newer_waiting = self.held.contains_key(&region);
-            // The newest stream in flight is only superseded by a waiting keyframe.
-            let last = streams.len().saturating_sub(usize::from(!newer_waiting));
+            let newest = self.newest.get(&region).copied();
             let mut kept = Vec::with_capacity(streams.len());
-            for (i, s) in streams.drain(..).enumerate() {
-                if i < last && now.saturating_duration_since(s.started) >= stall {
+            for s in streams.drain(..) {
+                // Superseded: a newer keyframe went out (in flight or delivered) or waits.
+                let superseded = newer_waiting || Some(s.token) != newest;
+                if superseded && now.saturating_duration_since(s.started) >= stall {
                     actions.push(StreamAction::Reset {
                         token: s.token,
                         region,
@@ -189,11 +193,13 @@ impl<T> KeyframeStreams<T> {
     pub fn clear(&mut self) {
         self.in_flight.clear();
         self.held.clear();
+        self.newest.clear();
     }
 
     fn open(&mut self, region: RegionId, payload: T, now: Instant) -> StreamAction<T> {
         self.next_token += 1;
         let token = StreamToken(self.next_token);
+        self.newest.insert(region, token);
         self.in_flight.entry(region).or_default().push(InFlight {
             token,
             started: now,
@@ -268,6 +274,18 @@ mod tests {
             }]
         );
         assert_eq!(s.in_flight(1), 1);
+        // A newer keyframe delivered already supersedes a stalled older one too.
+        s.submit(2, 0, late, STALL);
+        s.submit(2, 1, late, STALL);
+        s.finished(2, StreamToken(4));
+        let a = s.poll(late + STALL, STALL);
+        assert_eq!(
+            a,
+            vec![StreamAction::Reset {
+                token: StreamToken(3),
+                region: 2
+            }]
+        );
         // Full with the oldest stalled: a newer submission resets it and opens at once.
         s.submit(1, 2, late, STALL);
         s.submit(1, 3, late, STALL);
