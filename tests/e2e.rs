@@ -742,3 +742,64 @@ fn restarted_coordinator_keeps_its_fingerprint_and_honours_earlier_invitations()
     assert_eq!(server.fingerprint, fingerprint);
     joins(join_with_invite(&server, "kyoto", "trainee", &invitation));
 }
+
+/// `cosurg demo --seconds 12 --reset-at 4 --json`: the instructor resets the scene at 4 s;
+/// every site ends in the same epoch (one reset: epoch 1), and the divergence from the
+/// owner stays as bounded after the reset as before it.
+#[test]
+fn demo_scene_reset_keeps_the_sites_together() {
+    let _serial = serial();
+    let out = tempfile::tempdir().unwrap();
+    let mut cmd = cosurg();
+    cmd.args(["demo", "--seconds", "12", "--reset-at", "4", "--json"])
+        .args(["--vtu-interval", "100"])
+        .arg("--out")
+        .arg(out.path())
+        .args(["--", "--no-haptics"]);
+    let output = run_bounded(cmd, Duration::from_secs(300));
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "demo failed: {:?}\n{stdout}\n{}",
+        output.status,
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let json = &stdout[stdout.find('{').expect("JSON summary")..];
+    let summary: serde_json::Value = serde_json::from_str(json).expect("summary JSON");
+    let sites = summary["sites"].as_array().expect("sites");
+    assert_eq!(sites.len(), 3);
+    for s in sites {
+        assert_eq!(s["epoch"], 1, "site {} did not end in epoch 1", s["name"]);
+    }
+    // Divergence per recording mark, from the sites' own recordings.
+    let mut reports: Vec<SiteReport> = sites
+        .iter()
+        .map(|s| {
+            let dir = out.path().join(s["name"].as_str().unwrap());
+            let text = std::fs::read_to_string(dir.join("report.json")).unwrap();
+            serde_json::from_str(&text).unwrap()
+        })
+        .collect();
+    for r in &reports {
+        assert_eq!(r.resets, 1, "{} reset {} times", r.name, r.resets);
+    }
+    let series = fill_divergence(&mut reports).unwrap();
+    let max_in = |from: f64, to: f64| {
+        series
+            .iter()
+            .flat_map(|s| s.points.iter().filter(|p| p.0 >= from && p.0 < to))
+            .map(|p| p.1)
+            .fold(0.0, f64::max)
+    };
+    let before = max_in(0.0, 4.0);
+    let after = max_in(4.0, 12.0);
+    eprintln!("divergence before the reset {before:.2} mm, after {after:.2} mm");
+    assert!(
+        before < LOOPBACK_MOTION_BOUND_MM,
+        "before the reset: {before} mm"
+    );
+    assert!(
+        after < LOOPBACK_MOTION_BOUND_MM,
+        "after the reset: {after} mm"
+    );
+}

@@ -17,7 +17,7 @@ use serde::Serialize;
 use cosurg::cli::out_dir;
 use cosurg::demo::{DemoSite, SessionRun, run_session};
 use cosurg::plot::{Chart, Series, write_chart};
-use cosurg::site::Strategy;
+use sim_core::sync::SyncStrategy;
 
 #[derive(Debug, Args)]
 pub struct SyncArgs {
@@ -43,7 +43,7 @@ pub struct SyncArgs {
         value_delimiter = ',',
         default_value = "keyframe,full-state,input-only"
     )]
-    pub strategies: Vec<Strategy>,
+    pub strategies: Vec<SyncStrategy>,
     /// Slowdown of trainee B in the extra "unequal machines" row (1: no such row).
     #[arg(long, default_value_t = 3.0)]
     pub slowdown: f64,
@@ -108,17 +108,17 @@ fn cast(slowdown: f64, receiver_cg: Option<usize>) -> Vec<DemoSite> {
 pub fn run(args: SyncArgs) -> Result<()> {
     let out = out_dir(&args.out, "bench-sync");
     let scene = sim_core::sim_scene::builtin::cholecystectomy();
-    let mut cases: Vec<(Strategy, String, f64, Option<usize>)> = Vec::new();
+    let mut cases: Vec<(SyncStrategy, String, f64, Option<usize>)> = Vec::new();
     for s in &args.strategies {
         for p in &args.presets {
             cases.push((*s, p.clone(), 1.0, None));
         }
     }
     if args.slowdown > 1.0 {
-        cases.push((Strategy::Keyframe, "metro".into(), args.slowdown, None));
+        cases.push((SyncStrategy::Keyframe, "metro".into(), args.slowdown, None));
     }
     if args.reduced_cg > 0 {
-        for s in [Strategy::Keyframe, Strategy::InputOnly] {
+        for s in [SyncStrategy::Keyframe, SyncStrategy::InputOnly] {
             for p in ["lan", "good"] {
                 cases.push((s, p.into(), 1.0, Some(args.reduced_cg)));
             }
@@ -145,6 +145,7 @@ pub fn run(args: SyncArgs) -> Result<()> {
             progress: false,
             dt: Some(0.004),
             extra: vec!["--playout-lag".into(), args.playout_lag.to_string()],
+            reset_at: None,
         };
         let (reports, series) = run_session(&run)?;
         let receivers: Vec<_> = reports

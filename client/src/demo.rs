@@ -20,7 +20,8 @@ use serde::Serialize;
 
 use crate::cli::out_dir;
 use crate::plot::{Chart, Series, write_chart};
-use crate::site::{SiteReport, Strategy};
+use crate::site::SiteReport;
+use sim_core::sync::SyncStrategy;
 
 #[derive(Debug, Args, Clone)]
 pub struct DemoArgs {
@@ -36,9 +37,9 @@ pub struct DemoArgs {
     /// Output folder (default out/demo-<timestamp>).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Sync strategy.
-    #[arg(long, value_enum, default_value = "keyframe")]
-    pub strategy: Strategy,
+    /// Sync strategy: keyframe, full-state[:K] (every K steps), input-only.
+    #[arg(long, default_value = "keyframe")]
+    pub strategy: SyncStrategy,
     /// Network impairment preset applied to every site's link (netem presets: lan,
     /// metro, good, average, poor, intercontinental).
     #[arg(long)]
@@ -56,6 +57,9 @@ pub struct DemoArgs {
     /// time on a 2-core machine; the haptic loop renders at 1 kHz between steps.
     #[arg(long, default_value_t = 0.004)]
     pub dt: f64,
+    /// The instructor resets the scene for every site at this simulated time (s).
+    #[arg(long, value_name = "SECONDS")]
+    pub reset_at: Option<f64>,
     /// Extra arguments passed to every site's `cosurg join` (after `--`).
     #[arg(last = true)]
     pub site_args: Vec<String>,
@@ -136,6 +140,8 @@ pub struct SiteRow {
     pub guide_force_max_n: Option<f64>,
     pub guide_force_mean_n: Option<f64>,
     pub playback_distance_mm: Option<f64>,
+    /// Scene epoch at the end (one per reset).
+    pub epoch: u32,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -153,7 +159,7 @@ pub struct DemoSummary {
 pub struct SessionRun {
     pub cast: Vec<DemoSite>,
     pub seconds: f64,
-    pub strategy: Strategy,
+    pub strategy: SyncStrategy,
     pub preset: Option<String>,
     pub seed: u64,
     pub out: PathBuf,
@@ -163,6 +169,8 @@ pub struct SessionRun {
     pub dt: Option<f64>,
     /// Extra arguments for every site's `cosurg join`.
     pub extra: Vec<String>,
+    /// The instructor resets the scene at this simulated time (s).
+    pub reset_at: Option<f64>,
 }
 
 /// Runs a coordinator in-process and every site as a child process; returns the site
@@ -202,7 +210,7 @@ pub fn run_session(run: &SessionRun) -> Result<(Vec<SiteReport>, Vec<Series>)> {
             .args(["--site", &site.name])
             .args(["--pin", &fingerprint])
             .args(["--seconds", &run.seconds.to_string()])
-            .args(["--strategy", run.strategy.name()])
+            .args(["--strategy", &run.strategy.to_string()])
             .args(["--script-start", &site.script_start.to_string()])
             .args(["--slowdown", &site.slowdown.to_string()])
             .args(["--expect-sites", &run.cast.len().to_string()])
@@ -242,6 +250,11 @@ pub fn run_session(run: &SessionRun) -> Result<(Vec<SiteReport>, Vec<Series>)> {
         }
         if let Some(dt) = run.dt {
             cmd.args(["--dt", &dt.to_string()]);
+        }
+        if let Some(at) = run.reset_at
+            && site.role == "instructor"
+        {
+            cmd.args(["--reset-at", &at.to_string()]);
         }
         cmd.args(&run.extra);
         cmd.args(&site.extra);
@@ -320,6 +333,7 @@ pub fn demo(args: DemoArgs) -> Result<()> {
         progress: !args.json,
         dt: Some(args.dt),
         extra: args.site_args.clone(),
+        reset_at: args.reset_at,
     };
     if !args.json {
         eprintln!(
@@ -351,6 +365,7 @@ pub fn demo(args: DemoArgs) -> Result<()> {
             guide_force_max_n: r.guide_force_max_n,
             guide_force_mean_n: r.guide_force_mean_n,
             playback_distance_mm: r.playback_distance_mm,
+            epoch: r.epoch,
         })
         .collect();
     write_plots(&out, &series, &reports)?;

@@ -12,7 +12,8 @@ use sim_core::sim_scene::ToolScript;
 use crate::cli::SimKnobs;
 use crate::link::{LinkConfig, LinkImpairment, Trust};
 use crate::scene_arg::load_scene;
-use crate::site::{SiteConfig, SiteReport, Strategy, run_site};
+use crate::site::{SiteConfig, SiteReport, run_site};
+use sim_core::sync::SyncStrategy;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum RoleArg {
@@ -79,12 +80,16 @@ pub struct JoinArgs {
     /// Leave after this many simulated seconds.
     #[arg(long, default_value_t = 10.0)]
     pub seconds: f64,
+    /// Instructor: reset the scene for every site when the simulated time reaches
+    /// SECONDS (may be repeated).
+    #[arg(long, value_name = "SECONDS")]
+    pub reset_at: Vec<f64>,
     /// Print the summary as JSON.
     #[arg(long)]
     pub json: bool,
-    /// How sites share the interaction.
-    #[arg(long, value_enum, default_value = "keyframe")]
-    pub strategy: Strategy,
+    /// How sites share the interaction: keyframe, full-state[:K] (every K steps), input-only.
+    #[arg(long, default_value = "keyframe")]
+    pub strategy: SyncStrategy,
     /// Slow this site's simulation by a factor (real extra CPU per step).
     #[arg(long, default_value_t = 1.0)]
     pub slowdown: f64,
@@ -231,6 +236,19 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
         imp.down.outage = Some(outage);
         link.impairment = Some(imp);
     }
+    // Scene resets: `--reset-at` (simulated time) and the script's `[[command]]`s
+    // (script time).
+    let reset_at = args
+        .reset_at
+        .iter()
+        .copied()
+        .chain(script.iter().flat_map(|s| {
+            s.commands
+                .iter()
+                .filter(|c| c.command == sim_core::sim_scene::SessionCommand::ResetScene)
+                .map(|c| c.t + args.script_start)
+        }))
+        .collect();
     Ok(SiteConfig {
         name: args.site.clone(),
         role: args.role.into(),
@@ -248,9 +266,11 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
         realtime: !args.no_realtime,
         playout_lag: args.playout_lag,
         haptics: !args.no_haptics,
-        device: crate::site::glue::DeviceSpec::parse(&args.device)?,
+        device: crate::haptic::site::DeviceSpec::parse(&args.device)?,
         rt_priority: args.rt_priority,
         on_progress: None,
+        reset_at,
+        status: None,
         scene,
     })
 }

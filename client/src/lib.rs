@@ -17,6 +17,7 @@ pub mod run;
 pub mod run_window;
 pub mod scene_arg;
 pub mod score;
+pub mod session;
 pub mod site;
 pub mod solve;
 pub mod stats;

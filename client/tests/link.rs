@@ -158,9 +158,9 @@ fn keyframe(region: u32, id: u64, nodes: u32) -> RegionKeyframe {
     let ids: Vec<u32> = (0..nodes).collect();
     RegionKeyframe {
         region,
-        keyframe: id,
+        keyframe_id: id,
         owner: 0,
-        sim_time_s: 1.5,
+        sim_time: 1.5,
         epoch: 0,
         tree_bits: vec![0b1011_0001; 64],
         nodes: QuantisedNodes {
@@ -242,7 +242,7 @@ async fn two_sites_exchange_pose_keyframe_and_ack() {
         // Control stream: B acknowledges; the coordinator relays the ack to the owner A.
         b.send_control(Message::KeyframeAck(proto::KeyframeAck {
             region: 7,
-            keyframe: 1,
+            keyframe_id: 1,
             site: 0,
         }));
         match wait_for(&a, Duration::from_secs(5), |e| {
@@ -251,7 +251,7 @@ async fn two_sites_exchange_pose_keyframe_and_ack() {
         .await
         {
             LinkEvent::Message(Message::KeyframeAck(ack)) => {
-                assert_eq!((ack.region, ack.keyframe, ack.site), (7, 1, b_id));
+                assert_eq!((ack.region, ack.keyframe_id, ack.site), (7, 1, b_id));
             }
             _ => unreachable!(),
         }
@@ -279,7 +279,7 @@ async fn two_sites_exchange_pose_keyframe_and_ack() {
             region: 7,
             site: 0,
             epoch: 0,
-            sim_time_s: 2.0,
+            sim_time: 2.0,
             base_keyframe: 1,
             xor_bits: vec![0x5A; 3000],
         }));
@@ -431,7 +431,7 @@ async fn poor_network_still_joins_and_receives() {
         sleep(Duration::from_millis(150)).await;
         far.send_keyframe(keyframe(9, 2, 10));
         let k = keyframe_arrives(&near, 9, Duration::from_secs(8)).await;
-        assert_eq!((k.keyframe, k.nodes.ids.len()), (2, 10));
+        assert_eq!((k.keyframe_id, k.nodes.ids.len()), (2, 10));
         let deadline = Instant::now() + Duration::from_secs(10);
         loop {
             let s = far.stats();
@@ -586,7 +586,7 @@ async fn outage_detected_by_silence_then_rejoin_with_snapshot() {
         match wait_for(&link, Duration::from_secs(5), |_| true).await {
             LinkEvent::Message(Message::Snapshot(s)) => {
                 assert_eq!(s.keyframes.len(), 1, "{s:?}");
-                assert_eq!((s.keyframes[0].region, s.keyframes[0].keyframe), (5, 9));
+                assert_eq!((s.keyframes[0].region, s.keyframes[0].keyframe_id), (5, 9));
                 assert_eq!(s.keyframes[0].owner, other_id);
             }
             other => panic!("expected the snapshot, got {other:?}"),

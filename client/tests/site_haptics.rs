@@ -10,13 +10,14 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use cosurg::haptic::UdpBridgeDevice;
+use cosurg::haptic::site::DeviceSpec;
 use cosurg::haptic::udp::{ForceDatagram, PoseDatagram};
 use cosurg::link::LinkConfig;
-use cosurg::site::glue::DeviceSpec;
-use cosurg::site::{PlayoutLag, SiteConfig, SiteReport, Strategy, run_site};
+use cosurg::site::{PlayoutLag, SiteConfig, SiteReport, run_site};
 use proto::Role;
 use sim_core::SimOptions;
 use sim_core::sim_scene::{LoadedScene, ToolPose, ToolScript, ToolWaypoint, builtin};
+use sim_core::sync::SyncStrategy;
 
 fn site(scene: &LoadedScene, name: &str, role: Role, tool: &str, seconds: f64) -> SiteConfig {
     let mut options = SimOptions::from_scene(&scene.scene);
@@ -30,7 +31,7 @@ fn site(scene: &LoadedScene, name: &str, role: Role, tool: &str, seconds: f64) -
         script: None,
         script_start: 0.0,
         seconds,
-        strategy: Strategy::Keyframe,
+        strategy: SyncStrategy::Keyframe,
         slowdown: 1.0,
         out: None,
         vtu_interval: None,
@@ -42,6 +43,8 @@ fn site(scene: &LoadedScene, name: &str, role: Role, tool: &str, seconds: f64) -
         device: DeviceSpec::Script,
         rt_priority: None,
         on_progress: None,
+        reset_at: Vec::new(),
+        status: None,
     }
 }
 

@@ -34,9 +34,9 @@ fn keyframe(nodes: usize) -> Message {
     let vel = vec![[0.001, -0.002, 0.0005]; nodes];
     Message::Keyframe(RegionKeyframe {
         region: 1,
-        keyframe: 7,
+        keyframe_id: 7,
         owner: 2,
-        sim_time_s: 1.0,
+        sim_time: 1.0,
         epoch: 0,
         tree_bits: vec![0xA5; nodes / 4],
         nodes: QuantisedNodes::encode_default(&ids, &pos, &vel).unwrap(),

@@ -383,7 +383,7 @@ mod tests {
             region: 1,
             site: 1,
             epoch: 0,
-            sim_time_s: 0.0,
+            sim_time: 0.0,
             base_keyframe: 1,
             xor_bits: vec![0xAA; 2000],
         });

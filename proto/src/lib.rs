@@ -13,7 +13,9 @@
 //! * [`ownership`] — [`OwnershipArbiter`]: region ownership, instructor first, then earlier claim;
 //! * [`baseline`] — [`BaselineTracker`]: which keyframes each receiver acknowledged;
 //! * [`clock`] — [`ClockFilter`]: NTP-style offset/RTT with minimum-delay window and slewing;
-//! * [`liveness`] — [`PeerLiveness`]: heartbeats, timeout after 2.4 intervals.
+//! * [`liveness`] — [`PeerLiveness`]: heartbeats, timeout after 2.4 intervals;
+//! * [`streams`] — [`KeyframeStreams`]: the keyframe-stream scheduler of sites and
+//!   coordinator (newest wins, up to eight per region in flight, stalled ones reset).
 //!
 //! ## Channels
 //! | channel | messages |
@@ -32,6 +34,7 @@ pub mod liveness;
 pub mod msg;
 pub mod ownership;
 pub mod quant;
+pub mod streams;
 
 /// Protocol version carried in [`msg::Join`]; its low byte is the wire tag of every message.
 ///
@@ -43,6 +46,13 @@ pub const PROTOCOL_VERSION: u16 = 2;
 /// it has been in flight this long. Resetting younger streams starves paths whose round
 /// trip is longer than the keyframe interval: nothing would ever arrive.
 pub const KEYFRAME_STALL: std::time::Duration = std::time::Duration::from_millis(300);
+
+/// Send priority of keyframe and snapshot streams (the control stream has 0), at sites
+/// and coordinator alike.
+pub const KEYFRAME_PRIORITY: i32 = -1;
+
+/// Time a keyframe or snapshot stream may take to arrive completely.
+pub const STREAM_READ_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
 
 /// ALPN identifier of the protocol, used by both TLS sides.
 pub const ALPN: &[u8] = b"cosurg/1";
@@ -97,3 +107,6 @@ pub use liveness::{LivenessEvent, PeerLiveness};
 pub use msg::*;
 pub use ownership::{OwnershipArbiter, OwnershipOutcome};
 pub use quant::{QuantError, QuantisedNodes};
+pub use streams::{
+    KEYFRAME_STREAMS_PER_REGION, KeyframeStreams, StreamAction, StreamToken, stall_time,
+};

@@ -20,6 +20,8 @@ pub type RegionId = u32;
 /// Keyframe identifier: per region, strictly increasing. A site that takes over a region
 /// continues from the newest id it has seen for that region + 1.
 pub type KeyframeId = u64;
+/// Scene epoch: bumped by every scene reset; frames of another epoch are stale.
+pub type Epoch = u32;
 /// The coordinator's own site id in messages it originates.
 pub const COORDINATOR_SITE: SiteId = 0;
 
@@ -250,13 +252,13 @@ pub struct ToolPose {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RegionKeyframe {
     pub region: RegionId,
-    pub keyframe: KeyframeId,
+    pub keyframe_id: KeyframeId,
     /// Site owning the region (the sender).
     pub owner: SiteId,
     /// Simulation time of the state (s).
-    pub sim_time_s: f64,
-    /// Topology epoch: bumped by a scene reset; frames of an older epoch are stale.
-    pub epoch: u32,
+    pub sim_time: f64,
+    /// Scene epoch: bumped by a scene reset; frames of another epoch are stale.
+    pub epoch: Epoch,
     /// Tree state (split bits over heap indices) of the region, opaque to the protocol.
     pub tree_bits: Vec<u8>,
     /// Node ids with quantised positions and velocities.
@@ -269,8 +271,9 @@ pub struct RegionKeyframe {
 pub struct TreeDelta {
     pub region: RegionId,
     pub site: SiteId,
-    pub epoch: u32,
-    pub sim_time_s: f64,
+    pub epoch: Epoch,
+    /// Simulation time of the state (s).
+    pub sim_time: f64,
     /// The keyframe the delta applies to; every receiver has acknowledged it.
     pub base_keyframe: KeyframeId,
     /// XOR of the base keyframe's tree bits and the current ones (opaque bytes, may be
@@ -282,7 +285,7 @@ pub struct TreeDelta {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct KeyframeAck {
     pub region: RegionId,
-    pub keyframe: KeyframeId,
+    pub keyframe_id: KeyframeId,
     /// The acknowledging site (filled in / overwritten by the coordinator).
     pub site: SiteId,
 }
@@ -343,7 +346,8 @@ pub struct RegionOwner {
 pub struct Snapshot {
     /// Newest simulation time known to the coordinator (s).
     pub sim_time_s: f64,
-    pub epoch: u32,
+    /// The session's current scene epoch: a late joiner takes it.
+    pub epoch: Epoch,
     pub owners: Vec<RegionOwner>,
     /// Latest keyframe of every region.
     pub keyframes: Vec<RegionKeyframe>,
@@ -370,9 +374,13 @@ pub struct TeachingTrajectory {
 /// Instructor commands (control stream; instructor only, relayed to all sites).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum Command {
-    /// All sites reload the scene and bump the topology epoch to `epoch`.
+    /// Instructor → coordinator: reset the scene (`epoch`: the sender's current one).
+    /// Coordinator → every site: restore the scene's initial state and take `epoch`, the
+    /// new scene epoch, when the site's simulated time reaches `sim_time_s` (s; at once if
+    /// it is past), so that every site resets at the same simulated time.
     ResetScene {
-        epoch: u32,
+        epoch: Epoch,
+        sim_time_s: f64,
     },
     /// Remove a site from the session.
     KickSite {
@@ -387,6 +395,27 @@ pub enum Command {
     StopPlayback {
         trajectory: u32,
     },
+}
+
+/// Why the coordinator did not carry out a [`Command`] (e.g. a trainee asked for a reset).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CommandRefusal {
+    /// The command's name (`reset-scene`, `kick-site`, …).
+    pub command: String,
+    /// Human-readable reason.
+    pub reason: String,
+}
+
+impl Command {
+    /// Short name, for logs and refusals.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Command::ResetScene { .. } => "reset-scene",
+            Command::KickSite { .. } => "kick-site",
+            Command::StartPlayback { .. } => "start-playback",
+            Command::StopPlayback { .. } => "stop-playback",
+        }
+    }
 }
 
 /// A site leaves (control stream) or the coordinator announces a departure.
@@ -489,6 +518,8 @@ pub enum Message {
     Admin(AdminRequest),
     /// Answer to an [`AdminRequest`] minting an invitation.
     Invitation(InvitationIssued),
+    /// The coordinator refused a command (to the sender only, control stream).
+    CommandRefused(CommandRefusal),
 }
 
 /// Which transport a message normally travels on.
@@ -529,6 +560,7 @@ impl Message {
             Message::SiteJoined(_) => "site-joined",
             Message::Admin(_) => "admin",
             Message::Invitation(_) => "invitation",
+            Message::CommandRefused(_) => "command-refused",
         }
     }
 

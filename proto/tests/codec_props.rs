@@ -76,9 +76,9 @@ fn keyframe() -> impl Strategy<Value = RegionKeyframe> {
         .prop_map(
             |(region, keyframe, owner, sim_time_s, epoch, tree_bits, nodes)| RegionKeyframe {
                 region,
-                keyframe,
+                keyframe_id: keyframe,
                 owner,
-                sim_time_s,
+                sim_time: sim_time_s,
                 epoch,
                 tree_bits,
                 nodes,
@@ -97,7 +97,8 @@ fn sample() -> impl Strategy<Value = ToolSample> {
 }
 fn command() -> impl Strategy<Value = Command> {
     prop_oneof![
-        any::<u32>().prop_map(|epoch| Command::ResetScene { epoch }),
+        (any::<u32>(), -1e6f64..1e6)
+            .prop_map(|(epoch, sim_time_s)| Command::ResetScene { epoch, sim_time_s }),
         (any::<u16>(), s()).prop_map(|(site, reason)| Command::KickSite { site, reason }),
         (any::<u32>(), simt()).prop_map(|(trajectory, start_sim_time_s)| Command::StartPlayback {
             trajectory,
@@ -242,7 +243,7 @@ fn message() -> impl Strategy<Value = Message> {
                         region,
                         site,
                         epoch,
-                        sim_time_s,
+                        sim_time: sim_time_s,
                         base_keyframe,
                         xor_bits
                     }
@@ -251,7 +252,7 @@ fn message() -> impl Strategy<Value = Message> {
         (any::<u32>(), any::<u64>(), any::<u16>()).prop_map(|(region, keyframe, site)| {
             Message::KeyframeAck(KeyframeAck {
                 region,
-                keyframe,
+                keyframe_id: keyframe,
                 site,
             })
         }),

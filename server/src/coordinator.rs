@@ -29,14 +29,14 @@
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, MutexGuard};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use proto::{
-    FrameDecoder, FrameError, Heartbeat, KeyframeId, Message, RegionId, Role, SessionConfig,
-    SiteId, close_code, stream_code,
+    FrameDecoder, FrameError, Heartbeat, KEYFRAME_PRIORITY, KeyframeStreams, Message, Role,
+    STREAM_READ_TIMEOUT, SessionConfig, SiteId, StreamAction, StreamToken, close_code, stream_code,
 };
 use quinn::{Connection, Endpoint, RecvStream, SendStream, VarInt};
 use tokio::sync::{mpsc, oneshot};
@@ -44,17 +44,16 @@ use tokio::task::JoinSet;
 use tracing::{debug, info, warn};
 
 use crate::admission::Admission;
+pub use crate::clock::WallClock;
 use crate::ratelimit::RateLimitConfig;
 use crate::session::{Action, DatagramVerdict, Session, Target};
+pub use crate::stats::CoordinatorStats;
+use crate::stats::{Counters, inc};
 use crate::tls::{Identity, TlsError};
 
-/// Send priority of relayed keyframe and snapshot streams (the control stream has 0).
-pub const KEYFRAME_PRIORITY: i32 = -1;
 /// Queue length of a site's control-stream writer; a site that lets it overflow is closed
 /// with `close_code::OVERLOADED`.
 pub const CONTROL_QUEUE: usize = 4096;
-/// Time a keyframe stream may take to arrive completely.
-pub const STREAM_READ_TIMEOUT: Duration = Duration::from_secs(30);
 
 /// Coordinator errors.
 #[derive(Debug, thiserror::Error)]
@@ -110,143 +109,18 @@ impl CoordinatorConfig {
     }
 }
 
-/// Counters (monotonic since start).
-#[derive(Debug, Default)]
-struct Counters {
-    connections: AtomicU64,
-    handshake_failures: AtomicU64,
-    refused: AtomicU64,
-    joined: AtomicU64,
-    resumed: AtomicU64,
-    left: AtomicU64,
-    datagrams_in: AtomicU64,
-    datagrams_relayed: AtomicU64,
-    datagrams_send_failed: AtomicU64,
-    malformed_datagrams: AtomicU64,
-    control_frames_in: AtomicU64,
-    malformed_control: AtomicU64,
-    keyframes_in: AtomicU64,
-    keyframes_relayed: AtomicU64,
-    keyframe_streams_reset: AtomicU64,
-    superseded_streams_in: AtomicU64,
-    malformed_streams: AtomicU64,
-    dropped_messages: AtomicU64,
-    overloaded: AtomicU64,
-}
-
-/// Snapshot of the coordinator's counters.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct CoordinatorStats {
-    /// Incoming QUIC connection attempts.
-    pub connections: u64,
-    /// Failed TLS/QUIC handshakes (e.g. wrong ALPN).
-    pub handshake_failures: u64,
-    /// Joins refused at the application layer.
-    pub refused: u64,
-    pub joined: u64,
-    /// Joins that replaced a silent member of the same name (a quick reconnection; see
-    /// [`crate::session::Session::join`]). Also counted in `joined`.
-    pub resumed: u64,
-    pub left: u64,
-    pub datagrams_in: u64,
-    /// Datagrams sent to recipients (one per recipient).
-    pub datagrams_relayed: u64,
-    pub datagrams_send_failed: u64,
-    pub malformed_datagrams: u64,
-    pub control_frames_in: u64,
-    pub malformed_control: u64,
-    pub keyframes_in: u64,
-    /// Keyframe streams completed to recipients (one per recipient).
-    pub keyframes_relayed: u64,
-    /// Relayed keyframe streams reset because a newer keyframe superseded them.
-    pub keyframe_streams_reset: u64,
-    /// Incoming keyframe streams the sending site reset with `stream_code::SUPERSEDED`
-    /// because a newer keyframe of the region replaced them (normal, not malformed).
-    pub superseded_streams_in: u64,
-    /// Unidirectional streams that were truncated, oversized, undecodable or not a keyframe.
-    pub malformed_streams: u64,
-    /// Well-formed messages dropped by policy (observer, not owner, stale, …).
-    pub dropped_messages: u64,
-    /// Sites closed because their control queue overflowed.
-    pub overloaded: u64,
-}
-
-impl Counters {
-    fn snapshot(&self) -> CoordinatorStats {
-        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
-        CoordinatorStats {
-            connections: g(&self.connections),
-            handshake_failures: g(&self.handshake_failures),
-            refused: g(&self.refused),
-            joined: g(&self.joined),
-            resumed: g(&self.resumed),
-            left: g(&self.left),
-            datagrams_in: g(&self.datagrams_in),
-            datagrams_relayed: g(&self.datagrams_relayed),
-            datagrams_send_failed: g(&self.datagrams_send_failed),
-            malformed_datagrams: g(&self.malformed_datagrams),
-            control_frames_in: g(&self.control_frames_in),
-            malformed_control: g(&self.malformed_control),
-            keyframes_in: g(&self.keyframes_in),
-            keyframes_relayed: g(&self.keyframes_relayed),
-            keyframe_streams_reset: g(&self.keyframe_streams_reset),
-            superseded_streams_in: g(&self.superseded_streams_in),
-            malformed_streams: g(&self.malformed_streams),
-            dropped_messages: g(&self.dropped_messages),
-            overloaded: g(&self.overloaded),
-        }
-    }
-}
-
-fn inc(a: &AtomicU64) {
-    a.fetch_add(1, Ordering::Relaxed);
-}
-
-/// The coordinator clock: µs since the Unix epoch at start, advanced monotonically.
-#[derive(Debug, Clone, Copy)]
-pub struct CoordinatorClock {
-    start: Instant,
-    base_us: u64,
-}
-
-impl CoordinatorClock {
-    pub fn new() -> Self {
-        let base_us = SystemTime::now()
-            .duration_since(UNIX_EPOCH)
-            .map(|d| d.as_micros() as u64)
-            .unwrap_or(0);
-        Self {
-            start: Instant::now(),
-            base_us,
-        }
-    }
-
-    pub fn now_us(&self) -> u64 {
-        self.base_us + self.start.elapsed().as_micros() as u64
-    }
-}
-
-impl Default for CoordinatorClock {
-    fn default() -> Self {
-        Self::new()
-    }
-}
-
 enum CtrlItem {
     Frame(Bytes),
     CloseAfterFlush { code: u32, reason: String },
 }
 
-struct Inflight {
-    keyframe: KeyframeId,
-    token: u64,
-    cancel: oneshot::Sender<()>,
-}
-
 struct Peer {
     conn: Connection,
     ctrl: mpsc::Sender<CtrlItem>,
-    inflight: HashMap<RegionId, Inflight>,
+    /// Relayed keyframe streams to this peer: which goes out now, which waits, which is
+    /// reset (the same scheduler as the sites' links).
+    streams: KeyframeStreams<Bytes>,
+    cancels: HashMap<StreamToken, oneshot::Sender<()>>,
     /// (udp rx bytes, udp tx bytes) at the last status line.
     last_bytes: (u64, u64),
 }
@@ -254,11 +128,10 @@ struct Peer {
 struct State {
     session: Session,
     peers: HashMap<SiteId, Peer>,
-    next_token: u64,
 }
 
 struct Shared {
-    clock: CoordinatorClock,
+    clock: WallClock,
     state: Mutex<State>,
     counters: Counters,
     max_frame: usize,
@@ -351,11 +224,10 @@ impl Coordinator {
         })?;
         let heartbeat_us = config.session.heartbeat_interval_us.max(10_000);
         let shared = Arc::new(Shared {
-            clock: CoordinatorClock::new(),
+            clock: WallClock::new(),
             state: Mutex::new(State {
                 session: Session::new(config.session.clone()),
                 peers: HashMap::new(),
-                next_token: 0,
             }),
             counters: Counters::default(),
             max_frame: config.max_frame,
@@ -460,6 +332,15 @@ async fn housekeeping(shared: Arc<Shared>, interval: Duration) {
             let _ = p.conn.send_datagram(hb.clone());
             st.session
                 .set_rtt(id, p.conn.rtt().as_micros().min(u32::MAX as u128) as u32);
+        }
+        // Stalled keyframe streams with a newer keyframe behind them are reset.
+        let ids: Vec<SiteId> = st.peers.keys().copied().collect();
+        for id in ids {
+            if let Some(p) = st.peers.get_mut(&id) {
+                let stall = proto::stall_time(p.conn.rtt());
+                let more = p.streams.poll(Instant::now(), stall);
+                relay_streams(&shared, p, id, more);
+            }
         }
         let actions = st.session.poll_liveness(now);
         for a in &actions {
@@ -729,7 +610,8 @@ async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
                     Peer {
                         conn: conn.clone(),
                         ctrl: tx,
-                        inflight: HashMap::new(),
+                        streams: KeyframeStreams::default(),
+                        cancels: HashMap::new(),
                         last_bytes: (0, 0),
                     },
                 );
@@ -1052,7 +934,7 @@ async fn read_keyframe_stream(shared: Arc<Shared>, site: SiteId, mut recv: RecvS
         (Ok(None), Ok(())) => return bad(&mut recv, "empty stream".into()),
     };
     let region = kf.region;
-    let keyframe_id = kf.keyframe;
+    let keyframe_id = kf.keyframe_id;
     let now = shared.clock.now_us();
     let mut st = shared.lock();
     let st = &mut *st;
@@ -1065,48 +947,64 @@ async fn read_keyframe_stream(shared: Arc<Shared>, site: SiteId, mut recv: RecvS
         }
     };
     inc(&shared.counters.keyframes_in);
-    for (&id, peer) in st.peers.iter_mut() {
-        if id == site {
+    let now = Instant::now();
+    let ids: Vec<SiteId> = st.peers.keys().copied().filter(|&id| id != site).collect();
+    for id in ids {
+        let Some(peer) = st.peers.get_mut(&id) else {
             continue;
-        }
-        if let Some(old) = peer.inflight.remove(&region) {
-            debug!(
-                to = id,
-                region,
-                old = old.keyframe,
-                new = keyframe_id,
-                "superseding keyframe stream"
-            );
-            let _ = old.cancel.send(());
-        }
-        let (ctx, crx) = oneshot::channel();
-        st.next_token += 1;
-        let token = st.next_token;
-        peer.inflight.insert(
-            region,
-            Inflight {
-                keyframe: keyframe_id,
+        };
+        let stall = proto::stall_time(peer.conn.rtt());
+        let actions = peer
+            .streams
+            .submit(region, stored.frame.clone(), now, stall);
+        debug!(to = id, region, keyframe_id, "relaying keyframe");
+        relay_streams(&shared, peer, id, actions);
+    }
+}
+
+/// Carries out the keyframe-stream scheduler's decisions for `peer` (site `id`).
+fn relay_streams(
+    shared: &Arc<Shared>,
+    peer: &mut Peer,
+    id: SiteId,
+    actions: Vec<StreamAction<Bytes>>,
+) {
+    for a in actions {
+        match a {
+            StreamAction::Open {
                 token,
-                cancel: ctx,
-            },
-        );
-        let conn = peer.conn.clone();
-        let frame = stored.frame.clone();
-        let shared = shared.clone();
-        tokio::spawn(async move {
-            let r = send_stream_once(&conn, frame, Some(crx)).await;
-            match &r {
-                Ok(true) => inc(&shared.counters.keyframes_relayed),
-                Ok(false) => inc(&shared.counters.keyframe_streams_reset),
-                Err(e) => debug!(to = id, region, error = %e, "keyframe relay failed"),
+                region,
+                payload,
+            } => {
+                let (ctx, crx) = oneshot::channel();
+                peer.cancels.insert(token, ctx);
+                let conn = peer.conn.clone();
+                let shared = shared.clone();
+                tokio::spawn(async move {
+                    let r = send_stream_once(&conn, payload, Some(crx)).await;
+                    match &r {
+                        Ok(true) => inc(&shared.counters.keyframes_relayed),
+                        Ok(false) => inc(&shared.counters.keyframe_streams_reset),
+                        Err(e) => debug!(to = id, region, error = %e, "keyframe relay failed"),
+                    }
+                    // The stream ended: a waiting keyframe may go out now.
+                    let mut st = shared.lock();
+                    if let Some(p) = st.peers.get_mut(&id) {
+                        p.cancels.remove(&token);
+                        p.streams.finished(region, token);
+                        let stall = proto::stall_time(p.conn.rtt());
+                        let more = p.streams.poll(Instant::now(), stall);
+                        relay_streams(&shared, p, id, more);
+                    }
+                });
             }
-            let mut st = shared.lock();
-            if let Some(p) = st.peers.get_mut(&id)
-                && p.inflight.get(&region).is_some_and(|i| i.token == token)
-            {
-                p.inflight.remove(&region);
+            StreamAction::Reset { token, region } => {
+                debug!(to = id, region, "superseding keyframe stream");
+                if let Some(cancel) = peer.cancels.remove(&token) {
+                    let _ = cancel.send(());
+                }
             }
-        });
+        }
     }
 }
 
@@ -1117,18 +1015,17 @@ async fn send_stream_once(
     frame: Bytes,
     cancel: Option<oneshot::Receiver<()>>,
 ) -> Result<bool, String> {
-    // Superseded only once stalled (see `proto::KEYFRAME_STALL`), judged against this
-    // peer's round trip.
-    let started = tokio::time::Instant::now();
-    let stall = proto::KEYFRAME_STALL.max(conn.rtt() * 4);
+    // Cancelled by the keyframe-stream scheduler (a newer keyframe, this one stalled).
+    // A dropped sender (peer gone) is not a cancellation.
     let cancelled = async move {
         match cancel {
             Some(rx) => {
-                let _ = rx.await;
+                if rx.await.is_err() {
+                    std::future::pending::<()>().await;
+                }
             }
             None => std::future::pending::<()>().await,
         }
-        tokio::time::sleep_until(started + stall).await;
     };
     tokio::pin!(cancelled);
     let mut s = tokio::select! {

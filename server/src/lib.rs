@@ -13,13 +13,15 @@
 pub mod admin;
 pub mod admission;
 pub mod cli;
+pub mod clock;
 pub mod coordinator;
 pub mod ratelimit;
 pub mod session;
 pub mod state;
+mod stats;
 pub mod tls;
 
 pub use coordinator::{
-    Coordinator, CoordinatorConfig, CoordinatorHandle, CoordinatorStats, ServerError,
+    Coordinator, CoordinatorConfig, CoordinatorHandle, CoordinatorStats, ServerError, WallClock,
 };
 pub use proto;

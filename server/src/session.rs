@@ -467,7 +467,7 @@ impl Session {
         if self
             .keyframes
             .get(&kf.region)
-            .is_some_and(|k| k.keyframe.keyframe >= kf.keyframe)
+            .is_some_and(|k| k.keyframe.keyframe_id >= kf.keyframe_id)
         {
             return Err(DropReason::StaleKeyframe);
         }
@@ -488,7 +488,7 @@ impl Session {
 
     /// Newest stored keyframe id of a region.
     pub fn latest_keyframe_id(&self, region: RegionId) -> Option<KeyframeId> {
-        self.keyframes.get(&region).map(|k| k.keyframe.keyframe)
+        self.keyframes.get(&region).map(|k| k.keyframe.keyframe_id)
     }
 
     /// Handle a message from `site`'s control stream.
@@ -545,11 +545,18 @@ impl Session {
             }
             Message::Command(c) => {
                 if !instructor {
-                    return Self::drop_action(
-                        site,
-                        &Message::Command(c),
-                        DropReason::NotInstructor,
-                    );
+                    // Refused with a reason the site can show, and counted as dropped.
+                    let refusal = Message::CommandRefused(proto::CommandRefusal {
+                        command: c.name().into(),
+                        reason: format!("only the instructor may {}", c.name()),
+                    });
+                    let mut a =
+                        Self::drop_action(site, &Message::Command(c), DropReason::NotInstructor);
+                    a.push(Action::Control {
+                        to: Target::One(site),
+                        msg: refusal,
+                    });
+                    return a;
                 }
                 self.command(site, c)
             }
@@ -579,14 +586,17 @@ impl Session {
 
     fn command(&mut self, site: SiteId, c: Command) -> Vec<Action> {
         match c {
-            Command::ResetScene { .. } => {
+            Command::ResetScene { sim_time_s, .. } => {
                 self.epoch = self.epoch.wrapping_add(1);
                 self.keyframes.clear();
                 self.arbiter.clear();
                 self.playback = None;
                 vec![Action::Control {
                     to: Target::All,
-                    msg: Message::Command(Command::ResetScene { epoch: self.epoch }),
+                    msg: Message::Command(Command::ResetScene {
+                        epoch: self.epoch,
+                        sim_time_s,
+                    }),
                 }]
             }
             Command::KickSite {

@@ -132,9 +132,9 @@ fn keyframe(region: RegionId, id: KeyframeId, owner: SiteId, bits: usize) -> Reg
     let vel = vec![[0.0, 0.0, 0.001]; ids.len()];
     RegionKeyframe {
         region,
-        keyframe: id,
+        keyframe_id: id,
         owner,
-        sim_time_s: id as f64 * 0.1,
+        sim_time: id as f64 * 0.1,
         epoch: 0,
         tree_bits: vec![0x5A; bits],
         nodes: QuantisedNodes::encode_default(&ids, &pos, &vel).unwrap(),
@@ -446,15 +446,15 @@ async fn keyframe_relayed_acked_and_late_joiner_gets_snapshot() {
             m => panic!("{m:?}"),
         }
         // b acknowledges; the ack is routed to a
-        b.send_control(&Message::KeyframeAck(KeyframeAck { region: 7, keyframe: 1, site: 0 })).await.unwrap();
+        b.send_control(&Message::KeyframeAck(KeyframeAck { region: 7, keyframe_id: 1, site: 0 })).await.unwrap();
         assert_eq!(
             next_ctrl(&mut a).await,
-            Message::KeyframeAck(KeyframeAck { region: 7, keyframe: 1, site: b.welcome.site })
+            Message::KeyframeAck(KeyframeAck { region: 7, keyframe_id: 1, site: b.welcome.site })
         );
         // a newer keyframe replaces it for late joiners
         let kf2 = keyframe(7, 2, sa, 100);
         link::send_uni(&a.conn, &Message::Keyframe(kf2.clone()), 0).await.unwrap();
-        assert!(matches!(b.next_uni().await.unwrap(), Message::Keyframe(k) if k.keyframe == 2));
+        assert!(matches!(b.next_uni().await.unwrap(), Message::Keyframe(k) if k.keyframe_id == 2));
         let (_late, snap) = f.join_with_snapshot("late", Role::Observer).await;
         assert_eq!(snap.keyframes, vec![kf2]);
         assert_eq!(snap.owners, vec![RegionOwner { region: 7, site: sa }]);
@@ -491,7 +491,7 @@ async fn tree_deltas_relayed_only_from_owner_and_observer_streams_refused() {
                 region: 2,
                 site,
                 epoch: 0,
-                sim_time_s: 0.5,
+                sim_time: 0.5,
                 base_keyframe: 1,
                 xor_bits: vec![x; 16],
             })
@@ -564,7 +564,7 @@ async fn superseded_keyframe_stream_is_reset() {
             other => panic!("expected a reset stream, got {other:?}"),
         }
         match b.next_uni().await.unwrap() {
-            Message::Keyframe(k) => assert_eq!(k.keyframe, 2),
+            Message::Keyframe(k) => assert_eq!(k.keyframe_id, 2),
             m => panic!("{m:?}"),
         }
         f.handle.shutdown().await;
@@ -678,6 +678,14 @@ async fn instructor_kicks_a_site() {
         }))
         .await
         .unwrap();
+        // … and is told why.
+        match next_ctrl(&mut tr).await {
+            Message::CommandRefused(r) => {
+                assert_eq!(r.command, "kick-site");
+                assert!(r.reason.contains("instructor"), "{}", r.reason);
+            }
+            m => panic!("{m:?}"),
+        }
         prof.send_control(&Message::Command(Command::KickSite {
             site: tr.welcome.site,
             reason: "disruptive".into(),
@@ -839,17 +847,26 @@ async fn reset_scene_and_teaching_playback_reach_everyone() {
             next_ctrl(&mut late).await,
             Message::Command(Command::StartPlayback { .. })
         ));
-        prof.send_control(&Message::Command(Command::ResetScene { epoch: 0 }))
-            .await
-            .unwrap();
+        prof.send_control(&Message::Command(Command::ResetScene {
+            epoch: 0,
+            sim_time_s: 1.0,
+        }))
+        .await
+        .unwrap();
         for s in [&mut tr, &mut late] {
             loop {
-                if let Message::Command(Command::ResetScene { epoch }) = next_ctrl(s).await {
+                if let Message::Command(Command::ResetScene { epoch, sim_time_s }) =
+                    next_ctrl(s).await
+                {
                     assert_eq!(epoch, 1);
+                    assert_eq!(sim_time_s, 1.0, "the reset's simulated time is relayed");
                     break;
                 }
             }
         }
+        // A site joining after the reset takes the new epoch from its join snapshot.
+        let (_after, snap) = f.join_with_snapshot("after", Role::Trainee).await;
+        assert_eq!(snap.epoch, 1);
         f.handle.shutdown().await;
     })
     .await

@@ -39,4 +39,4 @@ pub use scene::{
     FileReader, Fix, Inclusion, InclusionShape, Load, LoadedScene, Material, Model, NodeSelection,
     PolarMethod, Probe, Scene, SceneError, SimulationSettings, ToolKind, ToolSpec, scene_hash,
 };
-pub use script::{ScriptError, ToolPose, ToolScript, ToolWaypoint};
+pub use script::{ScriptCommand, ScriptError, SessionCommand, ToolPose, ToolScript, ToolWaypoint};

@@ -14,6 +14,10 @@
 //! orientation = [1.0, 0.0, 0.0, 0.0]    # quaternion [w, x, y, z]; optional: previous pose's (first: identity)
 //! jaw = 0.5                   # jaw opening angle, rad (0 = closed); optional: previous pose's (first: 0)
 //! label = "approach"          # optional note shown to trainees
+//!
+//! [[command]]                 # optional: session commands (instructor scripts)
+//! t = 4.0                     # s, script time
+//! command = "reset-scene"     # every site restores the scene's initial state
 //! ```
 //!
 //! Between poses the position and jaw angle are interpolated linearly and the orientation
@@ -81,6 +85,24 @@ pub struct ToolScript {
     pub title: Option<String>,
     /// Waypoints per tool name.
     pub tracks: BTreeMap<String, Vec<ToolWaypoint>>,
+    /// Session commands at script times, sorted by time.
+    pub commands: Vec<ScriptCommand>,
+}
+
+/// A session command an instructor's script issues at a script time.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScriptCommand {
+    /// Time in s (script time).
+    pub t: f64,
+    /// What to do.
+    pub command: SessionCommand,
+}
+
+/// What a [`ScriptCommand`] does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SessionCommand {
+    /// Every site restores the scene's initial state (`"reset-scene"`).
+    ResetScene,
 }
 
 #[derive(Deserialize)]
@@ -91,6 +113,15 @@ struct RawScript {
     tool: Option<String>,
     #[serde(default)]
     pose: Vec<RawPose>,
+    #[serde(default)]
+    command: Vec<RawCommand>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawCommand {
+    t: f64,
+    command: String,
 }
 
 #[derive(Deserialize)]
@@ -208,9 +239,27 @@ impl ToolScript {
                 label: p.label,
             });
         }
+        let mut commands = Vec::with_capacity(raw.command.len());
+        for (i, c) in raw.command.into_iter().enumerate() {
+            if !c.t.is_finite() {
+                return Err(inv(format!("command[{i}].t"), "must be finite".into()));
+            }
+            let command = match c.command.as_str() {
+                "reset-scene" => SessionCommand::ResetScene,
+                other => {
+                    return Err(inv(
+                        format!("command[{i}].command"),
+                        format!("unknown command {other:?} (reset-scene)"),
+                    ));
+                }
+            };
+            commands.push(ScriptCommand { t: c.t, command });
+        }
+        commands.sort_by(|a, b| a.t.total_cmp(&b.t));
         Ok(ToolScript {
             title: raw.title,
             tracks,
+            commands,
         })
     }
 
@@ -245,6 +294,17 @@ impl ToolScript {
                     let _ = writeln!(s, "label = {}", toml_string(l));
                 }
             }
+        }
+        for c in &self.commands {
+            let name = match c.command {
+                SessionCommand::ResetScene => "reset-scene",
+            };
+            let _ = write!(
+                s,
+                "\n[[command]]\nt = {}\ncommand = {}\n",
+                fmt_fixed(c.t, 4),
+                toml_string(name)
+            );
         }
         s
     }
@@ -344,6 +404,29 @@ position = [1.0, 1.0, 1.0]
         assert_eq!(s.sample("forceps", 9.0).unwrap().position.x, 0.2);
         assert_eq!(s.sample("probe", 3.0).unwrap().position.x, 1.0);
         assert!(s.sample("hook", 0.0).is_none());
+    }
+
+    #[test]
+    fn commands_parse_sort_and_round_trip() {
+        let text = format!(
+            "{TEXT}\n[[command]]\nt = 3.0\ncommand = \"reset-scene\"\n[[command]]\nt = 1.5\ncommand = \"reset-scene\"\n"
+        );
+        let s = ToolScript::parse(&text, "s.toml").unwrap();
+        let times: Vec<f64> = s.commands.iter().map(|c| c.t).collect();
+        assert_eq!(times, [1.5, 3.0]);
+        assert!(
+            s.commands
+                .iter()
+                .all(|c| c.command == SessionCommand::ResetScene)
+        );
+        let again = ToolScript::parse(&s.to_toml(), "again.toml").unwrap();
+        assert_eq!(again.commands, s.commands);
+        let bad = format!("{TEXT}\n[[command]]\nt = 1.0\ncommand = \"explode\"\n");
+        let e = ToolScript::parse(&bad, "bad.toml").unwrap_err().to_string();
+        assert!(
+            e.contains("command[0].command") && e.contains("explode"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -37,6 +37,7 @@ mod measure;
 pub mod render;
 mod runner;
 mod scripted;
+pub mod site;
 mod teaching;
 mod timing;
 pub mod udp;

@@ -47,7 +47,7 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::Duration;
 
 use proto::{ClockFilter, Message, Refusal, RegionKeyframe, Role, SiteId, Welcome};
 use tokio::sync::Notify;
@@ -56,8 +56,6 @@ use tokio::sync::Notify;
 pub const DATAGRAM_QUEUE: usize = 64;
 /// Default capacity of the control queue while no session is established (messages).
 pub const CONTROL_QUEUE: usize = 4096;
-/// Send priority of keyframe streams (the control stream has 0).
-pub const KEYFRAME_PRIORITY: i32 = -1;
 
 /// How the link authenticates the coordinator.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -351,30 +349,6 @@ pub(crate) fn add(a: &AtomicU64, n: u64) {
     a.fetch_add(n, Ordering::Relaxed);
 }
 
-/// Local clock: µs since the Unix epoch at creation, advanced by a monotonic clock.
-#[derive(Debug, Clone, Copy)]
-struct LocalClock {
-    start: Instant,
-    base_us: u64,
-}
-
-impl LocalClock {
-    fn new() -> Self {
-        let base_us = SystemTime::now()
-            .duration_since(UNIX_EPOCH)
-            .map(|d| d.as_micros() as u64)
-            .unwrap_or(0);
-        Self {
-            start: Instant::now(),
-            base_us,
-        }
-    }
-
-    fn now_us(&self) -> u64 {
-        self.base_us + self.start.elapsed().as_micros() as u64
-    }
-}
-
 /// Messages waiting for the link task.
 #[derive(Debug, Default)]
 struct Outbox {
@@ -397,7 +371,7 @@ struct Shared {
     outbox: Mutex<Outbox>,
     wake: Notify,
     clock: Mutex<ClockFilter>,
-    local: LocalClock,
+    local: server::WallClock,
     counters: Counters,
     /// Current site id (0: not joined).
     site: AtomicU32,
@@ -501,7 +475,7 @@ impl Link {
             outbox: Mutex::new(Outbox::default()),
             wake: Notify::new(),
             clock: Mutex::new(ClockFilter::default()),
-            local: LocalClock::new(),
+            local: server::WallClock::new(),
             counters: Counters::default(),
             site: AtomicU32::new(0),
             datagram_queue: cfg.datagram_queue.max(1),
@@ -532,9 +506,7 @@ impl Link {
     }
 
     /// Send a message as a datagram (tool pose, sim-time stamp, tree delta). Newest wins:
-    /// when the queue is full the oldest entry is dropped. The link fills in the sender's
-    /// site id and, for a [`proto::SimTimeStamp`] with `wall_send_us == 0`, the estimated
-    /// coordinator time at sending. Too large for a datagram, or a message whose
+    /// when the queue is full the oldest entry is dropped. Too large for a datagram, or a message whose
     /// [`proto::Channel`] is not `Datagram`: sent on the control stream.
     pub fn send_datagram(&self, msg: Message) {
         if msg.channel() != proto::Channel::Datagram {

@@ -7,28 +7,21 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use proto::{
-    ClockSample, FrameDecoder, FrameError, LivenessEvent, Message, PeerLiveness, Refusal,
-    RefusalReason, RegionId, RegionKeyframe, SiteId, Welcome, close_code, stream_code,
+    ClockSample, FrameDecoder, FrameError, KEYFRAME_PRIORITY, KeyframeStreams, LivenessEvent,
+    Message, PeerLiveness, Refusal, RefusalReason, RegionId, RegionKeyframe, STREAM_READ_TIMEOUT,
+    SiteId, StreamAction, StreamToken, Welcome, close_code, stream_code,
 };
 use quinn::{Connection, ConnectionError, Endpoint, RecvStream, SendStream, VarInt};
 use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinSet;
 use tracing::{debug, info, warn};
 
-use super::{KEYFRAME_PRIORITY, LinkConfig, LinkEvent, Shared, add};
+use super::{LinkConfig, LinkEvent, Shared, add};
 
 /// Period of the session loop's housekeeping tick (pings, heartbeats, liveness, stats).
 const TICK: Duration = Duration::from_millis(50);
 /// Number of clock pings sent every [`TICK`] right after joining, for a quick first estimate.
 const FAST_PINGS: u32 = 5;
-/// Keyframe streams of one region in flight at a time (see `Session::send_keyframe`).
-/// When released tissue snaps back the owner sends a keyframe every 30 ms for a few
-/// hundred ms; on a 200 ms round trip eight streams carry that burst without dropping any
-/// (measured `average` preset: 2 mm divergence with eight, 4–24 mm with three).
-const KEYFRAME_STREAMS_PER_REGION: usize = 8;
-
-/// Time a keyframe or snapshot stream may take to arrive completely.
-const STREAM_READ_TIMEOUT: Duration = Duration::from_secs(30);
 /// Time allowed for the coordinator to close the connection after our Leave.
 const LEAVE_WAIT: Duration = Duration::from_secs(2);
 /// Smallest accepted heartbeat interval (µs), whatever the Welcome says.
@@ -45,7 +38,7 @@ impl Events {
 }
 
 /// A joined connection, right after the Welcome.
-struct Joined {
+struct JoinedConnection {
     conn: Connection,
     send: SendStream,
     recv: RecvStream,
@@ -132,7 +125,7 @@ async fn connect(
     cfg: &LinkConfig,
     endpoint: &Endpoint,
     shared: &Shared,
-) -> Result<Joined, AttemptError> {
+) -> Result<JoinedConnection, AttemptError> {
     let attempt = async {
         let connecting = endpoint
             .connect(cfg.server, &cfg.server_name)
@@ -181,7 +174,7 @@ async fn connect(
         };
         add(&shared.counters.control_received, 1);
         match first {
-            Message::Welcome(welcome) => Ok(Joined {
+            Message::Welcome(welcome) => Ok(JoinedConnection {
                 conn,
                 send,
                 recv,
@@ -258,7 +251,7 @@ pub(super) async fn run(
                     ev.send(LinkEvent::Welcome(welcome));
                 }
                 joined_before = true;
-                let end = Session::new(&cfg, &shared, &ev, j).run().await;
+                let end = ConnectionLoop::new(&cfg, &shared, &ev, j).run().await;
                 shared.site.store(0, Ordering::Relaxed);
                 let n = shared.discard_outbox();
                 add(&shared.counters.dropped_on_loss, n as u64);
@@ -349,7 +342,7 @@ enum Inbound {
 }
 
 /// One connection's session loop.
-struct Session<'a> {
+struct ConnectionLoop<'a> {
     cfg: &'a LinkConfig,
     shared: &'a Arc<Shared>,
     ev: &'a Events,
@@ -359,19 +352,26 @@ struct Session<'a> {
     ctrl: Option<mpsc::UnboundedSender<Bytes>>,
     inbound: mpsc::UnboundedReceiver<Inbound>,
     tasks: JoinSet<()>,
-    /// Per region: the keyframe streams in flight, oldest first (cancel handle, start).
-    keyframes: HashMap<RegionId, Vec<(oneshot::Sender<()>, tokio::time::Instant)>>,
-    /// Per region: the newest keyframe waiting for a free stream (newest wins).
-    held_keyframes: HashMap<RegionId, Bytes>,
+    /// Which keyframe goes on a stream now, which waits, which stream is reset.
+    streams: KeyframeStreams<Bytes>,
+    /// Cancel handles of the keyframe streams in flight.
+    cancels: HashMap<StreamToken, (RegionId, oneshot::Sender<()>)>,
+    /// Waiting keyframes replaced, as already added to the link's counters.
+    superseded_counted: u64,
     ping_seq: u32,
     /// UDP byte counters of earlier connections (up, down).
     udp_base: (u64, u64),
     malformed_logged: u32,
 }
 
-impl<'a> Session<'a> {
-    fn new(cfg: &'a LinkConfig, shared: &'a Arc<Shared>, ev: &'a Events, j: Joined) -> Self {
-        let Joined {
+impl<'a> ConnectionLoop<'a> {
+    fn new(
+        cfg: &'a LinkConfig,
+        shared: &'a Arc<Shared>,
+        ev: &'a Events,
+        j: JoinedConnection,
+    ) -> Self {
+        let JoinedConnection {
             conn,
             send,
             recv,
@@ -400,8 +400,9 @@ impl<'a> Session<'a> {
             ctrl: Some(ctrl_tx),
             inbound: in_rx,
             tasks,
-            keyframes: HashMap::new(),
-            held_keyframes: HashMap::new(),
+            streams: KeyframeStreams::default(),
+            cancels: HashMap::new(),
+            superseded_counted: 0,
             ping_seq: 0,
             udp_base: (
                 c.udp_bytes_up.load(Ordering::Relaxed),
@@ -509,10 +510,7 @@ impl<'a> Session<'a> {
                         next_ping = tokio::time::Instant::now() + iv;
                     }
                     while self.tasks.try_join_next().is_some() {}
-                    self.keyframes.retain(|_, streams| {
-                        streams.retain(|c| !c.0.is_closed());
-                        !streams.is_empty()
-                    });
+                    self.reap_keyframe_streams();
                 }
             }
         }
@@ -611,23 +609,6 @@ impl<'a> Session<'a> {
         let _ = tx.send(Bytes::from(frame));
     }
 
-    /// Fill in the fields the link knows better than the caller.
-    fn stamp(&self, msg: &mut Message) {
-        match msg {
-            Message::ToolPose(p) => p.site = self.site,
-            Message::SimTime(s) => {
-                s.site = self.site;
-                if s.wall_send_us == 0 {
-                    s.wall_send_us = self.shared.coordinator_now_us();
-                }
-            }
-            Message::TreeDelta(d) => d.site = self.site,
-            Message::KeyframeAck(a) => a.site = self.site,
-            Message::Leave(l) => l.site = self.site,
-            _ => {}
-        }
-    }
-
     /// Send everything queued by the site.
     fn drain(&mut self) {
         let (control, datagrams, keyframes) = {
@@ -638,12 +619,12 @@ impl<'a> Session<'a> {
                 std::mem::take(&mut o.keyframes),
             )
         };
-        for mut m in control {
-            self.stamp(&mut m);
+        // Senders fill in their own site id (the site's session knows it); the
+        // coordinator checks it.
+        for m in control {
             self.send_control(&m);
         }
-        for mut m in datagrams {
-            self.stamp(&mut m);
+        for m in datagrams {
             self.send_datagram(m);
         }
         for kf in keyframes {
@@ -680,93 +661,74 @@ impl<'a> Session<'a> {
         }
     }
 
-    /// Up to [`KEYFRAME_STREAMS_PER_REGION`] keyframe streams per region at a time,
-    /// newest wins: with all of them busy, a newer keyframe waits (replacing any that was
-    /// already waiting) unless the oldest stream has stalled for longer than `stall()`,
-    /// in which case that one is reset as superseded. A stalled stream with a newer one
-    /// behind it is reset too (`pump_held_keyframes`). On a lossy or long path several
-    /// keyframes of a region are then on their way at once — a receiver that runs behind
-    /// the owner (playout lag) interpolates between them — instead of one per round trip;
-    /// on a path slower than the keyframe rate they still arrive at the path's pace.
-    fn send_keyframe(&mut self, mut kf: RegionKeyframe) {
-        kf.owner = self.site;
+    /// Sends a keyframe on a stream of its own as the keyframe-stream scheduler decides
+    /// ([`proto::KeyframeStreams`]: up to eight per region in flight, newest wins,
+    /// stalled ones reset).
+    fn send_keyframe(&mut self, kf: RegionKeyframe) {
         let region = kf.region;
         let frame = Bytes::from(proto::encode_frame(&Message::Keyframe(kf)));
-        let stall = self.stall();
-        let streams = self.keyframes.entry(region).or_default();
-        streams.retain(|c| !c.0.is_closed());
-        if streams.len() >= KEYFRAME_STREAMS_PER_REGION {
-            if streams[0].1.elapsed() < stall {
-                if self.held_keyframes.insert(region, frame).is_some() {
-                    add(&self.shared.counters.keyframes_superseded, 1);
-                }
-                return;
-            }
-            let (old, _) = streams.remove(0);
-            let _ = old.send(());
-        }
-        // A keyframe waiting for a stream is older than this one.
-        if self.held_keyframes.remove(&region).is_some() {
-            add(&self.shared.counters.keyframes_superseded, 1);
-        }
-        self.spawn_keyframe(region, frame);
+        self.reap_keyframe_streams();
+        let stall = proto::stall_time(self.conn.rtt());
+        let actions = self
+            .streams
+            .submit(region, frame, std::time::Instant::now(), stall);
+        self.execute(actions);
     }
 
-    /// How long a keyframe stream may be in flight before a newer one supersedes it.
-    fn stall(&self) -> std::time::Duration {
-        proto::KEYFRAME_STALL.max(self.conn.rtt() * 4)
-    }
-
-    /// Resets stalled streams that have a newer keyframe behind them (sent or waiting):
-    /// a keyframe in flight for longer than the stall time (at least four round trips,
-    /// more than any playout lag) is of no use once a newer one exists. Then sends waiting
+    /// Resets stalled streams that have a newer keyframe behind them and sends waiting
     /// keyframes once a stream is free.
     fn pump_held_keyframes(&mut self) {
-        let stall = self.stall();
-        for (region, streams) in self.keyframes.iter_mut() {
-            streams.retain(|c| !c.0.is_closed());
-            let newer_waiting = self.held_keyframes.contains_key(region);
-            // The newest stream in flight is only superseded by a waiting keyframe.
-            let last = streams.len().saturating_sub(usize::from(!newer_waiting));
-            let (stalled, rest): (Vec<_>, Vec<_>) = std::mem::take(streams)
-                .into_iter()
-                .enumerate()
-                .partition(|(i, c)| *i < last && c.1.elapsed() >= stall);
-            for (_, (old, _)) in stalled {
-                let _ = old.send(());
-            }
-            *streams = rest.into_iter().map(|(_, c)| c).collect();
-        }
-        let ready: Vec<RegionId> = self
-            .held_keyframes
-            .keys()
-            .copied()
-            .filter(|r| {
-                self.keyframes
-                    .get(r)
-                    .is_none_or(|s| s.len() < KEYFRAME_STREAMS_PER_REGION)
-            })
+        self.reap_keyframe_streams();
+        let stall = proto::stall_time(self.conn.rtt());
+        let actions = self.streams.poll(std::time::Instant::now(), stall);
+        self.execute(actions);
+    }
+
+    /// Tells the scheduler about keyframe streams whose task ended.
+    fn reap_keyframe_streams(&mut self) {
+        let ended: Vec<(StreamToken, RegionId)> = self
+            .cancels
+            .iter()
+            .filter(|(_, (_, c))| c.is_closed())
+            .map(|(t, (r, _))| (*t, *r))
             .collect();
-        for region in ready {
-            if let Some(frame) = self.held_keyframes.remove(&region) {
-                self.spawn_keyframe(region, frame);
-            }
+        for (token, region) in ended {
+            self.cancels.remove(&token);
+            self.streams.finished(region, token);
         }
     }
 
-    fn spawn_keyframe(&mut self, region: RegionId, frame: Bytes) {
-        let (tx, rx) = oneshot::channel();
-        self.keyframes
-            .entry(region)
-            .or_default()
-            .push((tx, tokio::time::Instant::now()));
-        add(&self.shared.counters.bytes_up, frame.len() as u64);
-        self.tasks.spawn(keyframe_stream(
-            self.conn.clone(),
-            frame,
-            rx,
-            self.shared.clone(),
-        ));
+    fn execute(&mut self, actions: Vec<StreamAction<Bytes>>) {
+        let waiting_replaced = self.streams.superseded_waiting();
+        add(
+            &self.shared.counters.keyframes_superseded,
+            waiting_replaced - self.superseded_counted,
+        );
+        self.superseded_counted = waiting_replaced;
+        for a in actions {
+            match a {
+                StreamAction::Open {
+                    token,
+                    region,
+                    payload,
+                } => {
+                    let (tx, rx) = oneshot::channel();
+                    self.cancels.insert(token, (region, tx));
+                    add(&self.shared.counters.bytes_up, payload.len() as u64);
+                    self.tasks.spawn(keyframe_stream(
+                        self.conn.clone(),
+                        payload,
+                        rx,
+                        self.shared.clone(),
+                    ));
+                }
+                StreamAction::Reset { token, .. } => {
+                    if let Some((_, cancel)) = self.cancels.remove(&token) {
+                        let _ = cancel.send(());
+                    }
+                }
+            }
+        }
     }
 
     /// Send Leave (after anything still queued), finish the control stream and wait for

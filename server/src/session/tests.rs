@@ -55,9 +55,9 @@ fn join(s: &mut Session, name: &str, role: Role) -> SiteId {
 fn kf(region: RegionId, id: KeyframeId, owner: SiteId, epoch: u32) -> RegionKeyframe {
     RegionKeyframe {
         region,
-        keyframe: id,
+        keyframe_id: id,
         owner,
-        sim_time_s: 0.0,
+        sim_time: 0.0,
         epoch,
         tree_bits: vec![1],
         nodes: QuantisedNodes::default(),
@@ -167,7 +167,7 @@ fn ack_routed_to_keyframe_owner() {
         b,
         Message::KeyframeAck(KeyframeAck {
             region: 4,
-            keyframe: 1,
+            keyframe_id: 1,
             site: 0,
         }),
         0,
@@ -178,7 +178,7 @@ fn ack_routed_to_keyframe_owner() {
             to: Target::One(a),
             msg: Message::KeyframeAck(KeyframeAck {
                 region: 4,
-                keyframe: 1,
+                keyframe_id: 1,
                 site: b
             })
         }]
@@ -191,7 +191,14 @@ fn instructor_commands_and_kick() {
     let i = join(&mut s, "prof", Role::Instructor);
     let a = join(&mut s, "a", Role::Trainee);
     // trainees cannot command
-    let acts = s.on_control(a, Message::Command(Command::ResetScene { epoch: 0 }), 0);
+    let acts = s.on_control(
+        a,
+        Message::Command(Command::ResetScene {
+            epoch: 0,
+            sim_time_s: 2.0,
+        }),
+        0,
+    );
     assert!(matches!(
         acts[0],
         Action::Drop {
@@ -199,14 +206,33 @@ fn instructor_commands_and_kick() {
             ..
         }
     ));
+    // … and told why.
+    assert!(matches!(
+        &acts[1],
+        Action::Control {
+            to: Target::One(to),
+            msg: Message::CommandRefused(r),
+        } if *to == a && r.command == "reset-scene" && r.reason.contains("instructor")
+    ));
+    assert_eq!(s.epoch(), 0);
     // reset bumps epoch and clears keyframes
     s.on_keyframe(a, kf(1, 1, a, 0), Bytes::new(), 0).unwrap();
-    let acts = s.on_control(i, Message::Command(Command::ResetScene { epoch: 0 }), 0);
+    let acts = s.on_control(
+        i,
+        Message::Command(Command::ResetScene {
+            epoch: 0,
+            sim_time_s: 2.0,
+        }),
+        0,
+    );
     assert_eq!(
         acts,
         vec![Action::Control {
             to: Target::All,
-            msg: Message::Command(Command::ResetScene { epoch: 1 })
+            msg: Message::Command(Command::ResetScene {
+                epoch: 1,
+                sim_time_s: 2.0
+            })
         }]
     );
     assert!(s.keyframe(1).is_none());

@@ -1,23 +1,17 @@
-//! Adapters between the site loop and the engine: the scene's tools and their contact
-//! (sim-core's `Interaction`), the sync state (sim-core's `SiteSync`) with its conversion
-//! to and from `proto` messages and its pacing by simulated time, and the surface
-//! recorder.
+//! The scene's tools at a site: the local tool's input, remote tools sampled at the site's
+//! simulated time, and their contact with the organ (sim-core's `Interaction`).
 
-use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
-use std::path::Path;
+use std::collections::VecDeque;
 
 use anyhow::{Context, Result};
 use nalgebra::Vector3;
 use sim_core::contact::LocalModel;
 use sim_core::sim_scene::ToolScript;
-use sim_core::sync::{
-    self, RegionKeyframe, RegionMap, RegionTreeDelta, SiteSync, SyncConfig, SyncFrame, SyncStrategy,
-};
+use sim_core::sync::SyncStrategy;
 use sim_core::{Interaction, Simulation, ToolInput};
-use tracing::warn;
 
-use super::Strategy;
 use crate::output::ToolFrame;
+use crate::session::SiteSession;
 
 type V3 = Vector3<f64>;
 
@@ -42,7 +36,7 @@ pub struct Tools {
 }
 
 impl Tools {
-    pub fn new(sim: &Simulation, local: Option<&str>, strategy: Strategy) -> Result<Self> {
+    pub fn new(sim: &Simulation, local: Option<&str>, strategy: SyncStrategy) -> Result<Self> {
         let interaction = Interaction::new(sim);
         let local = match local {
             Some(name) => Some(
@@ -58,10 +52,17 @@ impl Tools {
             remote_track: vec![PoseTrack::default(); interaction.tools.len()],
             interaction,
             local,
-            remote_contact: strategy == Strategy::InputOnly,
+            remote_contact: strategy == SyncStrategy::InputOnly,
             local_active: false,
             touch_radius: 2.0 * sim.lattice().params().cell,
         })
+    }
+
+    /// After a scene reset: contact starts again on the rebuilt simulation (grasps and
+    /// contact state of the old one are gone); remote tool tracks are kept.
+    pub fn reset(&mut self, sim: &Simulation) {
+        self.interaction = Interaction::new(sim);
+        self.touch_radius = 2.0 * sim.lattice().params().cell;
     }
 
     /// The local tool's input at script time `t` (s), while the script runs.
@@ -83,7 +84,7 @@ impl Tools {
         &mut self,
         sim: &mut Simulation,
         local: Option<ToolInput>,
-        sync: &SyncState,
+        session: &SiteSession,
     ) -> Result<Vec<u32>> {
         self.local_active = local.is_some();
         // A pose stamped t + dt is the input its site used for the step from t: sample
@@ -142,7 +143,7 @@ impl Tools {
         }
         let centre = 0.5 * (lo + hi);
         let radius = 0.5 * (hi - lo).norm() + self.touch_radius;
-        Ok(sync.regions_near(sim, &centre, radius))
+        Ok(session.regions_near(sim, &centre, radius))
     }
 
     /// A pose of a tool from another site (held until our simulation time reaches it).
@@ -216,7 +217,7 @@ impl Tools {
     }
 
     /// The local tool's pose for the others, while it is being driven.
-    pub fn local_pose_message(&self, site: u16, t: f64) -> Option<proto::ToolPose> {
+    pub fn local_pose_message(&self, site: proto::SiteId, t: f64) -> Option<proto::ToolPose> {
         if !self.local_active {
             return None;
         }
@@ -330,292 +331,6 @@ impl PoseTrack {
         })
     }
 }
-
-/// The site's sync state (sim-core's [`SiteSync`]) and its conversion to and from the
-/// wire messages of `proto`.
-pub struct SyncState {
-    sync: SiteSync,
-    /// Keyframe ids acknowledged per region and receiving site.
-    acked: HashMap<u32, HashMap<u16, u64>>,
-    /// Sites that receive our frames (all others in the session).
-    receivers: BTreeSet<u16>,
-    me: u16,
-    /// Keyframes from sites ahead of us in simulated time, waiting for our clock.
-    pending: Vec<SyncFrame>,
-    /// Regions released by their owner, and the simulated time of the release: the
-    /// release takes effect once our clock reaches it and the owner's last frames are
-    /// played.
-    deferred_release: BTreeMap<u32, f64>,
-}
-
-impl SyncState {
-    pub fn new(sim: &Simulation, strategy: Strategy) -> Self {
-        let strategy = match strategy {
-            Strategy::Keyframe => SyncStrategy::Keyframe,
-            // Every frame: one full copy of the organ per simulation step.
-            Strategy::FullState => SyncStrategy::FullState { every_steps: 1 },
-            Strategy::InputOnly => SyncStrategy::InputOnly,
-        };
-        // Extrapolation stays gentle: tissue under a surgeon's hand does not accelerate
-        // at tens of m/s², and a receiver never extrapolates far (see `receive`).
-        let config = SyncConfig {
-            max_accel_m_s2: 5.0,
-            max_extrapolation_s: 0.06,
-            // At most ~33 keyframes per second per region.
-            min_interval_s: 0.03,
-            ..SyncConfig::default()
-        };
-        SyncState {
-            sync: SiteSync::new(strategy, RegionMap::for_simulation(sim), config),
-            pending: Vec::new(),
-            deferred_release: BTreeMap::new(),
-            acked: HashMap::new(),
-            receivers: BTreeSet::new(),
-            me: 0,
-        }
-    }
-
-    /// Our site id and the other sites of the session (they acknowledge our keyframes).
-    pub fn set_sites(&mut self, me: u16, others: impl IntoIterator<Item = u16>) {
-        self.me = me;
-        self.receivers = others.into_iter().filter(|s| *s != me).collect();
-    }
-
-    /// Regions near the deformed point (m) within `radius` (m).
-    pub fn regions_near(&self, sim: &Simulation, p: &V3, radius: f64) -> Vec<u32> {
-        self.sync.map.regions_near_deformed(sim, p, radius)
-    }
-
-    /// Takes a keyframe from another site. Frames from a site whose simulation is ahead of
-    /// ours wait until our simulated time reaches them (the simulation-time difference
-    /// between sites paces their application), so a receiver never extrapolates
-    /// backwards. Returns the keyframes applied now, to acknowledge.
-    pub fn receive(&mut self, sim: &mut Simulation, kf: proto::RegionKeyframe) -> Vec<(u32, u64)> {
-        if self.sync.strategy == SyncStrategy::InputOnly {
-            return Vec::new();
-        }
-        let n = kf.nodes.len();
-        self.pending.push(SyncFrame::Keyframe(RegionKeyframe {
-            region: kf.region,
-            keyframe_id: kf.keyframe,
-            sim_time: kf.sim_time_s,
-            tree_bits: kf.tree_bits,
-            positions: (0..n).map(|i| kf.nodes.position(i)).collect(),
-            velocities: (0..n).map(|i| kf.nodes.velocity(i)).collect(),
-        }));
-        self.apply_due(sim)
-    }
-
-    /// Takes a tree-state delta from another site (paced like keyframes).
-    pub fn receive_delta(&mut self, sim: &mut Simulation, d: proto::TreeDelta) -> Vec<(u32, u64)> {
-        if self.sync.strategy == SyncStrategy::InputOnly {
-            return Vec::new();
-        }
-        self.pending.push(SyncFrame::TreeDelta(RegionTreeDelta {
-            region: d.region,
-            sim_time: d.sim_time_s,
-            base_keyframe: d.base_keyframe,
-            xor_bits: d.xor_bits,
-        }));
-        self.apply_due(sim)
-    }
-
-    /// Applies the pending frames that our simulated time has reached, oldest first, and
-    /// the releases whose time has come; then holds each region's next pending keyframe
-    /// for interpolation.
-    pub fn apply_due(&mut self, sim: &mut Simulation) -> Vec<(u32, u64)> {
-        if self.pending.is_empty() && self.deferred_release.is_empty() {
-            return Vec::new();
-        }
-        let now = sim.time() + 0.5 * sim.options().dt;
-        let time = |f: &SyncFrame| match f {
-            SyncFrame::Keyframe(k) => k.sim_time,
-            SyncFrame::TreeDelta(d) => d.sim_time,
-        };
-        let (mut due, later): (Vec<SyncFrame>, Vec<SyncFrame>) = std::mem::take(&mut self.pending)
-            .into_iter()
-            .partition(|f| time(f) <= now);
-        self.pending = later;
-        due.sort_by(|a, b| time(a).total_cmp(&time(b)));
-        let mut applied = Vec::new();
-        for frame in due {
-            tracing::debug!(
-                region = frame.region(),
-                t = time(&frame),
-                now = sim.time(),
-                "apply frame"
-            );
-            match self.sync.on_frame(sim, &frame) {
-                Ok(Some(id)) => applied.push((frame.region(), id)),
-                Ok(None) => tracing::debug!(
-                    region = frame.region(),
-                    "sync frame ignored (stale, owned or released)"
-                ),
-                Err(e) => warn!(region = frame.region(), error = %e, "sync frame not applied"),
-            }
-        }
-        let done: Vec<u32> = self
-            .deferred_release
-            .iter()
-            .filter(|&(r, at)| *at <= now && !self.pending.iter().any(|f| f.region() == *r))
-            .map(|(r, _)| *r)
-            .collect();
-        for r in done {
-            self.deferred_release.remove(&r);
-            self.sync.on_remote_release(r);
-        }
-        self.hold_next_keyframes(sim);
-        applied
-    }
-
-    /// Offers each region's earliest pending frame, if it is a keyframe, to sim-core as
-    /// the next keyframe to interpolate towards (a tree delta first changes the nodes).
-    fn hold_next_keyframes(&mut self, sim: &Simulation) {
-        let mut earliest: BTreeMap<u32, &SyncFrame> = BTreeMap::new();
-        for f in &self.pending {
-            let t = |f: &SyncFrame| match f {
-                SyncFrame::Keyframe(k) => k.sim_time,
-                SyncFrame::TreeDelta(d) => d.sim_time,
-            };
-            let e = earliest.entry(f.region()).or_insert(f);
-            if t(f) < t(e) {
-                *e = f;
-            }
-        }
-        for f in earliest.into_values() {
-            if let SyncFrame::Keyframe(kf) = f {
-                self.sync.hold_next(sim, kf);
-            }
-        }
-    }
-
-    /// A receiver acknowledged one of our keyframes.
-    pub fn on_ack(&mut self, ack: &proto::KeyframeAck) {
-        let e = self
-            .acked
-            .entry(ack.region)
-            .or_default()
-            .entry(ack.site)
-            .or_insert(0);
-        *e = (*e).max(ack.keyframe);
-    }
-
-    /// Ownership of `region` changed to `owner`.
-    pub fn set_owner(&mut self, region: u32, owner: Option<u16>, me: Option<u16>) {
-        tracing::debug!(region, ?owner, ?me, "ownership");
-        match owner {
-            Some(o) if Some(o) == me => self.sync.on_grant(region),
-            Some(_) => self.sync.on_remote_grant(region),
-            None => self.release_remote(region, None, me),
-        }
-        if owner.is_some() {
-            self.deferred_release.remove(&region);
-        }
-    }
-
-    /// Another site released `region` at about its simulated time `at` (s; `None`:
-    /// unknown). The release takes effect, in `apply_due`, once our clock reaches `at`
-    /// and the owner's last frames, which may still be waiting for our clock, are played.
-    pub fn release_remote(&mut self, region: u32, at: Option<f64>, me: Option<u16>) {
-        tracing::debug!(region, ?at, ?me, "remote release");
-        self.deferred_release
-            .insert(region, at.unwrap_or(f64::NEG_INFINITY));
-    }
-
-    /// We release `region`: the final keyframe, if the strategy sends one.
-    pub fn release(&mut self, sim: &Simulation, region: u32) -> Option<Outgoing> {
-        let frame = self.sync.release(sim, region)?;
-        self.acked.remove(&region);
-        self.to_wire(frame)
-    }
-
-    /// Before the step: remote regions follow their owners.
-    pub fn drive(&mut self, sim: &mut Simulation) {
-        self.sync.before_step(sim);
-    }
-
-    /// After the step: what we owe the others for the regions we own.
-    pub fn outgoing(&mut self, sim: &Simulation) -> Vec<Outgoing> {
-        let acked = &self.acked;
-        let receivers = &self.receivers;
-        // A delta may reference only a keyframe every receiver has acknowledged.
-        let base = |region: u32| -> Option<u64> {
-            let per_site = acked.get(&region)?;
-            receivers
-                .iter()
-                .map(|s| per_site.get(s).copied())
-                .min()
-                .flatten()
-        };
-        let frames = self.sync.after_step(sim, base);
-        frames.into_iter().filter_map(|f| self.to_wire(f)).collect()
-    }
-
-    fn to_wire(&self, frame: SyncFrame) -> Option<Outgoing> {
-        match frame {
-            SyncFrame::Keyframe(kf) => {
-                let ids: Vec<u32> = (0..kf.positions.len() as u32).collect();
-                let nodes = match proto::QuantisedNodes::encode_default(
-                    &ids,
-                    &kf.positions,
-                    &kf.velocities,
-                ) {
-                    Ok(n) => n,
-                    Err(e) => {
-                        warn!(region = kf.region, error = %e, "keyframe not quantisable; not sent");
-                        return None;
-                    }
-                };
-                Some(Outgoing::Keyframe(proto::RegionKeyframe {
-                    region: kf.region,
-                    keyframe: kf.keyframe_id,
-                    owner: self.me,
-                    sim_time_s: kf.sim_time,
-                    epoch: 0,
-                    tree_bits: kf.tree_bits,
-                    nodes,
-                }))
-            }
-            SyncFrame::TreeDelta(d) => Some(Outgoing::Delta(proto::TreeDelta {
-                region: d.region,
-                site: self.me,
-                epoch: 0,
-                sim_time_s: d.sim_time,
-                base_keyframe: d.base_keyframe,
-                xor_bits: d.xor_bits,
-            })),
-        }
-    }
-}
-
-/// A frame for the link: keyframes go on their own stream, deltas as datagrams.
-pub enum Outgoing {
-    Keyframe(proto::RegionKeyframe),
-    Delta(proto::TreeDelta),
-}
-
-/// Surface recordings at fixed simulated-time marks (sim-core's `.surf` format).
-pub struct Recorder(sync::SurfaceRecorder);
-
-impl Recorder {
-    pub fn new(sim: &Simulation, interval: f64) -> Self {
-        Recorder(sync::SurfaceRecorder::new(sim, interval))
-    }
-    pub fn record(&mut self, sim: &Simulation) {
-        self.0.record(sim);
-    }
-    pub fn write(&self, path: &Path) -> Result<()> {
-        let file =
-            std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
-        self.0
-            .recording()
-            .write_to(std::io::BufWriter::new(file))
-            .with_context(|| format!("writing {}", path.display()))
-    }
-}
-
-/// The site's 1 kHz haptic loop, its device and teaching mode (`site/haptics.rs`).
-pub use super::haptics::{DeviceSpec, HapticLoop, HapticSummary, Teaching};
 
 #[cfg(test)]
 mod tests {

@@ -17,13 +17,13 @@ use sim_core::sim_scene::script::{quat_wxyz, wxyz};
 use sim_core::sim_scene::{ToolPose, ToolScript, ToolWaypoint};
 use tracing::{debug, info, warn};
 
-use super::SiteReport;
-use super::glue::Tools;
 use crate::haptic::{
     self, GuideSpring, HapticConfig, HapticDevice, HapticHandle, HapticModel, HapticStats,
     InputReader, ScriptedDevice, TeachingPlayback, TeachingRecorder, UdpBridgeDevice,
     UdpBridgeStats,
 };
+use crate::site::SiteReport;
+use crate::site::tools::Tools;
 
 type V3 = Vector3<f64>;
 
@@ -666,8 +666,8 @@ impl Teaching {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::site::Strategy;
     use sim_core::sim_scene::builtin;
+    use sim_core::sync::SyncStrategy;
     use sim_core::{SimOptions, Simulation};
 
     fn input(x: f64) -> sim_core::ToolInput {
@@ -682,8 +682,8 @@ mod tests {
     fn instructor_act_to_trajectory_to_trainee_playback() {
         let scene = builtin::cholecystectomy();
         let sim = Simulation::new(scene.clone(), SimOptions::from_scene(&scene.scene)).unwrap();
-        let forceps = Tools::new(&sim, Some("forceps"), Strategy::Keyframe).unwrap();
-        let probe = Tools::new(&sim, Some("probe"), Strategy::Keyframe).unwrap();
+        let forceps = Tools::new(&sim, Some("forceps"), SyncStrategy::Keyframe).unwrap();
+        let probe = Tools::new(&sim, Some("probe"), SyncStrategy::Keyframe).unwrap();
         let dt = 0.004;
 
         // Instructor: idle, then an act moving 1 cm/s along x for 1 s, then idle.

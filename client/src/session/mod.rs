@@ -1,0 +1,717 @@
+//! The site's protocol state, sans IO: [`SiteSession`].
+//!
+//! Shaped like quinn-proto's `Connection` and the coordinator's own
+//! `server::session::Session`: inputs are `handle_*` calls carrying the time they happen
+//! at ([`Now`]), outputs are polled ([`SiteSession::poll_transmit`],
+//! [`SiteSession::poll_event`], [`SiteSession::poll_timeout`]). No sockets, no threads, no
+//! async runtime, no clock of its own, so that it is unit-tested with a fake clock
+//! (`tests.rs`) and driven by `site::run_site` with a real link.
+//!
+//! It owns the site table ([`sites`]), region claims and releases ([`claims`]), the
+//! keyframe acknowledgements and delta baselines (`proto`'s [`BaselineTracker`]), the
+//! frames waiting for the site's simulated time ([`inbox`]), the playout clock
+//! ([`pacing`]) and the scene epoch; and it is the only place where sim-core's sync frames
+//! become `proto` messages and back ([`wire`]). The simulation itself stays with the
+//! driver: the calls that read or change it take it as an argument.
+//!
+//! ## Scene reset
+//! Only the instructor may reset ([`SiteSession::request_reset`]; the coordinator refuses
+//! others with [`proto::CommandRefusal`]). The coordinator bumps the epoch and sends
+//! `ResetScene { epoch }` to every site; on it a session rebuilds the simulation from the
+//! scene (its initial state, at the current simulated time), forgets ownership, pending
+//! frames and baselines, adopts the epoch and from then on sends and accepts frames of
+//! that epoch only. A late joiner takes the current epoch from its join snapshot.
+
+pub mod claims;
+pub mod inbox;
+pub mod pacing;
+pub mod sites;
+pub mod wire;
+
+#[cfg(test)]
+mod tests;
+
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+use proto::{
+    BaselineConfig, BaselineTracker, Command, Epoch, Message, RegionId, Role, SiteId,
+    TeachingTrajectory, Welcome,
+};
+use sim_core::sim_scene::LoadedScene;
+use sim_core::sync::{RegionMap, SiteSync, SyncConfig, SyncStrategy};
+use sim_core::{SimError, SimOptions, Simulation};
+use tracing::{debug, info, warn};
+
+use claims::Claims;
+use inbox::Inbox;
+pub use pacing::{Pace, PeerClocks, PlayoutLag};
+use sites::SiteTable;
+pub use wire::WireFrame;
+
+/// Simulated time between the site's time stamps (s).
+pub const SIM_TIME_INTERVAL: f64 = 0.05;
+/// Simulated time between tool-pose datagrams, except under input-only (s): poses only
+/// draw the remote tool then, and ~60 Hz leaves a lossy path's congestion window to the
+/// keyframe streams.
+pub const POSE_INTERVAL: f64 = 0.016;
+/// Least and largest simulated time between a reset request and the reset (s).
+pub const RESET_MARGIN: f64 = 0.02;
+pub const MAX_RESET_MARGIN: f64 = 1.0;
+/// A late joiner waits this long after its Welcome for the coordinator's snapshot.
+pub const SNAPSHOT_WAIT: Duration = Duration::from_secs(3);
+
+/// The time an input happens at: wall time (pacing) and the coordinator's clock as the
+/// link estimates it (claims, time stamps).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Now {
+    pub wall: Instant,
+    /// Estimated coordinator clock (µs); the local clock before synchronisation.
+    pub coordinator_us: u64,
+    /// Whether `coordinator_us` is synchronised with the coordinator.
+    pub synced: bool,
+}
+
+impl Now {
+    /// A clock that is not synchronised with any coordinator (a site on its own, tests).
+    pub fn local(wall: Instant, local_us: u64) -> Self {
+        Now {
+            wall,
+            coordinator_us: local_us,
+            synced: false,
+        }
+    }
+}
+
+/// A message for the link, on the channel it travels on.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Transmit {
+    /// Reliable, ordered: ownership, acknowledgements, commands, teaching.
+    Control(Message),
+    /// Newest wins: tool poses, time stamps, tree deltas.
+    Datagram(Message),
+    /// One stream per keyframe (newest wins per region).
+    Keyframe(proto::RegionKeyframe),
+}
+
+/// Something the driver (or a future window) must know about.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SessionEvent {
+    /// The scene was reset: the simulation was rebuilt; tools and contact must be too.
+    SceneReset { epoch: Epoch },
+    /// The coordinator refused one of our commands.
+    CommandRefused { command: String, reason: String },
+    /// An instructor trajectory arrived (teaching).
+    Teaching(TeachingTrajectory),
+    /// A playback command arrived (teaching).
+    Playback(Command),
+    /// Another site's tool pose (the site's tools sample it at their simulated time).
+    RemotePose(proto::ToolPose),
+}
+
+/// Why a reset request was not sent.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ResetError {
+    #[error("only the instructor may reset the scene (this site is a {0})")]
+    NotInstructor(Role),
+}
+
+/// What a session needs to know about its site.
+#[derive(Clone)]
+pub struct SessionConfig {
+    pub role: Role,
+    pub strategy: SyncStrategy,
+    /// The scene and options the simulation is built from (and rebuilt on a reset).
+    pub scene: LoadedScene,
+    pub options: SimOptions,
+    /// Whether the site has a link to a coordinator (without one nothing is transmitted).
+    pub linked: bool,
+    pub playout_lag: PlayoutLag,
+    /// Pace steps to wall-clock time (true) or run as fast as possible.
+    pub realtime: bool,
+}
+
+/// Counters for the site's report.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SessionStats {
+    pub keyframes_applied: u64,
+    /// CPU time of applied keyframes (µs, sum): tree-state XOR, takeover, extrapolation.
+    pub apply_us_total: f64,
+    pub reconnects: u64,
+    pub resets: u64,
+    /// Wall time spent waiting so as not to run ahead of the owners' clocks (s).
+    pub paced_seconds: f64,
+    /// Sum and count of per-step lags behind the sites followed (s).
+    pub behind_sum: f64,
+    pub behind_steps: u64,
+}
+
+/// What a renderer or HUD reads of the session (see `site::SiteStatus`).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SessionSnapshot {
+    pub site: Option<SiteId>,
+    pub role: Option<Role>,
+    pub epoch: Epoch,
+    pub sites: usize,
+    pub owned: Vec<RegionId>,
+    pub remote_owners: Vec<(RegionId, SiteId)>,
+}
+
+/// The site's protocol state machine (see the module documentation).
+pub struct SiteSession {
+    cfg: SessionConfig,
+    sites: SiteTable,
+    epoch: Epoch,
+    map: RegionMap,
+    sync: SiteSync,
+    inbox: Inbox,
+    baselines: BaselineTracker,
+    claims: Claims,
+    clocks: PeerClocks,
+    /// Wall-time origin of the pacing's clock.
+    start: Instant,
+    next_stamp: f64,
+    next_pose: f64,
+    /// Next step due (wall).
+    next_due: Instant,
+    /// When the driver should run the next step (wall).
+    wake: Option<Instant>,
+    welcomed_at: Option<Instant>,
+    got_snapshot: bool,
+    started: bool,
+    /// A reset to apply when the simulated time reaches it: (new epoch, sim time s).
+    scheduled_reset: Option<(Epoch, f64)>,
+    transmits: VecDeque<Transmit>,
+    events: VecDeque<SessionEvent>,
+    stats: SessionStats,
+}
+
+/// The sync tuning of a site. Extrapolation stays gentle: tissue under a surgeon's hand
+/// does not accelerate at tens of m/s², and a receiver never extrapolates far.
+fn sync_config() -> SyncConfig {
+    SyncConfig {
+        max_accel_m_s2: 5.0,
+        max_extrapolation_s: 0.06,
+        // At most ~33 keyframes per second per region.
+        min_interval_s: 0.03,
+        ..SyncConfig::default()
+    }
+}
+
+impl SiteSession {
+    /// A session for a site whose simulation is `sim`, at wall time `now`.
+    pub fn new(cfg: SessionConfig, sim: &Simulation, now: Instant) -> Self {
+        let map = RegionMap::for_simulation(sim);
+        let config = sync_config();
+        SiteSession {
+            sync: SiteSync::new(cfg.strategy, map.clone(), config),
+            map,
+            baselines: BaselineTracker::new(BaselineConfig {
+                history: config.baseline_history,
+                ..BaselineConfig::default()
+            }),
+            clocks: PeerClocks::new(cfg.playout_lag),
+            cfg,
+            sites: SiteTable::default(),
+            epoch: 0,
+            inbox: Inbox::default(),
+            claims: Claims::default(),
+            start: now,
+            next_stamp: 0.0,
+            next_pose: 0.0,
+            next_due: now,
+            wake: None,
+            welcomed_at: None,
+            got_snapshot: false,
+            started: false,
+            scheduled_reset: None,
+            transmits: VecDeque::new(),
+            events: VecDeque::new(),
+            stats: SessionStats::default(),
+        }
+    }
+
+    // ----- state -------------------------------------------------------------------
+
+    pub fn site_id(&self) -> Option<SiteId> {
+        self.sites.me()
+    }
+
+    pub fn epoch(&self) -> Epoch {
+        self.epoch
+    }
+
+    pub fn role(&self) -> Role {
+        self.cfg.role
+    }
+
+    pub fn sites(&self) -> &SiteTable {
+        &self.sites
+    }
+
+    pub fn stats(&self) -> &SessionStats {
+        &self.stats
+    }
+
+    /// Ownership intervals held, the open ones closed at `t` (s of sim time).
+    pub fn owned_intervals(&self, t: f64) -> Vec<(RegionId, f64, f64)> {
+        self.claims.intervals(t)
+    }
+
+    /// The playout lag aimed at now (s).
+    pub fn target_lag(&self) -> f64 {
+        self.clocks.target_lag()
+    }
+
+    /// Regions near the deformed point `p` (m) within `radius` (m).
+    pub fn regions_near(
+        &self,
+        sim: &Simulation,
+        p: &nalgebra::Vector3<f64>,
+        radius: f64,
+    ) -> Vec<RegionId> {
+        self.map.regions_near_deformed(sim, p, radius)
+    }
+
+    /// What a window or HUD shows of the session.
+    pub fn snapshot(&self) -> SessionSnapshot {
+        SessionSnapshot {
+            site: self.sites.me(),
+            role: Some(self.cfg.role),
+            epoch: self.epoch,
+            sites: self.sites.len(),
+            owned: self.claims.owned().collect(),
+            remote_owners: self.clocks.owners.iter().map(|(&r, &s)| (r, s)).collect(),
+        }
+    }
+
+    /// Whether the site may start its clock: welcomed, `expect_sites` present, and the
+    /// join snapshot seen (or [`SNAPSHOT_WAIT`] passed without it).
+    pub fn is_ready(&self, expect_sites: usize, now: Instant) -> bool {
+        let snapshot_wait_over = self
+            .welcomed_at
+            .is_some_and(|w| now.duration_since(w) > SNAPSHOT_WAIT);
+        self.sites.me().is_some()
+            && self.sites.len() >= expect_sites
+            && (self.got_snapshot || snapshot_wait_over)
+    }
+
+    /// The simulation clock starts now; `rtt_us`: the link's round trip, if measured
+    /// (seeds the playout lag: about two one-way hops, owner → coordinator → us).
+    pub fn start(&mut self, now: Instant, rtt_us: Option<u64>) {
+        self.started = true;
+        self.start = now;
+        self.next_due = now;
+        if let Some(rtt) = rtt_us {
+            self.clocks.seed_delay(rtt as f64 / 1e6);
+        }
+    }
+
+    fn wall(&self, now: Instant) -> f64 {
+        now.saturating_duration_since(self.start).as_secs_f64()
+    }
+
+    // ----- inputs ------------------------------------------------------------------
+
+    /// The coordinator welcomed us (first join).
+    pub fn handle_welcome(&mut self, w: &Welcome, now: Now) {
+        info!(site = w.site, sites = w.sites.len(), "welcomed");
+        self.sites.welcome(w);
+        self.welcomed_at = Some(now.wall);
+    }
+
+    /// We joined again after a loss (the site id may differ). Ownership does not survive
+    /// a reconnect: the coordinator released our regions when we dropped.
+    pub fn handle_reconnected(&mut self, w: &Welcome, t: f64, now: Now) {
+        info!(site = w.site, "reconnected");
+        self.sites.welcome(w);
+        self.welcomed_at = Some(now.wall);
+        self.stats.reconnects += 1;
+        self.claims.clear(t);
+        self.baselines.clear();
+    }
+
+    /// A message from the coordinator or relayed from another site. Frames whose
+    /// simulated time has come are applied to `sim` at once; a reset rebuilds `sim`.
+    pub fn handle_message(
+        &mut self,
+        sim: &mut Simulation,
+        msg: Message,
+        now: Now,
+    ) -> Result<(), SimError> {
+        let t = sim.time();
+        let wall = self.wall(now.wall);
+        match msg {
+            Message::ToolPose(p) if self.sites.is_other(p.site) => {
+                self.clocks.tool_heard(p.site, wall);
+                self.events.push_back(SessionEvent::RemotePose(p));
+            }
+            Message::Keyframe(kf) if self.sites.is_other(kf.owner) => {
+                if !self.accepts_epoch(kf.epoch) {
+                    debug!(
+                        region = kf.region,
+                        epoch = kf.epoch,
+                        "keyframe of another epoch dropped"
+                    );
+                    return Ok(());
+                }
+                self.clocks.keyframe_arrived(kf.owner, kf.sim_time, wall);
+                self.receive(sim, kf.epoch, wire::keyframe_from_wire(&kf))?;
+            }
+            Message::Snapshot(s) => {
+                if !self.started && s.sim_time_s > sim.time() {
+                    // A late joiner takes the session's simulated time, so that the
+                    // snapshot's keyframes (and everything after) are current for it.
+                    info!(t = s.sim_time_s, "joining a running session");
+                    sim.set_time(s.sim_time_s);
+                }
+                self.got_snapshot = true;
+                if s.epoch != self.epoch {
+                    info!(epoch = s.epoch, "taking the session's scene epoch");
+                    self.epoch = s.epoch;
+                }
+                for kf in s.keyframes {
+                    if self.sites.is_other(kf.owner) && kf.epoch == self.epoch {
+                        self.receive(sim, kf.epoch, wire::keyframe_from_wire(&kf))?;
+                    }
+                }
+                for o in s.owners {
+                    self.set_owner(o.region, o.site);
+                }
+            }
+            Message::OwnershipGrant(g) => {
+                self.set_owner(g.region, g.site);
+                if self.sites.me() == Some(g.site) {
+                    self.claims.granted(g.region, t);
+                } else {
+                    self.claims.lost(g.region, t);
+                }
+            }
+            Message::OwnershipRelease(r) => {
+                // The release takes effect when our clock reaches the owner's time of
+                // release (as heard now), not on arrival: a lagging follower still has
+                // the owner's last frames to play.
+                let at = self.clocks.release_time(r.site, wall);
+                self.inbox.defer_release(r.region, at);
+                self.clocks.owners.remove(&r.region);
+                self.claims.lost(r.region, t);
+            }
+            Message::OwnershipDeny(d) => self.claims.denied(d.region),
+            Message::SimTime(s) if self.sites.is_other(s.site) => {
+                let transit = now
+                    .synced
+                    .then(|| (now.coordinator_us as f64 - s.wall_send_us as f64) / 1e6);
+                self.clocks.heard(s.site, s.sim_time_s, wall, transit);
+            }
+            Message::TreeDelta(d) if self.sites.is_other(d.site) => {
+                if !self.accepts_epoch(d.epoch) {
+                    debug!(
+                        region = d.region,
+                        epoch = d.epoch,
+                        "tree delta of another epoch dropped"
+                    );
+                    return Ok(());
+                }
+                self.receive(sim, d.epoch, wire::delta_from_wire(d))?;
+            }
+            Message::KeyframeAck(a) => {
+                self.baselines.on_ack(a.site, a.region, a.keyframe_id);
+            }
+            Message::SiteJoined(s) => self.sites.joined(s),
+            Message::Leave(l) => {
+                self.sites.left(l.site);
+                self.baselines.remove_receiver(l.site);
+            }
+            Message::Command(Command::ResetScene { epoch, sim_time_s }) => {
+                if epoch != self.epoch {
+                    info!(epoch, at = sim_time_s, "scene reset scheduled");
+                    self.scheduled_reset = Some((epoch, sim_time_s));
+                    self.apply_due(sim)?;
+                }
+            }
+            Message::Command(c) => self.events.push_back(SessionEvent::Playback(c)),
+            Message::CommandRefused(r) => {
+                warn!(command = %r.command, reason = %r.reason, "command refused by the coordinator");
+                self.events.push_back(SessionEvent::CommandRefused {
+                    command: r.command,
+                    reason: r.reason,
+                });
+            }
+            Message::Teaching(tr) => self.events.push_back(SessionEvent::Teaching(tr)),
+            other => debug!(kind = other.kind(), "ignored message"),
+        }
+        Ok(())
+    }
+
+    /// Takes a frame from another site (held until our clock reaches it) and applies
+    /// what is due. Under input-only nothing is applied.
+    fn receive(
+        &mut self,
+        sim: &mut Simulation,
+        epoch: Epoch,
+        frame: sim_core::sync::SyncFrame,
+    ) -> Result<(), SimError> {
+        if self.cfg.strategy == SyncStrategy::InputOnly {
+            return Ok(());
+        }
+        self.inbox.push(epoch, frame);
+        self.apply_due(sim)
+    }
+
+    /// Frames of the current epoch, and of the one a scheduled reset leads to (they wait
+    /// in the inbox for the reset), are accepted.
+    fn accepts_epoch(&self, epoch: Epoch) -> bool {
+        epoch == self.epoch || self.scheduled_reset.is_some_and(|(e, _)| e == epoch)
+    }
+
+    /// Ownership of `region` is `owner`'s.
+    fn set_owner(&mut self, region: RegionId, owner: SiteId) {
+        debug!(region, owner, me = ?self.sites.me(), "ownership");
+        if self.sites.me() == Some(owner) {
+            self.sync.on_grant(region);
+            self.clocks.owners.remove(&region);
+        } else {
+            self.sync.on_remote_grant(region);
+            self.clocks.owners.insert(region, owner);
+        }
+        self.inbox.cancel_release(region);
+    }
+
+    /// Applies a scheduled reset, then the frames and releases whose simulated time has
+    /// come (before the step), and acknowledges the keyframes applied.
+    pub fn apply_due(&mut self, sim: &mut Simulation) -> Result<(), SimError> {
+        if let Some((epoch, at)) = self.scheduled_reset
+            && at <= sim.time() + 0.5 * sim.options().dt
+        {
+            self.scheduled_reset = None;
+            self.reset(sim, epoch)?;
+        }
+        let started = Instant::now();
+        let applied = self.inbox.apply_due(self.epoch, &mut self.sync, sim);
+        if applied.is_empty() {
+            return Ok(());
+        }
+        self.stats.apply_us_total += started.elapsed().as_secs_f64() * 1e6;
+        for (region, keyframe_id) in applied {
+            self.stats.keyframes_applied += 1;
+            if let Some(me) = self.sites.me() {
+                self.control(Message::KeyframeAck(proto::KeyframeAck {
+                    region,
+                    keyframe_id,
+                    site: me,
+                }));
+            }
+        }
+        Ok(())
+    }
+
+    /// The regions the local tool touches at `t`: claims the new ones and releases those
+    /// left alone for [`claims::RELEASE_AFTER`] (with a final keyframe first, so that the
+    /// others end where we are). Input-only sites claim too: ownership then says whose
+    /// organ the others are compared with. Observers never claim.
+    pub fn handle_touched(&mut self, sim: &Simulation, touched: &[RegionId], now: Now) {
+        if !self.cfg.linked || self.cfg.role == Role::Observer {
+            return;
+        }
+        let Some(me) = self.sites.me() else { return };
+        let t = sim.time();
+        for &region in touched {
+            if self.claims.touch(region, t) {
+                self.control(Message::OwnershipRequest(proto::OwnershipRequest {
+                    region,
+                    claim_time_us: now.coordinator_us,
+                }));
+            }
+        }
+        for region in self.claims.stale(t) {
+            if let Some(frame) = self.sync.release(sim, region) {
+                self.send_frame(frame, me, now);
+            }
+            self.baselines.reset_region(region);
+            self.claims.lost(region, t);
+            self.control(Message::OwnershipRelease(proto::OwnershipRelease {
+                region,
+                site: me,
+            }));
+        }
+    }
+
+    /// Before the step: remote regions follow their owners.
+    pub fn before_step(&mut self, sim: &mut Simulation) {
+        self.sync.before_step(sim);
+    }
+
+    /// After the step: the frames we owe the others for the regions we own, and our time
+    /// stamp.
+    pub fn after_step(&mut self, sim: &Simulation, now: Now) {
+        if !self.cfg.linked || self.cfg.role == Role::Observer {
+            return;
+        }
+        let Some(me) = self.sites.me() else { return };
+        let baselines = &self.baselines;
+        let receivers: Vec<SiteId> = self.sites.receivers().collect();
+        // A delta may reference only a keyframe every receiver has acknowledged.
+        let frames = self.sync.after_step(sim, |region| {
+            baselines.common_baseline(region, receivers.iter().copied())
+        });
+        for f in frames {
+            self.send_frame(f, me, now);
+        }
+        let t = sim.time();
+        if t >= self.next_stamp {
+            self.next_stamp = t + SIM_TIME_INTERVAL;
+            self.datagram(Message::SimTime(proto::SimTimeStamp {
+                site: me,
+                sim_time_s: t,
+                step: sim.steps(),
+                wall_send_us: now.coordinator_us,
+            }));
+        }
+    }
+
+    /// Whether the local tool's pose is due at `t` (every step under input-only, where
+    /// poses are the state itself; else every [`POSE_INTERVAL`]).
+    pub fn pose_due(&self, t: f64) -> bool {
+        self.cfg.linked
+            && self.cfg.role != Role::Observer
+            && self.sites.me().is_some()
+            && (self.cfg.strategy == SyncStrategy::InputOnly || t >= self.next_pose)
+    }
+
+    /// The local tool's pose (made by the site's tools with our id) goes out.
+    pub fn send_pose(&mut self, pose: proto::ToolPose) {
+        self.next_pose = pose.sim_time_s + POSE_INTERVAL;
+        self.datagram(Message::ToolPose(pose));
+    }
+
+    /// A control message of the site's own (teaching trajectories).
+    pub fn send_control(&mut self, msg: Message) {
+        self.control(msg);
+    }
+
+    /// An instructor's window (or script) asks for a scene reset at simulated time `t`
+    /// (s). Every site resets when its clock reaches `t` plus a margin that covers the
+    /// round trip to the coordinator (`rtt`), so the instructor's own reset is not late.
+    /// Without a link the reset happens locally at the next step.
+    pub fn request_reset(&mut self, t: f64, rtt: Option<Duration>) -> Result<(), ResetError> {
+        if self.cfg.role != Role::Instructor {
+            return Err(ResetError::NotInstructor(self.cfg.role));
+        }
+        if self.cfg.linked {
+            let margin =
+                (2.0 * rtt.map_or(0.0, |d| d.as_secs_f64())).clamp(RESET_MARGIN, MAX_RESET_MARGIN);
+            info!(
+                epoch = self.epoch,
+                at = t + margin,
+                "requesting a scene reset"
+            );
+            self.control(Message::Command(Command::ResetScene {
+                epoch: self.epoch,
+                sim_time_s: t + margin,
+            }));
+        } else {
+            self.scheduled_reset = Some((self.epoch.wrapping_add(1), t));
+        }
+        Ok(())
+    }
+
+    /// The step ended at simulated time `t`: pacing against the sites followed. A leading
+    /// site (it owns or claims a region, or `tool_active`: drives its tool) runs level
+    /// with the other leaders; a follower keeps the playout lag behind the sites it
+    /// follows by slewing its step rate. The next step is due at [`Self::poll_timeout`].
+    pub fn end_step(&mut self, t: f64, tool_active: bool, now: Instant) -> Pace {
+        let leading = self.claims.any() || tool_active;
+        let pace = self
+            .clocks
+            .pace(t, self.wall(now), leading, self.cfg.realtime);
+        if let Some(b) = pace.behind {
+            self.stats.behind_sum += b;
+            self.stats.behind_steps += 1;
+        }
+        let dt = self.cfg.options.dt;
+        let mut wake = now;
+        if self.cfg.realtime {
+            // The next step is due dt / rate of wall time after this one was.
+            self.next_due += Duration::from_secs_f64(dt / pace.rate);
+            wake = wake.max(self.next_due);
+        }
+        // Never run ahead of the owners whose regions we show (their keyframes would
+        // arrive from our past).
+        if pace.hold > 0.0 {
+            let hold = Duration::from_secs_f64(pace.hold);
+            self.stats.paced_seconds += pace.hold;
+            wake += hold;
+            self.next_due += hold;
+        }
+        self.wake = Some(wake);
+        pace
+    }
+
+    // ----- outputs -----------------------------------------------------------------
+
+    /// When the next step is due (wall); `None`: at once.
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        self.wake
+    }
+
+    pub fn poll_transmit(&mut self) -> Option<Transmit> {
+        self.transmits.pop_front()
+    }
+
+    pub fn poll_event(&mut self) -> Option<SessionEvent> {
+        self.events.pop_front()
+    }
+
+    // ----- internals ---------------------------------------------------------------
+
+    fn control(&mut self, msg: Message) {
+        if self.cfg.linked {
+            self.transmits.push_back(Transmit::Control(msg));
+        }
+    }
+
+    fn datagram(&mut self, msg: Message) {
+        if self.cfg.linked {
+            self.transmits.push_back(Transmit::Datagram(msg));
+        }
+    }
+
+    fn send_frame(&mut self, frame: sim_core::sync::SyncFrame, me: SiteId, now: Now) {
+        match wire::frame_to_wire(frame, me, self.epoch) {
+            Some(WireFrame::Keyframe(kf)) => {
+                for r in self.sites.receivers() {
+                    self.baselines
+                        .on_sent(r, kf.region, kf.keyframe_id, now.coordinator_us);
+                }
+                if self.cfg.linked {
+                    self.transmits.push_back(Transmit::Keyframe(kf));
+                }
+            }
+            Some(WireFrame::Delta(d)) => self.datagram(Message::TreeDelta(d)),
+            None => {}
+        }
+    }
+
+    /// The scene restarts from its initial state in epoch `epoch`, at the current
+    /// simulated time; ownership, pending frames and baselines of the old epoch are gone.
+    fn reset(&mut self, sim: &mut Simulation, epoch: Epoch) -> Result<(), SimError> {
+        if epoch == self.epoch {
+            debug!(epoch, "reset to the current epoch ignored");
+            return Ok(());
+        }
+        let t = sim.time();
+        info!(from = self.epoch, to = epoch, t, "scene reset");
+        let mut fresh = Simulation::new(self.cfg.scene.clone(), self.cfg.options.clone())?;
+        fresh.set_time(t);
+        *sim = fresh;
+        self.epoch = epoch;
+        self.sync = SiteSync::new(self.cfg.strategy, self.map.clone(), sync_config());
+        self.inbox.reset(epoch);
+        self.baselines.clear();
+        self.claims.clear(t);
+        self.clocks.owners.clear();
+        self.stats.resets += 1;
+        self.events.push_back(SessionEvent::SceneReset { epoch });
+        Ok(())
+    }
+}

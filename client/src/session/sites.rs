@@ -1,0 +1,60 @@
+//! The session's site table as this site knows it: its own id and the others.
+
+use std::collections::BTreeMap;
+
+use proto::{Role, SiteEntry, SiteId, Welcome};
+
+/// This site's id (once welcomed) and every site of the session with its name and role.
+#[derive(Debug, Default, Clone)]
+pub struct SiteTable {
+    me: Option<SiteId>,
+    sites: BTreeMap<SiteId, (String, Role)>,
+}
+
+impl SiteTable {
+    /// A Welcome (first join or rejoin): our id and the table as the coordinator has it.
+    pub fn welcome(&mut self, w: &Welcome) {
+        self.me = Some(w.site);
+        self.sites = w
+            .sites
+            .iter()
+            .map(|s| (s.site, (s.name.clone(), s.role)))
+            .collect();
+    }
+
+    pub fn joined(&mut self, s: SiteEntry) {
+        self.sites.insert(s.site, (s.name, s.role));
+    }
+
+    pub fn left(&mut self, site: SiteId) {
+        self.sites.remove(&site);
+    }
+
+    /// Our id; `None` before the Welcome (or without a link).
+    pub fn me(&self) -> Option<SiteId> {
+        self.me
+    }
+
+    /// Whether `site` is another site than ours.
+    pub fn is_other(&self, site: SiteId) -> bool {
+        self.me != Some(site)
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.sites.is_empty()
+    }
+
+    /// Sites in the session, ours included.
+    pub fn len(&self) -> usize {
+        self.sites.len()
+    }
+
+    /// The sites that receive our frames (all others).
+    pub fn receivers(&self) -> impl Iterator<Item = SiteId> + '_ {
+        self.sites.keys().copied().filter(|s| Some(*s) != self.me)
+    }
+
+    pub fn name(&self, site: SiteId) -> Option<&str> {
+        self.sites.get(&site).map(|(n, _)| n.as_str())
+    }
+}

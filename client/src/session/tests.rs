@@ -1,0 +1,563 @@
+//! `SiteSession` on a fake clock, with the coordinator played by hand: join, claim and
+//! release, acknowledgement and baseline, reconnect, and a scene reset.
+
+use std::time::{Duration, Instant};
+
+use proto::{Command, Message, Role, SessionInfo, SiteEntry, Welcome};
+use sim_core::sim_scene::{LoadedScene, builtin};
+use sim_core::sync::SyncStrategy;
+use sim_core::{SimOptions, Simulation};
+
+use super::*;
+
+fn scene() -> LoadedScene {
+    builtin::cantilever()
+}
+
+fn new_sim() -> Simulation {
+    let scene = scene();
+    let options = SimOptions::from_scene(&scene.scene);
+    Simulation::new(scene, options).unwrap()
+}
+
+fn session(role: Role, sim: &Simulation, clock: &FakeClock) -> SiteSession {
+    let scene = scene();
+    SiteSession::new(
+        SessionConfig {
+            role,
+            strategy: SyncStrategy::Keyframe,
+            options: SimOptions::from_scene(&scene.scene),
+            scene,
+            linked: true,
+            playout_lag: PlayoutLag::Fixed(0.0),
+            realtime: false,
+        },
+        sim,
+        clock.now().wall,
+    )
+}
+
+/// Wall time and coordinator time advanced by hand.
+struct FakeClock {
+    origin: Instant,
+    elapsed: Duration,
+}
+
+impl FakeClock {
+    fn new() -> Self {
+        FakeClock {
+            origin: Instant::now(),
+            elapsed: Duration::ZERO,
+        }
+    }
+    fn advance(&mut self, ms: u64) {
+        self.elapsed += Duration::from_millis(ms);
+    }
+    fn now(&self) -> Now {
+        Now {
+            wall: self.origin + self.elapsed,
+            coordinator_us: 1_000_000 + self.elapsed.as_micros() as u64,
+            synced: true,
+        }
+    }
+}
+
+fn welcome(site: SiteId, sites: &[(SiteId, Role)]) -> Welcome {
+    Welcome {
+        site,
+        session: SessionInfo {
+            name: "test".into(),
+            scene_hash: String::new(),
+            max_sites: 8,
+            protocol_version: proto::PROTOCOL_VERSION,
+            heartbeat_interval_us: 500_000,
+        },
+        sites: sites
+            .iter()
+            .map(|&(site, role)| SiteEntry {
+                site,
+                name: format!("site-{site}"),
+                role,
+            })
+            .collect(),
+        coordinator_time_us: 0,
+    }
+}
+
+fn snapshot(sim_time_s: f64, epoch: Epoch, keyframes: Vec<proto::RegionKeyframe>) -> Message {
+    Message::Snapshot(proto::Snapshot {
+        sim_time_s,
+        epoch,
+        owners: Vec::new(),
+        keyframes,
+    })
+}
+
+fn drain(s: &mut SiteSession) -> Vec<Transmit> {
+    std::iter::from_fn(|| s.poll_transmit()).collect()
+}
+
+fn keyframes(t: &[Transmit]) -> Vec<proto::RegionKeyframe> {
+    t.iter()
+        .filter_map(|t| match t {
+            Transmit::Keyframe(k) => Some(k.clone()),
+            _ => None,
+        })
+        .collect()
+}
+
+fn acks(t: &[Transmit]) -> Vec<proto::KeyframeAck> {
+    t.iter()
+        .filter_map(|t| match t {
+            Transmit::Control(Message::KeyframeAck(a)) => Some(*a),
+            _ => None,
+        })
+        .collect()
+}
+
+fn grant(region: RegionId, site: SiteId) -> Message {
+    Message::OwnershipGrant(proto::OwnershipGrant {
+        region,
+        site,
+        previous: None,
+    })
+}
+
+fn first_region(sim: &Simulation) -> RegionId {
+    RegionMap::for_simulation(sim).regions().next().unwrap()
+}
+
+/// Owner session 1 (instructor) and receiver 2 (trainee), both welcomed and started;
+/// the owner holds the first region and has stepped its sim a few times.
+struct Pair {
+    clock: FakeClock,
+    a: SiteSession,
+    sim_a: Simulation,
+    b: SiteSession,
+    sim_b: Simulation,
+    region: RegionId,
+}
+
+fn pair() -> Pair {
+    let clock = FakeClock::new();
+    let sim_a = new_sim();
+    let sim_b = new_sim();
+    let mut a = session(Role::Instructor, &sim_a, &clock);
+    let mut b = session(Role::Trainee, &sim_b, &clock);
+    let sites = [(1, Role::Instructor), (2, Role::Trainee)];
+    a.handle_welcome(&welcome(1, &sites), clock.now());
+    b.handle_welcome(&welcome(2, &sites), clock.now());
+    let region = first_region(&sim_a);
+    let mut p = Pair {
+        clock,
+        a,
+        sim_a,
+        b,
+        sim_b,
+        region,
+    };
+    for (s, sim) in [(&mut p.a, &mut p.sim_a), (&mut p.b, &mut p.sim_b)] {
+        s.handle_message(sim, snapshot(0.0, 0, Vec::new()), p.clock.now())
+            .unwrap();
+        s.start(p.clock.now().wall, Some(2_000));
+        s.handle_message(sim, grant(region, 1), p.clock.now())
+            .unwrap();
+    }
+    p
+}
+
+impl Pair {
+    /// One step of both sites at the same simulated time; A's frames go to B and B's
+    /// acknowledgements back to A. Returns A's transmits.
+    fn step(&mut self, touched: &[RegionId]) -> Vec<Transmit> {
+        self.clock.advance(10);
+        let now = self.clock.now();
+        self.a.apply_due(&mut self.sim_a).unwrap();
+        self.a.handle_touched(&self.sim_a, touched, now);
+        self.a.before_step(&mut self.sim_a);
+        self.sim_a.step().unwrap();
+        self.a.after_step(&self.sim_a, now);
+        let out = drain(&mut self.a);
+        self.b.apply_due(&mut self.sim_b).unwrap();
+        self.b.before_step(&mut self.sim_b);
+        self.sim_b.step().unwrap();
+        self.deliver_to_b(&out);
+        out
+    }
+
+    fn deliver_to_b(&mut self, out: &[Transmit]) {
+        let now = self.clock.now();
+        for t in out {
+            let m = match t {
+                Transmit::Keyframe(k) => Message::Keyframe(k.clone()),
+                Transmit::Datagram(m @ Message::TreeDelta(_)) => m.clone(),
+                _ => continue,
+            };
+            self.b.handle_message(&mut self.sim_b, m, now).unwrap();
+        }
+        for t in drain(&mut self.b) {
+            if let Transmit::Control(m @ Message::KeyframeAck(_)) = t {
+                self.a.handle_message(&mut self.sim_a, m, now).unwrap();
+            }
+        }
+    }
+}
+
+#[test]
+fn join_waits_for_the_snapshot_and_takes_its_time_and_epoch() {
+    let mut clock = FakeClock::new();
+    let mut sim = new_sim();
+    let mut s = session(Role::Trainee, &sim, &clock);
+    assert_eq!(s.site_id(), None);
+    assert!(!s.is_ready(1, clock.now().wall));
+    s.handle_welcome(
+        &welcome(3, &[(1, Role::Instructor), (3, Role::Trainee)]),
+        clock.now(),
+    );
+    assert_eq!(s.site_id(), Some(3));
+    assert!(!s.is_ready(2, clock.now().wall), "no snapshot yet");
+    assert!(!s.is_ready(3, clock.now().wall), "a site is missing");
+    s.handle_message(&mut sim, snapshot(2.5, 4, Vec::new()), clock.now())
+        .unwrap();
+    assert!(s.is_ready(2, clock.now().wall));
+    assert_eq!(sim.time(), 2.5, "a late joiner takes the session's time");
+    assert_eq!(s.epoch(), 4, "… and its scene epoch");
+    // Without a snapshot, the wait ends after SNAPSHOT_WAIT.
+    let mut t = session(Role::Trainee, &new_sim(), &clock);
+    t.handle_welcome(&welcome(5, &[(5, Role::Trainee)]), clock.now());
+    assert!(!t.is_ready(1, clock.now().wall));
+    clock.advance(SNAPSHOT_WAIT.as_millis() as u64 + 1);
+    assert!(t.is_ready(1, clock.now().wall));
+}
+
+#[test]
+fn claim_then_release_after_the_tool_leaves() {
+    let clock = FakeClock::new();
+    let mut sim = new_sim();
+    let mut s = session(Role::Trainee, &sim, &clock);
+    s.handle_welcome(
+        &welcome(2, &[(1, Role::Instructor), (2, Role::Trainee)]),
+        clock.now(),
+    );
+    let r = first_region(&sim);
+    s.handle_touched(&sim, &[r], clock.now());
+    let out = drain(&mut s);
+    assert_eq!(
+        out,
+        vec![Transmit::Control(Message::OwnershipRequest(
+            proto::OwnershipRequest {
+                region: r,
+                claim_time_us: clock.now().coordinator_us,
+            }
+        ))]
+    );
+    // Claimed once only.
+    s.handle_touched(&sim, &[r], clock.now());
+    assert!(drain(&mut s).is_empty());
+    s.handle_message(&mut sim, grant(r, 2), clock.now())
+        .unwrap();
+    assert_eq!(s.snapshot().owned, vec![r]);
+    // The first keyframe goes out with our id, the current epoch and our time.
+    s.after_step(&sim, clock.now());
+    let kfs = keyframes(&drain(&mut s));
+    assert_eq!(kfs.len(), 1);
+    assert_eq!((kfs[0].region, kfs[0].owner, kfs[0].epoch), (r, 2, 0));
+    // Touched within RELEASE_AFTER: kept; after it: a final keyframe, then the release.
+    sim.set_time(claims::RELEASE_AFTER * 0.5);
+    s.handle_touched(&sim, &[], clock.now());
+    assert!(drain(&mut s).is_empty());
+    sim.set_time(claims::RELEASE_AFTER + 0.01);
+    s.handle_touched(&sim, &[], clock.now());
+    let out = drain(&mut s);
+    assert!(
+        matches!(&out[0], Transmit::Keyframe(k) if k.region == r),
+        "{out:?}"
+    );
+    assert_eq!(
+        out[1],
+        Transmit::Control(Message::OwnershipRelease(proto::OwnershipRelease {
+            region: r,
+            site: 2
+        }))
+    );
+    assert!(s.snapshot().owned.is_empty());
+    assert_eq!(
+        s.owned_intervals(1.0),
+        vec![(r, 0.0, claims::RELEASE_AFTER + 0.01)]
+    );
+    // Observers never claim.
+    let mut o = session(Role::Observer, &sim, &clock);
+    o.handle_welcome(&welcome(3, &[(3, Role::Observer)]), clock.now());
+    o.handle_touched(&sim, &[r], clock.now());
+    assert!(drain(&mut o).is_empty());
+}
+
+#[test]
+fn acknowledgements_set_the_delta_baseline() {
+    let mut p = pair();
+    let r = p.region;
+    let first = p.step(&[r]);
+    let kfs = keyframes(&first);
+    assert_eq!(kfs.len(), 1, "first keyframe: {first:?}");
+    // B applied it (same simulated time) and acknowledged it to A.
+    assert_eq!(p.b.stats().keyframes_applied, 1);
+    assert_eq!(
+        p.a.baselines.common_baseline(r, [2]),
+        Some(kfs[0].keyframe_id),
+        "the acknowledged keyframe is the baseline"
+    );
+    // An acknowledgement from a site that is not a receiver of that keyframe, or of a
+    // keyframe never sent, moves nothing.
+    let now = p.clock.now();
+    p.a.handle_message(
+        &mut p.sim_a,
+        Message::KeyframeAck(proto::KeyframeAck {
+            region: r,
+            keyframe_id: 99,
+            site: 2,
+        }),
+        now,
+    )
+    .unwrap();
+    assert_eq!(
+        p.a.baselines.common_baseline(r, [2]),
+        Some(kfs[0].keyframe_id)
+    );
+    // A third site that has acknowledged nothing: no common baseline (keyframes only).
+    p.a.handle_message(
+        &mut p.sim_a,
+        Message::SiteJoined(SiteEntry {
+            site: 3,
+            name: "c".into(),
+            role: Role::Trainee,
+        }),
+        now,
+    )
+    .unwrap();
+    assert_eq!(
+        p.a.baselines
+            .common_baseline(r, p.a.sites.receivers().collect::<Vec<_>>()),
+        None
+    );
+    // It leaves: the baseline is B's again.
+    p.a.handle_message(
+        &mut p.sim_a,
+        Message::Leave(proto::Leave {
+            site: 3,
+            reason: "bye".into(),
+        }),
+        now,
+    )
+    .unwrap();
+    assert_eq!(
+        p.a.baselines
+            .common_baseline(r, p.a.sites.receivers().collect::<Vec<_>>()),
+        Some(kfs[0].keyframe_id)
+    );
+}
+
+#[test]
+fn reconnect_drops_ownership_and_takes_the_new_id() {
+    let mut p = pair();
+    let r = p.region;
+    p.step(&[r]);
+    assert_eq!(p.a.snapshot().owned, vec![r]);
+    let now = p.clock.now();
+    let t = p.sim_a.time();
+    p.a.handle_reconnected(
+        &welcome(7, &[(2, Role::Trainee), (7, Role::Instructor)]),
+        t,
+        now,
+    );
+    assert_eq!(p.a.site_id(), Some(7));
+    assert_eq!(p.a.stats().reconnects, 1);
+    assert!(p.a.snapshot().owned.is_empty());
+    assert_eq!(p.a.owned_intervals(t), vec![(r, 0.0, t)]);
+    assert_eq!(p.a.baselines.common_baseline(r, [2]), None);
+    // Its next claim and time stamp carry the new id.
+    p.sim_a.set_time(t + SIM_TIME_INTERVAL);
+    p.a.handle_touched(&p.sim_a, &[r], now);
+    p.a.after_step(&p.sim_a, now);
+    let out = drain(&mut p.a);
+    assert!(out.iter().any(|t| matches!(
+        t,
+        Transmit::Control(Message::OwnershipRequest(q)) if q.region == r
+    )));
+    assert!(out.iter().any(|t| matches!(
+        t,
+        Transmit::Datagram(Message::SimTime(s)) if s.site == 7
+    )));
+}
+
+#[test]
+fn reset_drops_the_old_epoch_and_applies_the_new_one() {
+    let mut p = pair();
+    let r = p.region;
+    for _ in 0..20 {
+        p.step(&[r]);
+    }
+    let applied_before = p.b.stats().keyframes_applied;
+    assert!(applied_before >= 1);
+    let moved = |sim: &Simulation| {
+        let rest = new_sim();
+        sim.surfaces()[0]
+            .deformed
+            .iter()
+            .zip(&rest.surfaces()[0].deformed)
+            .map(|(a, b)| (a - b).norm())
+            .fold(0.0, f64::max)
+    };
+    assert!(
+        moved(&p.sim_b) > 1e-6,
+        "the receiver follows the owner's sag"
+    );
+
+    // Only the instructor may ask; the request carries a time a little ahead.
+    let t = p.sim_a.time();
+    assert_eq!(
+        p.b.request_reset(t, None),
+        Err(ResetError::NotInstructor(Role::Trainee))
+    );
+    p.a.request_reset(t, Some(Duration::from_millis(30)))
+        .unwrap();
+    let at = t + 0.06;
+    match &drain(&mut p.a)[..] {
+        [
+            Transmit::Control(Message::Command(Command::ResetScene {
+                epoch: 0,
+                sim_time_s,
+            })),
+        ] => {
+            assert!((sim_time_s - at).abs() < 1e-12, "{sim_time_s} vs {at}")
+        }
+        other => panic!("expected one reset request: {other:?}"),
+    }
+    // The coordinator's answer to every site: epoch 1 at `at`.
+    let reset = Message::Command(Command::ResetScene {
+        epoch: 1,
+        sim_time_s: at,
+    });
+    let now = p.clock.now();
+    p.a.handle_message(&mut p.sim_a, reset.clone(), now)
+        .unwrap();
+    p.b.handle_message(&mut p.sim_b, reset, now).unwrap();
+    assert_eq!(p.b.epoch(), 0, "the reset waits for its simulated time");
+    // Until then old-epoch frames still count; at `at` both sites reset.
+    let mut steps = 0;
+    while p.b.epoch() == 0 {
+        p.step(&[r]);
+        steps += 1;
+        assert!(steps < 100, "no reset");
+    }
+    assert_eq!(p.a.epoch(), 1);
+    assert!(p.sim_b.time() >= at - 1e-9 && p.sim_b.time() < at + 0.02);
+    let events: Vec<_> = std::iter::from_fn(|| p.b.poll_event()).collect();
+    assert!(
+        events.contains(&SessionEvent::SceneReset { epoch: 1 }),
+        "{events:?}"
+    );
+    assert_eq!(p.b.stats().resets, 1);
+    // Ownership is gone on both sides (the coordinator dropped it).
+    assert!(p.a.snapshot().owned.is_empty());
+    assert!(p.b.snapshot().remote_owners.is_empty());
+
+    // A keyframe of the old epoch arriving late is dropped: not applied, not acknowledged.
+    let mut stale = p.a_keyframe_after_grant(0);
+    stale.sim_time = p.sim_b.time();
+    let applied = p.b.stats().keyframes_applied;
+    let now = p.clock.now();
+    p.b.handle_message(&mut p.sim_b, Message::Keyframe(stale), now)
+        .unwrap();
+    assert_eq!(p.b.stats().keyframes_applied, applied);
+    assert!(acks(&drain(&mut p.b)).is_empty());
+
+    // New-epoch keyframes from the owner are applied and acknowledged.
+    let now = p.clock.now();
+    p.a.handle_message(&mut p.sim_a, grant(r, 1), now).unwrap();
+    p.b.handle_message(&mut p.sim_b, grant(r, 1), now).unwrap();
+    let out = p.step(&[r]);
+    let kfs = keyframes(&out);
+    assert_eq!(kfs.len(), 1);
+    assert_eq!(kfs[0].epoch, 1);
+    assert_eq!(p.b.stats().keyframes_applied, applied + 1);
+
+    // A late joiner takes epoch 1 from its snapshot and applies its keyframes.
+    let clock = FakeClock::new();
+    let mut sim_c = new_sim();
+    let mut c = session(Role::Trainee, &sim_c, &clock);
+    c.handle_welcome(
+        &welcome(
+            3,
+            &[
+                (1, Role::Instructor),
+                (2, Role::Trainee),
+                (3, Role::Trainee),
+            ],
+        ),
+        clock.now(),
+    );
+    let mut kf = kfs[0].clone();
+    kf.sim_time = p.sim_a.time();
+    c.handle_message(
+        &mut sim_c,
+        snapshot(p.sim_a.time(), 1, vec![kf.clone()]),
+        clock.now(),
+    )
+    .unwrap();
+    assert_eq!(c.epoch(), 1);
+    assert_eq!(c.stats().keyframes_applied, 1);
+    assert_eq!(acks(&drain(&mut c)).len(), 1);
+    // Snapshot keyframes of another epoch are not applied.
+    let mut d = session(Role::Trainee, &new_sim(), &clock);
+    let mut sim_d = new_sim();
+    d.handle_welcome(
+        &welcome(4, &[(1, Role::Instructor), (4, Role::Trainee)]),
+        clock.now(),
+    );
+    kf.epoch = 0;
+    d.handle_message(&mut sim_d, snapshot(kf.sim_time, 1, vec![kf]), clock.now())
+        .unwrap();
+    assert_eq!(d.stats().keyframes_applied, 0);
+}
+
+#[test]
+fn a_site_on_its_own_resets_locally() {
+    let clock = FakeClock::new();
+    let mut sim = new_sim();
+    let scene = scene();
+    let mut s = SiteSession::new(
+        SessionConfig {
+            role: Role::Instructor,
+            strategy: SyncStrategy::Keyframe,
+            options: SimOptions::from_scene(&scene.scene),
+            scene,
+            linked: false,
+            playout_lag: PlayoutLag::Auto,
+            realtime: false,
+        },
+        &sim,
+        clock.now().wall,
+    );
+    for _ in 0..5 {
+        sim.step().unwrap();
+    }
+    let t = sim.time();
+    s.request_reset(t, None).unwrap();
+    s.apply_due(&mut sim).unwrap();
+    assert_eq!(s.epoch(), 1);
+    assert_eq!(sim.time(), t, "the clock keeps running");
+    assert_eq!(sim.steps(), 0, "a fresh simulation");
+    assert!(drain(&mut s).is_empty(), "nothing to send without a link");
+}
+
+impl Pair {
+    /// A keyframe of A's first region in epoch `epoch` (a copy of one A would send).
+    fn a_keyframe_after_grant(&mut self, epoch: Epoch) -> proto::RegionKeyframe {
+        let frame = sim_core::sync::encode_keyframe(&self.sim_a, &self.a.map, self.region, 1_000)
+            .expect("encodable");
+        match wire::frame_to_wire(sim_core::sync::SyncFrame::Keyframe(frame), 1, epoch) {
+            Some(WireFrame::Keyframe(k)) => k,
+            other => panic!("{other:?}"),
+        }
+    }
+}

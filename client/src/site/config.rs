@@ -1,0 +1,143 @@
+//! What a site is given ([`SiteConfig`]) and what it reports ([`SiteReport`]).
+
+use std::path::PathBuf;
+
+use proto::Role;
+use serde::{Deserialize, Serialize};
+use sim_core::SimOptions;
+use sim_core::sim_scene::{LoadedScene, ToolScript};
+use sim_core::sync::SyncStrategy;
+
+use super::status::StatusBoard;
+use crate::haptic::site::DeviceSpec;
+use crate::link::LinkConfig;
+use crate::session::PlayoutLag;
+
+/// Progress report: (simulated time in s, a short status line).
+pub type ProgressCallback = Box<dyn FnMut(f64, &str) + Send>;
+
+/// Everything a site needs to run.
+pub struct SiteConfig {
+    pub name: String,
+    pub role: Role,
+    pub scene: LoadedScene,
+    pub options: SimOptions,
+    /// The scene tool this site drives (by name); `None`: no local tool (observer).
+    pub tool: Option<String>,
+    /// Trajectory of the local tool, played in simulation time from `script_start`.
+    pub script: Option<ToolScript>,
+    pub script_start: f64,
+    /// Simulated seconds to run.
+    pub seconds: f64,
+    pub strategy: SyncStrategy,
+    /// Extra CPU cost per step as a factor of the step's own cost (1 = none, 3 = three
+    /// times slower), like a laptop beside a workstation.
+    pub slowdown: f64,
+    /// Output folder: surface recordings (`surfaces.surf`), VTU/PVD frames, report.
+    pub out: Option<PathBuf>,
+    /// Simulated time between VTU frames (s); `None`: no VTU.
+    pub vtu_interval: Option<f64>,
+    /// Coordinator link; `None`: a site on its own.
+    pub link: Option<LinkConfig>,
+    /// Start the simulation only when this many sites (including this one) have joined.
+    pub expect_sites: usize,
+    /// Pace steps to wall-clock time (true) or run as fast as possible (false).
+    pub realtime: bool,
+    /// How far a site that follows another site's regions or tool keeps its simulation
+    /// time behind that site's (`site::pacing`).
+    pub playout_lag: PlayoutLag,
+    /// Run the 1 kHz haptic loop beside the simulation.
+    pub haptics: bool,
+    /// Where the local tool's input comes from: the script, or a real device over UDP
+    /// (the tool then follows the device and the haptic loop renders forces back to it;
+    /// needs `haptics`).
+    pub device: DeviceSpec,
+    /// SCHED_FIFO priority of the haptic thread (`None`: normal priority; fails soft).
+    pub rt_priority: Option<i32>,
+    /// Called about every 0.25 s of simulated time with (sim time s, a short status).
+    pub on_progress: Option<ProgressCallback>,
+    /// Instructor: reset the scene when the simulated time reaches this (s); from
+    /// `--reset-at` and the script's `[[command]]` entries.
+    pub reset_at: Vec<f64>,
+    /// Where the site publishes its state every step (a window or HUD reads it).
+    pub status: Option<StatusBoard>,
+}
+
+/// What a site did, printed by `cosurg join` and collected by `cosurg demo`.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct SiteReport {
+    pub name: String,
+    pub role: String,
+    pub strategy: String,
+    pub site_id: Option<u16>,
+    pub scene_hash: String,
+    /// Simulated seconds and the wall-clock seconds they took.
+    pub sim_seconds: f64,
+    pub wall_seconds: f64,
+    /// Simulation steps per wall-clock second.
+    pub sim_rate_hz: f64,
+    pub step_ms_p50: f64,
+    pub step_ms_p99: f64,
+    pub keyframes_sent: u64,
+    pub keyframes_received: u64,
+    pub keyframes_applied: u64,
+    /// CPU time per applied keyframe (µs): tree-state XOR, takeover, extrapolation setup.
+    pub apply_us_per_keyframe: f64,
+    /// Application bytes per second over the run (UDP bytes in `udp_*`).
+    pub up_bytes_per_s: f64,
+    pub down_bytes_per_s: f64,
+    pub udp_up_bytes_per_s: f64,
+    pub udp_down_bytes_per_s: f64,
+    /// Filled by the demo / sync bench from the recordings of all sites (mm).
+    pub divergence_max_mm: Option<f64>,
+    pub divergence_rms_mm: Option<f64>,
+    /// Clock estimate against the coordinator at the end (µs).
+    pub clock_offset_us: Option<f64>,
+    pub rtt_us: Option<u64>,
+    /// Region ownership this site held: (region, from sim time s, to sim time s).
+    pub owned: Vec<(u32, f64, f64)>,
+    /// Surface recordings (every 50 ms of simulated time).
+    pub surf_file: Option<PathBuf>,
+    pub reconnects: u64,
+    /// Haptic loop: ticks per second and p99 period jitter (µs).
+    pub haptic_rate_hz: Option<f64>,
+    pub haptic_jitter_p99_us: Option<f64>,
+    /// Haptic tick period p50 / p99 (µs), ticks more than half a period late, largest
+    /// force sent to the device (N), and the device's name.
+    pub haptic_period_p50_us: Option<f64>,
+    pub haptic_period_p99_us: Option<f64>,
+    pub haptic_overruns: Option<u64>,
+    pub haptic_max_force_n: Option<f64>,
+    pub haptic_device: Option<String>,
+    /// UDP device (`--device udp:…`): pose datagrams accepted, force datagrams sent.
+    pub device_poses_received: Option<u64>,
+    pub device_forces_sent: Option<u64>,
+    /// Teaching, instructor: trajectories sent to the session, and the newest one saved
+    /// as a tool script (`<out>/teaching.toml`).
+    pub teaching_sent: Option<u64>,
+    pub teaching_file: Option<PathBuf>,
+    /// Teaching, trainee: the guide force felt on the haptic device during playback (N),
+    /// and the distance between the local tool tip and the recorded tip (mm).
+    pub guide_force_max_n: Option<f64>,
+    pub guide_force_mean_n: Option<f64>,
+    pub playback_distance_mm: Option<f64>,
+    pub playback_distance_max_mm: Option<f64>,
+    /// Contact force on the local tool, max magnitude over the run (N).
+    pub max_tool_force_n: f64,
+    /// Wall time spent waiting so as not to run ahead of the owners' clocks (s).
+    #[serde(default)]
+    pub paced_seconds: f64,
+    /// Display delay: mean simulation-time lag behind the sites followed (ms), over the
+    /// steps this site followed another without leading itself; 0 if it never did.
+    #[serde(default)]
+    pub playout_lag_ms: f64,
+    /// The playout lag aimed at at the end of the run (ms).
+    #[serde(default)]
+    pub playout_target_ms: f64,
+    /// Scene epoch at the end (one more per scene reset of the session).
+    #[serde(default)]
+    pub epoch: u32,
+    /// Scene resets this site went through.
+    #[serde(default)]
+    pub resets: u64,
+}
