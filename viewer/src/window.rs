@@ -403,19 +403,17 @@ pub fn render_picture(frame: &ViewFrame, size: (u32, u32)) -> Result<Picture, Vi
     let renderer = Renderer::new(&context);
     let hands = Hands::default();
     let target = RenderTarget::new(color.as_color_target(None), depth.as_depth_target());
-    renderer.draw(
-        &target,
-        viewport,
-        frame,
-        &hands.view(frame),
-        DrawOptions {
-            wireframe: frame.lattice.is_some(),
-            active_tool: hands.active_tool,
-        },
-    );
     let mut gui = GUI::new(&context);
-    // egui lays out on its first pass and paints windows on the second
-    for _ in 0..2 {
+    // a single picture: no fade-in (at a frozen time it would leave the HUD half
+    // transparent and its text dim)
+    gui.context().all_styles_mut(|s| s.animation_time = 0.0);
+    // egui lays out on its first pass and paints windows on the second. three-d's
+    // `GUI::update` keeps only the latest pass's output, and the first pass's output
+    // holds the font atlas as a whole texture while later ones hold only partial
+    // updates to it: each pass is rendered (uploading its textures), else egui_glow
+    // patches a font texture it never created (GL_INVALID_OPERATION, no text). The 3D
+    // scene is drawn (clearing the target) after the first pass and before the second.
+    for pass in 0..2 {
         gui.update(&mut [], 0.0, viewport, 1.0, |ui| {
             hud(
                 ui.ctx(),
@@ -425,18 +423,28 @@ pub fn render_picture(frame: &ViewFrame, size: (u32, u32)) -> Result<Picture, Vi
                 false,
             );
         });
+        if pass == 1 {
+            renderer.draw(
+                &target,
+                viewport,
+                frame,
+                &hands.view(frame),
+                DrawOptions {
+                    wireframe: frame.lattice.is_some(),
+                    active_tool: hands.active_tool,
+                },
+            );
+        }
+        target
+            .write(|| gui.render())
+            .map_err(|e| ViewerError::Window(e.to_string()))?;
     }
-    target
-        .write(|| gui.render())
-        .map_err(|e| ViewerError::Window(e.to_string()))?;
+    // rows from the top already: three-d's `read_color` flips OpenGL's bottom-up rows
     let pixels: Vec<[u8; 4]> = target.read_color();
     drop(target);
-    // OpenGL rows start at the bottom
     let mut rgba = Vec::with_capacity(pixels.len() * 4);
-    for row in (0..h as usize).rev() {
-        for p in &pixels[row * w as usize..(row + 1) * w as usize] {
-            rgba.extend_from_slice(&[p[0], p[1], p[2], 255]);
-        }
+    for p in &pixels {
+        rgba.extend_from_slice(&[p[0], p[1], p[2], 255]);
     }
     drop(window);
     Ok(Picture {
