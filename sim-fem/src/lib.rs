@@ -11,6 +11,7 @@
 
 pub mod element;
 pub mod mesh;
+pub mod mg;
 pub mod model;
 mod parallel;
 pub mod polar;
@@ -25,7 +26,8 @@ pub use polar::{
 };
 pub use solver::{CgResult, SolverParams};
 pub use system::{
-    ElementDesc, FALLBACK_NEWTON, FemDesc, FemSystem, Material, NewtonParams, OperatorMode,
+    ElementDesc, FALLBACK_NEWTON, FemDesc, FemSystem, LinearSolver, Material, NewtonParams,
+    OperatorMode, UnknownLinearSolver,
     RotationSourceDesc, ShapeRef, StaticParams, StaticStats, StepParams, StepStats, StiffnessMode,
     TemplateInfo,
 };
