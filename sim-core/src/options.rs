@@ -1,5 +1,5 @@
 use sim_fem::{
-    ByersXu, MullerIterative, NewtonParams, OperatorMode, PolarMethod, SolverParams, StepParams,
+    ByersXu, LinearSolver, MullerIterative, NewtonParams, OperatorMode, PolarMethod, SolverParams, StepParams,
     StiffnessMode,
 };
 use sim_scene::Scene;
@@ -54,6 +54,8 @@ impl SimOptions {
                 },
                 // Assembled block-CSR beat matrix-free at 1.5k and 12k tets (sim-fem benches).
                 operator: OperatorMode::Assembled,
+                linear_solver: LinearSolver::JacobiPcg,
+                mg_refresh_steps: 4,
                 solver: SolverParams {
                     max_iters: s.cg_iterations as usize,
                     tol: s.cg_tolerance,
