@@ -1,5 +1,5 @@
 use sim_fem::{
-    ByersXu, LinearSolver, MullerIterative, NewtonParams, OperatorMode, PolarMethod, SolverParams, StepParams,
+    ByersXu, MullerIterative, NewtonParams, OperatorMode, PolarMethod, SolverParams, StepParams,
     StiffnessMode,
 };
 use sim_scene::Scene;
@@ -54,7 +54,7 @@ impl SimOptions {
                 },
                 // Assembled block-CSR beat matrix-free at 1.5k and 12k tets (sim-fem benches).
                 operator: OperatorMode::Assembled,
-                linear_solver: LinearSolver::JacobiPcg,
+                linear_solver: s.solver,
                 mg_refresh_steps: 4,
                 solver: SolverParams {
                     max_iters: s.cg_iterations as usize,

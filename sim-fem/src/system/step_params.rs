@@ -36,8 +36,11 @@ pub enum OperatorMode {
     Assembled,
 }
 
-/// The linear solver of the linearised step.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+/// The linear solver of the linearised step (scene key `simulation.solver`, `--solver`).
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "kebab-case")]
 pub enum LinearSolver {
     /// CG with the Jacobi (diagonal) preconditioner.
     #[default]

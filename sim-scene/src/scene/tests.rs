@@ -149,6 +149,7 @@ dt = 0.001
 model = "nonlinear"
 cg_iterations = 100
 cg_tolerance = 1e-8
+solver = "mg-pcg"
 polar = "shape-matching"
 polar_tolerance = 1e-9
 [features]
@@ -170,6 +171,7 @@ skip_rest = false
         "`nonlinear` is read as `stvk`"
     );
     assert_eq!(s.simulation.polar, PolarMethod::ShapeMatching);
+    assert_eq!(s.simulation.solver, crate::LinearSolver::MgPcg);
     assert_eq!(s.features.rotation_sharing_angle_deg, 2.5);
     assert!(!s.features.contact);
     assert_eq!(s.tools[1].kind, ToolKind::Hook);
