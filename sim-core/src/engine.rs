@@ -3,7 +3,9 @@
 use std::collections::HashMap;
 
 use nalgebra::Vector3;
-use sim_fem::{ElementDesc, FemDesc, FemSystem, LinearSolver, Model, RotationSourceDesc, ShapeRef, StepStats};
+use sim_fem::{
+    ElementDesc, FemDesc, FemSystem, LinearSolver, Model, RotationSourceDesc, ShapeRef, StepStats,
+};
 use sim_lattice::{Embedding, Lattice, LatticeParams, NodeId, ShapeKey, TetId, TopologyEvent};
 use sim_scene::{Aabb, BodyShape, InclusionShape, LoadedScene, TriMesh};
 

@@ -136,7 +136,11 @@ pub fn lattice_hierarchy(lattice: &Lattice) -> Result<Hierarchy, FemError> {
 
 /// Trailing zero bits of one coordinate (0 counts as 62).
 fn level_of_coord(c: i64) -> u32 {
-    if c == 0 { 62 } else { c.trailing_zeros().min(62) }
+    if c == 0 {
+        62
+    } else {
+        c.trailing_zeros().min(62)
+    }
 }
 
 #[cfg(test)]

@@ -56,7 +56,13 @@ contact = false
 fn refine(sim: &mut Simulation, rounds: u32, pred: impl Fn(&V3) -> bool) {
     for _ in 0..rounds {
         let lat = sim.lattice();
-        let centroid = |t| lat.tet_nodes(t).iter().map(|&n| lat.node_rest(n)).sum::<V3>() / 4.0;
+        let centroid = |t| {
+            lat.tet_nodes(t)
+                .iter()
+                .map(|&n| lat.node_rest(n))
+                .sum::<V3>()
+                / 4.0
+        };
         let level = lat
             .leaves()
             .iter()
@@ -103,7 +109,10 @@ fn run(
 }
 
 fn max_diff(a: &[V3], b: &[V3]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| (x - y).norm()).fold(0.0, f64::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).norm())
+        .fold(0.0, f64::max)
 }
 
 #[test]

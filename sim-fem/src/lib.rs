@@ -27,9 +27,8 @@ pub use polar::{
 pub use solver::{CgResult, SolverParams};
 pub use system::{
     ElementDesc, FALLBACK_NEWTON, FemDesc, FemSystem, LinearSolver, Material, NewtonParams,
-    OperatorMode, UnknownLinearSolver,
-    RotationSourceDesc, ShapeRef, StaticParams, StaticStats, StepParams, StepStats, StiffnessMode,
-    TemplateInfo,
+    OperatorMode, RotationSourceDesc, ShapeRef, StaticParams, StaticStats, StepParams, StepStats,
+    StiffnessMode, TemplateInfo, UnknownLinearSolver,
 };
 
 /// Errors of this crate.

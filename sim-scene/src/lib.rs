@@ -36,7 +36,7 @@ pub mod vtk;
 pub use mesh::{MeshError, MeshFormat, TriMesh};
 pub use scene::{
     Aabb, Body, BodyShape, Capsule, FORMAT_VERSION, Features, FileReader, Fix, Inclusion,
-    InclusionShape, LinearSolver, Load, LoadedScene, Material, Model, NodeSelection, PolarMethod, Probe, Scene,
-    SceneError, SimulationSettings, ToolKind, ToolSpec, scene_hash,
+    InclusionShape, LinearSolver, Load, LoadedScene, Material, Model, NodeSelection, PolarMethod,
+    Probe, Scene, SceneError, SimulationSettings, ToolKind, ToolSpec, scene_hash,
 };
 pub use script::{ScriptError, ToolPose, ToolScript, ToolWaypoint};

@@ -27,7 +27,11 @@ fn box_lattice(n: [i32; 3], max_depth: u8) -> Lattice {
 
 /// A linear field (m).
 fn linear(p: &V3) -> V3 {
-    V3::new(0.3 + 2.0 * p.x - p.y, -1.0 + 0.5 * p.z, p.x + p.y + 3.0 * p.z)
+    V3::new(
+        0.3 + 2.0 * p.x - p.y,
+        -1.0 + 0.5 * p.z,
+        p.x + p.y + 3.0 * p.z,
+    )
 }
 
 /// Walks the hierarchy carrying each level's rest positions; at every level the
@@ -52,7 +56,10 @@ fn check_linear_exactness(lat: &Lattice) -> Vec<usize> {
                 coarse_slot[*c] = Some(*s);
             }
         }
-        assert!(coarse_slot.iter().all(|s| s.is_some()), "every coarse node is kept");
+        assert!(
+            coarse_slot.iter().all(|s| s.is_some()),
+            "every coarse node is kept"
+        );
         let coarse_val: Vec<V3> = coarse_slot
             .iter()
             .map(|s| linear(&lat.node_rest(NodeId(s.unwrap() as u32))))

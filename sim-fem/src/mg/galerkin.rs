@@ -33,10 +33,10 @@ impl UpperCsr {
             let (a, b) = (self.row_ptr[i], self.row_ptr[i + 1]);
             let pi = p[i];
             let mut acc = blocks[a] * pi;
-            for k in a + 1..b {
-                let j = self.cols[k] as usize;
-                acc += blocks[k] * p[j];
-                out[j] += blocks[k].tr_mul(&pi);
+            for (blk, &j) in blocks[a + 1..b].iter().zip(&self.cols[a + 1..b]) {
+                let j = j as usize;
+                acc += blk * p[j];
+                out[j] += blk.tr_mul(&pi);
             }
             out[i] += acc;
         }
@@ -47,12 +47,13 @@ impl UpperCsr {
         let n = self.num_rows();
         let mut m = nalgebra::DMatrix::zeros(3 * n, 3 * n);
         for i in 0..n {
-            for k in self.row_ptr[i]..self.row_ptr[i + 1] {
-                let j = self.cols[k] as usize;
-                m.fixed_view_mut::<3, 3>(3 * i, 3 * j).copy_from(&blocks[k]);
+            let (a, b) = (self.row_ptr[i], self.row_ptr[i + 1]);
+            for (blk, &j) in blocks[a..b].iter().zip(&self.cols[a..b]) {
+                let j = j as usize;
+                m.fixed_view_mut::<3, 3>(3 * i, 3 * j).copy_from(blk);
                 if j != i {
                     m.fixed_view_mut::<3, 3>(3 * j, 3 * i)
-                        .copy_from(&blocks[k].transpose());
+                        .copy_from(&blk.transpose());
                 }
             }
         }

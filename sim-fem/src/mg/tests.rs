@@ -96,7 +96,11 @@ fn beam_matrix(cells: [usize; 3], contrast: f64, dt: f64) -> (BoxMesh, Assembled
         .iter()
         .map(|p| {
             let th = p.x / len;
-            V3::new(p.x * th.cos() - p.z * th.sin(), p.y, p.x * th.sin() + p.z * th.cos())
+            V3::new(
+                p.x * th.cos() - p.z * th.sin(),
+                p.y,
+                p.x * th.sin() + p.z * th.cos(),
+            )
         })
         .collect();
     let p = StepParams {
@@ -135,7 +139,11 @@ fn rhs(n: usize, fixed: &[bool]) -> Vec<V3> {
                 V3::zeros()
             } else {
                 let t = i as f64;
-                V3::new((0.1 * t).sin() + 0.3, (0.07 * t).cos(), 1.0 + (0.013 * t).sin())
+                V3::new(
+                    (0.1 * t).sin() + 0.3,
+                    (0.07 * t).cos(),
+                    1.0 + (0.013 * t).sin(),
+                )
             }
         })
         .collect()
@@ -219,7 +227,10 @@ fn mg_pcg_matches_dense_cholesky_with_fixed_nodes_and_contact() {
     let (x, iters, levels) = mg_solve(&a, &box_hierarchy(cells), &b, 1e-12, SMALL_COARSEST);
     assert_eq!(levels, 3, "8×4×4 → 4×2×2 → 2×1×1");
     let d = rel_diff(&x, &reference);
-    assert!(d < 1e-8, "relative difference {d:e} after {iters} iterations");
+    assert!(
+        d < 1e-8,
+        "relative difference {d:e} after {iters} iterations"
+    );
     assert!(x.iter().zip(&a.fixed).all(|(v, f)| !f || *v == V3::zeros()));
 }
 
@@ -231,7 +242,10 @@ fn mg_pcg_matches_dense_cholesky_with_1000x_stiffness_contrast() {
     let reference = dense_solve(&a, &b);
     let (x, iters, _) = mg_solve(&a, &box_hierarchy(cells), &b, 1e-12, SMALL_COARSEST);
     let d = rel_diff(&x, &reference);
-    assert!(d < 1e-8, "relative difference {d:e} after {iters} iterations");
+    assert!(
+        d < 1e-8,
+        "relative difference {d:e} after {iters} iterations"
+    );
 }
 
 #[test]

@@ -106,11 +106,11 @@ fn jacobi_damping(apply: &mut dyn FnMut(&[V3], &mut [V3]), dinv: &[Matrix3<f64>]
     }
 }
 
-/// Smoothing sweeps `z += ω D⁻¹ (r − A z)`; with `zero_start` the first is `z = ω D⁻¹ r`.
+/// Smoothing sweeps `z += ω D⁻¹ (r − A z)` (`jacobi` = (D⁻¹ blocks, ω)); with
+/// `zero_start` the first is `z = ω D⁻¹ r`.
 fn smooth(
     apply: &mut dyn FnMut(&[V3], &mut [V3]),
-    dinv: &[Matrix3<f64>],
-    omega: f64,
+    (dinv, omega): (&[Matrix3<f64>], f64),
     r: &[V3],
     z: &mut [V3],
     t: &mut [V3],
@@ -172,7 +172,12 @@ impl Multigrid {
         }
         let mut upper = Vec::with_capacity(pattern.num_blocks());
         for i in 0..n {
-            upper.extend(pattern.row(i).filter(|(_, j)| *j >= i).map(|(s, j)| (i, j, s)));
+            upper.extend(
+                pattern
+                    .row(i)
+                    .filter(|(_, j)| *j >= i)
+                    .map(|(s, j)| (i, j, s)),
+            );
         }
         let mut free: Vec<bool> = fixed.iter().map(|f| !f).collect();
         let mut rows: Vec<usize> = (0..n).collect();
@@ -293,9 +298,9 @@ impl Multigrid {
         let nu = self.params.smoothing_steps.max(1);
         let (dinv, omega) = (&self.fine_dinv, self.fine_omega);
         let (t, res) = (&mut self.fine_t, &mut self.fine_res);
-        smooth(fine_apply, dinv, omega, r, z, t, nu, true);
+        smooth(fine_apply, (dinv, omega), r, z, t, nu, true);
         if self.levels.is_empty() {
-            smooth(fine_apply, dinv, omega, r, z, t, nu, false);
+            smooth(fine_apply, (dinv, omega), r, z, t, nu, false);
             return;
         }
         fine_apply(z, t);
@@ -324,11 +329,27 @@ impl Multigrid {
                             *zi = V3::new(x[3 * i], x[3 * i + 1], x[3 * i + 2]);
                         }
                     }
-                    None => smooth(&mut apply, &l.dinv, l.omega, &l.r, &mut l.z, &mut l.t, 4 * nu, true),
+                    None => smooth(
+                        &mut apply,
+                        (&l.dinv, l.omega),
+                        &l.r,
+                        &mut l.z,
+                        &mut l.t,
+                        4 * nu,
+                        true,
+                    ),
                 }
                 break;
             }
-            smooth(&mut apply, &l.dinv, l.omega, &l.r, &mut l.z, &mut l.t, nu, true);
+            smooth(
+                &mut apply,
+                (&l.dinv, l.omega),
+                &l.r,
+                &mut l.z,
+                &mut l.t,
+                nu,
+                true,
+            );
             apply(&l.z, &mut l.t);
             for i in 0..l.r.len() {
                 l.t[i] = l.r[i] - l.t[i];
@@ -344,10 +365,18 @@ impl Multigrid {
             let s = &l.plan.coarse;
             let blocks = &l.blocks;
             let mut apply = |p: &[V3], out: &mut [V3]| s.multiply(blocks, p, out);
-            smooth(&mut apply, &l.dinv, l.omega, &l.r, &mut l.z, &mut l.t, nu, false);
+            smooth(
+                &mut apply,
+                (&l.dinv, l.omega),
+                &l.r,
+                &mut l.z,
+                &mut l.t,
+                nu,
+                false,
+            );
         }
         prolong_add(&self.levels[0].p, &self.levels[0].z, z);
-        smooth(fine_apply, dinv, omega, r, z, t, nu, false);
+        smooth(fine_apply, (dinv, omega), r, z, t, nu, false);
         for (zi, f) in z.iter_mut().zip(&self.fixed) {
             if *f {
                 *zi = V3::zeros();
@@ -355,4 +384,3 @@ impl Multigrid {
         }
     }
 }
-

@@ -146,16 +146,7 @@ impl FemSystem {
             vec![V3::zeros(); n]
         };
         let res: CgResult = match mg.as_mut() {
-            Some(c) => solve_with_multigrid(
-                c,
-                &op,
-                &fixed,
-                &rhs,
-                &mut dv,
-                &p.solver,
-                dt,
-                p.mg_refresh_steps,
-            ),
+            Some(c) => solve_with_multigrid(c, &op, &fixed, &rhs, &mut dv, dt, p),
             None => pcg(&op, &fixed, &rhs, &mut dv, &p.solver),
         };
         self.caches.block_buf = op.into_blocks();

@@ -6,7 +6,7 @@ use super::operator::SysOp;
 use super::{FemSystem, V3};
 use crate::FemError;
 use crate::mg::{Hierarchy, MgParams, Multigrid, pcg_preconditioned};
-use crate::solver::{CgResult, LinearOperator, SolverParams};
+use crate::solver::{CgResult, LinearOperator};
 use crate::system::{LinearSolver, StepParams};
 
 /// A built preconditioner and its age.
@@ -72,10 +72,10 @@ pub(super) fn solve_with_multigrid(
     fixed: &[bool],
     rhs: &[V3],
     dv: &mut [V3],
-    solver: &SolverParams,
     dt: f64,
-    refresh_steps: usize,
+    p: &StepParams,
 ) -> CgResult {
+    let (solver, refresh_steps) = (&p.solver, p.mg_refresh_steps);
     let pat = op.sys.caches.pattern.as_ref().expect("pattern built");
     let blocks = op.assembled.as_ref().expect("MG-PCG assembles");
     if cache.age >= refresh_steps.max(1) || cache.dt != dt {
@@ -87,7 +87,7 @@ pub(super) fn solve_with_multigrid(
     }
     cache.age = cache.age.saturating_add(1);
     let mg = &mut cache.mg;
-    let mut apply = |p: &[V3], out: &mut [V3]| op.apply(p, out);
+    let mut apply = |x: &[V3], out: &mut [V3]| op.apply(x, out);
     pcg_preconditioned(op, fixed, rhs, dv, solver, &mut |r, z| {
         mg.vcycle(&mut apply, r, z)
     })

@@ -37,9 +37,7 @@ pub enum OperatorMode {
 }
 
 /// The linear solver of the linearised step (scene key `simulation.solver`, `--solver`).
-#[derive(
-    Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize,
-)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum LinearSolver {
     /// CG with the Jacobi (diagonal) preconditioner.
