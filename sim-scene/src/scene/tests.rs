@@ -688,3 +688,12 @@ fn selection() {
         "{e}"
     );
 }
+
+#[test]
+fn unknown_linear_solver_is_named() {
+    let e = err(&format!("{EXAMPLE}\n[simulation]\nsolver = \"cholesky\"\n"));
+    assert!(
+        e.starts_with("s.toml: `simulation.solver`: unknown variant `cholesky`, expected `jacobi-pcg` or `mg-pcg`"),
+        "{e}"
+    );
+}
