@@ -5,6 +5,7 @@ use clap::{Args, Subcommand};
 
 mod beam;
 pub mod cantilever;
+pub mod scale;
 pub mod stress;
 pub mod sweep;
 pub mod sync;
@@ -19,6 +20,8 @@ pub struct BenchArgs {
 pub enum BenchCommand {
     /// Models and speed-ups on the cantilever beam: step time and deviation from StVK.
     Cantilever(cantilever::CantileverArgs),
+    /// Linear solvers against mesh size: Jacobi-PCG vs MG-PCG to a 1e-6 residual.
+    Scale(scale::ScaleArgs),
     /// Robustness: long runs, large dt, 1000× stiffness contrast, inversion, impulses.
     Stress(stress::StressArgs),
     /// Run time against error over the solver knobs; Pareto front.
@@ -30,6 +33,7 @@ pub enum BenchCommand {
 pub fn run(args: BenchArgs) -> Result<()> {
     match args.which {
         BenchCommand::Cantilever(a) => cantilever::run(a),
+        BenchCommand::Scale(a) => scale::run(a),
         BenchCommand::Stress(a) => stress::run(a),
         BenchCommand::Sweep(a) => sweep::run(a),
         BenchCommand::Sync(a) => sync::run(a),

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use clap::Args;
 use sim_core::SimOptions;
-use sim_core::sim_fem::Model;
+use sim_core::sim_fem::{LinearSolver, Model};
 
 /// `--model`: sim-fem's [`Model`] under its own names (`linear`, `corotational`, `stvk`),
 /// with `nonlinear` accepted as the former name of `stvk` (as in scene files).
@@ -47,6 +47,9 @@ pub struct SimKnobs {
     /// Threads of the FEM step (default 1: the step stays on the simulation thread).
     #[arg(long)]
     pub threads: Option<usize>,
+    /// Linear solver of the implicit step: jacobi-pcg or mg-pcg (default: the scene's).
+    #[arg(long)]
+    pub solver: Option<LinearSolver>,
 }
 
 impl SimKnobs {
@@ -68,6 +71,9 @@ impl SimKnobs {
         }
         if let Some(t) = self.threads {
             o.step.threads = t.max(1);
+        }
+        if let Some(s) = self.solver {
+            o.step.linear_solver = s;
         }
     }
 }

@@ -3,7 +3,9 @@
 use std::collections::HashMap;
 
 use nalgebra::Vector3;
-use sim_fem::{ElementDesc, FemDesc, FemSystem, Model, RotationSourceDesc, ShapeRef, StepStats};
+use sim_fem::{
+    ElementDesc, FemDesc, FemSystem, LinearSolver, Model, RotationSourceDesc, ShapeRef, StepStats,
+};
 use sim_lattice::{Embedding, Lattice, LatticeParams, NodeId, ShapeKey, TetId, TopologyEvent};
 use sim_scene::{Aabb, BodyShape, InclusionShape, LoadedScene, TriMesh};
 
@@ -381,13 +383,16 @@ impl Simulation {
         let rotation_sources: Vec<RotationSourceDesc> =
             self.sharing.sources(&self.lattice, &mut elements);
         let fixed = self.effective_fixed(&alive);
-        let fem = FemSystem::new(&FemDesc {
+        let mut fem = FemSystem::new(&FemDesc {
             rest,
             elements,
             materials: self.materials.clone(),
             fixed: fixed.clone(),
             rotation_sources,
         })?;
+        if self.options.step.linear_solver == LinearSolver::MgPcg {
+            fem.set_multigrid_hierarchy(crate::multigrid::lattice_hierarchy(&self.lattice)?)?;
+        }
         self.fem_fixed = fixed;
         self.fem = Some(fem);
         Ok(())
@@ -584,10 +589,12 @@ impl Simulation {
     pub fn options(&self) -> &SimOptions {
         &self.options
     }
-    /// Changes options; a change of stiffness kernel or sharing rebuilds the FEM system.
+    /// Changes options; a change of stiffness kernel, sharing or linear solver rebuilds the
+    /// FEM system.
     pub fn set_options(&mut self, options: SimOptions) {
         if options.template_stiffness() != self.options.template_stiffness()
             || options.sharing_angle_deg != self.options.sharing_angle_deg
+            || options.step.linear_solver != self.options.step.linear_solver
         {
             self.sharing = RotationSharing::new(options.sharing_angle_deg);
             self.fem = None;

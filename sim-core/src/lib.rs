@@ -25,6 +25,7 @@ pub mod contact;
 mod engine;
 mod error;
 mod interaction;
+pub mod multigrid;
 mod options;
 mod sharing;
 pub mod sync;
@@ -37,6 +38,7 @@ pub use contact::{
 };
 pub use engine::{Simulation, StepReport, Surface};
 pub use error::SimError;
+pub use multigrid::lattice_hierarchy;
 pub use options::SimOptions;
 pub use sim_fem;
 pub use sim_lattice;

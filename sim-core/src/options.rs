@@ -54,6 +54,8 @@ impl SimOptions {
                 },
                 // Assembled block-CSR beat matrix-free at 1.5k and 12k tets (sim-fem benches).
                 operator: OperatorMode::Assembled,
+                linear_solver: s.solver,
+                mg_refresh_steps: 4,
                 solver: SolverParams {
                     max_iters: s.cg_iterations as usize,
                     tol: s.cg_tolerance,

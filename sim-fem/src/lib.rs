@@ -11,6 +11,7 @@
 
 pub mod element;
 pub mod mesh;
+pub mod mg;
 pub mod model;
 mod parallel;
 pub mod polar;
@@ -25,9 +26,9 @@ pub use polar::{
 };
 pub use solver::{CgResult, SolverParams};
 pub use system::{
-    ElementDesc, FALLBACK_NEWTON, FemDesc, FemSystem, Material, NewtonParams, OperatorMode,
-    RotationSourceDesc, ShapeRef, StaticParams, StaticStats, StepParams, StepStats, StiffnessMode,
-    TemplateInfo,
+    ElementDesc, FALLBACK_NEWTON, FemDesc, FemSystem, LinearSolver, Material, NewtonParams,
+    OperatorMode, RotationSourceDesc, ShapeRef, StaticParams, StaticStats, StepParams, StepStats,
+    StiffnessMode, TemplateInfo, UnknownLinearSolver,
 };
 
 /// Errors of this crate.

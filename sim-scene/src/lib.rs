@@ -36,7 +36,8 @@ pub mod vtk;
 pub use mesh::{MeshError, MeshFormat, TriMesh};
 pub use scene::{
     Aabb, Body, BodyShape, CameraSpec, Capsule, DEFAULT_CAMERA_FOV_DEG, FORMAT_VERSION, Features,
-    FileReader, Fix, Inclusion, InclusionShape, Load, LoadedScene, Material, Model, NodeSelection,
-    PolarMethod, Probe, Scene, SceneError, SimulationSettings, ToolKind, ToolSpec, scene_hash,
+    FileReader, Fix, Inclusion, InclusionShape, LinearSolver, Load, LoadedScene, Material, Model,
+    NodeSelection, PolarMethod, Probe, Scene, SceneError, SimulationSettings, ToolKind, ToolSpec,
+    scene_hash,
 };
 pub use script::{ScriptCommand, ScriptError, SessionCommand, ToolPose, ToolScript, ToolWaypoint};

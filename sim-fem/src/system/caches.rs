@@ -25,6 +25,9 @@ pub(super) struct Caches {
     pub(super) by_source_stale: bool,
     /// Block storage of the assembled operator, kept between steps to avoid reallocating.
     pub(super) block_buf: Vec<Matrix3<f64>>,
+    /// Multigrid hierarchy given by the caller, and the preconditioner built on it.
+    pub(super) mg_hierarchy: Option<crate::mg::Hierarchy>,
+    pub(super) mg: Option<super::multigrid::MgCache>,
 }
 
 impl FemSystem {

@@ -3,6 +3,7 @@
 
 use nalgebra::Matrix3;
 
+use super::multigrid::solve_with_multigrid;
 use super::operator::ElemMats;
 use super::{FemSystem, V3};
 use crate::FemError;
@@ -112,6 +113,13 @@ impl FemSystem {
         let warm = std::mem::take(&mut self.caches.warm_dv);
         let (mass, mass_damping) = (self.mesh.mass.clone(), self.mesh.mass_damping.clone());
         let fixed = self.mesh.fixed.clone();
+        let mut mg = None;
+        let mut operator = p.operator;
+        if self.uses_multigrid(p) {
+            operator = OperatorMode::Assembled;
+            self.refresh_order();
+            mg = Some(self.take_multigrid()?);
+        }
         let op = self.build_operator(
             mass_coef.clone(),
             ElemMats::Rotated {
@@ -120,7 +128,7 @@ impl FemSystem {
             },
             dt * dt,
             p.stiffness,
-            p.operator,
+            operator,
         );
         let mut av = vec![V3::zeros(); n];
         op.apply(v, &mut av);
@@ -137,8 +145,14 @@ impl FemSystem {
         } else {
             vec![V3::zeros(); n]
         };
-        let res: CgResult = pcg(&op, &fixed, &rhs, &mut dv, &p.solver);
+        let res: CgResult = match mg.as_mut() {
+            Some(c) => solve_with_multigrid(c, &op, &fixed, &rhs, &mut dv, dt, p),
+            None => pcg(&op, &fixed, &rhs, &mut dv, &p.solver),
+        };
         self.caches.block_buf = op.into_blocks();
+        if let Some(c) = mg {
+            self.put_multigrid(c);
+        }
         stats.cg_iterations = res.iterations;
         stats.cg_residual = res.relative_residual;
         for i in 0..n {

@@ -24,6 +24,7 @@
 //! | `energy_guard.rs` | the energy guard of the linearised step, kinetic and potential energy |
 //! | `newton.rs` | backward Euler with Newton (StVK, fallback), the line search |
 //! | `statics.rs` | [`FemSystem::solve_static`] |
+//! | `multigrid.rs` | the multigrid hierarchy a step's MG-PCG uses, and its refresh |
 //! | `operator.rs` | the system operator: matrix-free products or assembled block CSR |
 
 mod caches;
@@ -33,6 +34,7 @@ mod energy_guard;
 mod execution;
 mod forces;
 mod linearised;
+mod multigrid;
 mod newton;
 mod operator;
 mod rotations;
@@ -48,7 +50,10 @@ pub use crate::model::Model;
 pub use desc::{ElementDesc, FemDesc, Material, RotationSourceDesc, ShapeRef, TemplateInfo};
 pub use statics::{StaticParams, StaticStats};
 pub use step::StepStats;
-pub use step_params::{FALLBACK_NEWTON, NewtonParams, OperatorMode, StepParams, StiffnessMode};
+pub use step_params::{
+    FALLBACK_NEWTON, LinearSolver, NewtonParams, OperatorMode, StepParams, StiffnessMode,
+    UnknownLinearSolver,
+};
 
 use crate::FemError;
 use crate::element::{Mat12, Template, edge_matrix};

@@ -36,6 +36,47 @@ pub enum OperatorMode {
     Assembled,
 }
 
+/// The linear solver of the linearised step (scene key `simulation.solver`, `--solver`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LinearSolver {
+    /// CG with the Jacobi (diagonal) preconditioner.
+    #[default]
+    JacobiPcg,
+    /// CG preconditioned by a geometric multigrid V-cycle over the hierarchy given with
+    /// [`crate::FemSystem::set_multigrid_hierarchy`] (Jacobi-PCG while none is set). Uses
+    /// the assembled operator whatever [`StepParams::operator`] says.
+    MgPcg,
+}
+
+impl LinearSolver {
+    /// Every solver with its name (`jacobi-pcg`, `mg-pcg`).
+    pub const ALL: [LinearSolver; 2] = [LinearSolver::JacobiPcg, LinearSolver::MgPcg];
+
+    /// The name used in scenes and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            LinearSolver::JacobiPcg => "jacobi-pcg",
+            LinearSolver::MgPcg => "mg-pcg",
+        }
+    }
+}
+
+/// An unknown linear solver name.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown linear solver {0:?} (expected jacobi-pcg or mg-pcg)")]
+pub struct UnknownLinearSolver(pub String);
+
+impl std::str::FromStr for LinearSolver {
+    type Err = UnknownLinearSolver;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Self::ALL
+            .into_iter()
+            .find(|l| l.name() == s)
+            .ok_or_else(|| UnknownLinearSolver(s.to_string()))
+    }
+}
+
 /// Newton iteration control for the non-linear dynamic step.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct NewtonParams {
@@ -56,6 +97,12 @@ pub struct StepParams {
     pub operator: OperatorMode,
     /// CG budget.
     pub solver: SolverParams,
+    /// Preconditioner of CG in the linearised step.
+    pub linear_solver: LinearSolver,
+    /// With [`LinearSolver::MgPcg`]: rebuild the coarse operators (Galerkin `Pᵀ A P`)
+    /// every this many steps (and whenever dt or the fixed nodes change); in between the
+    /// V-cycle uses the previous coarse operators with the current fine matrix (0 = 1).
+    pub mg_refresh_steps: usize,
     /// Gravity (m/s²).
     pub gravity: V3,
     /// Rotation extractor.
@@ -106,6 +153,8 @@ impl Default for StepParams {
             stiffness: StiffnessMode::Template,
             operator: OperatorMode::Assembled,
             solver: SolverParams::realtime(),
+            linear_solver: LinearSolver::JacobiPcg,
+            mg_refresh_steps: 4,
             gravity: V3::new(0.0, 0.0, -9.81),
             polar: PolarMethod::default(),
             rest_threshold: 0.0,

@@ -406,7 +406,7 @@ impl ToolSpec {
 
 /// Deformation models: `linear`, `corotational` (default), `stvk` (alias `nonlinear`). One
 /// enum for every crate, sim-fem's.
-pub use sim_fem::Model;
+pub use sim_fem::{LinearSolver, Model};
 
 /// Polar-decomposition methods for the co-rotational model.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -436,6 +436,9 @@ pub struct SimulationSettings {
     pub cg_iterations: u32,
     /// Relative CG residual tolerance (> 0, default 1e-6).
     pub cg_tolerance: f64,
+    /// Linear solver of the implicit step: `jacobi-pcg` (default) or `mg-pcg` (CG
+    /// preconditioned by a multigrid V-cycle over the lattice's bisection hierarchy).
+    pub solver: LinearSolver,
     /// Polar decomposition method (default `byers-xu`).
     pub polar: PolarMethod,
     /// Stopping tolerance of iterative polar methods, Frobenius norm of the update (> 0,
@@ -452,6 +455,7 @@ impl Default for SimulationSettings {
             model: Model::Corotational,
             cg_iterations: 50,
             cg_tolerance: 1e-6,
+            solver: LinearSolver::JacobiPcg,
             polar: PolarMethod::ByersXu,
             polar_tolerance: 1e-6,
             contact_stiffness: 500.0,

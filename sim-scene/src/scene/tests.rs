@@ -186,6 +186,7 @@ dt = 0.001
 model = "nonlinear"
 cg_iterations = 100
 cg_tolerance = 1e-8
+solver = "mg-pcg"
 polar = "shape-matching"
 polar_tolerance = 1e-9
 [features]
@@ -207,6 +208,7 @@ skip_rest = false
         "`nonlinear` is read as `stvk`"
     );
     assert_eq!(s.simulation.polar, PolarMethod::ShapeMatching);
+    assert_eq!(s.simulation.solver, crate::LinearSolver::MgPcg);
     assert_eq!(s.features.rotation_sharing_angle_deg, 2.5);
     assert!(!s.features.contact);
     assert_eq!(s.tools[1].kind, ToolKind::Hook);
@@ -720,6 +722,15 @@ fn selection() {
     let e = l.validate_selection(&short).unwrap_err().to_string();
     assert!(
         e.starts_with("s.toml: `load[0].box`: selects no node"),
+        "{e}"
+    );
+}
+
+#[test]
+fn unknown_linear_solver_is_named() {
+    let e = err(&format!("{EXAMPLE}\n[simulation]\nsolver = \"cholesky\"\n"));
+    assert!(
+        e.starts_with("s.toml: `simulation.solver`: unknown variant `cholesky`, expected `jacobi-pcg` or `mg-pcg`"),
         "{e}"
     );
 }

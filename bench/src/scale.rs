@@ -1,0 +1,133 @@
+//! `cosurg bench scale`: Jacobi-PCG against MG-PCG (multigrid-preconditioned CG over the
+//! lattice hierarchy) on the soft (E = 1e5 Pa) and stiff (1e6 Pa) cantilever beams at
+//! 1,536 and 12,288 tets, dt 1 and 10 ms, every step solved to a relative residual of
+//! 1e-6: CG iterations and wall time per step (p50, p99), one thread.
+
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use serde::Serialize;
+use sim_core::sim_fem::LinearSolver;
+use sim_core::sim_scene::builtin::cantilever_with;
+use sim_core::{SimOptions, Simulation};
+
+use cosurg::stats::percentile;
+
+#[derive(Debug, Args)]
+pub struct ScaleArgs {
+    /// Print JSON (stdout) instead of the table.
+    #[arg(long)]
+    pub json: bool,
+    /// Cell sizes (m), comma-separated; default 0.025,0.0125 (1,536 and 12,288 tets).
+    #[arg(long, value_delimiter = ',')]
+    pub cells: Vec<f64>,
+    /// Time steps (s), comma-separated; default 0.001,0.01.
+    #[arg(long, value_delimiter = ',')]
+    pub dts: Vec<f64>,
+    /// Timed steps per run (after 3 untimed ones); default 40.
+    #[arg(long, default_value_t = 40)]
+    pub steps: usize,
+}
+
+/// One (beam, dt, solver) run.
+#[derive(Debug, Serialize)]
+pub struct ScaleRow {
+    pub material: &'static str,
+    pub young_pa: f64,
+    pub tets: usize,
+    pub dt_s: f64,
+    pub solver: &'static str,
+    pub tolerance: f64,
+    pub steps: usize,
+    /// Mean CG iterations per timed step.
+    pub iterations_mean: f64,
+    pub iterations_max: usize,
+    pub ms_p50: f64,
+    pub ms_p99: f64,
+    /// Largest relative residual of a timed step (≤ tolerance unless the budget ran out).
+    pub residual_max: f64,
+}
+
+const MATERIALS: [(&str, f64); 2] = [("soft", 1e5), ("stiff", 1e6)];
+const TOLERANCE: f64 = 1e-6;
+
+fn run_one(young: f64, cell: f64, dt: f64, solver: LinearSolver, steps: usize) -> Result<ScaleRow> {
+    let scene = cantilever_with(young, cell).context("cantilever scene")?;
+    let mut o = SimOptions::from_scene(&scene.scene);
+    o.dt = dt;
+    o.step.linear_solver = solver;
+    o.step.solver.tol = TOLERANCE;
+    o.step.solver.max_iters = 20_000;
+    let mut sim = Simulation::new(scene, o)?;
+    let tets = sim.lattice().leaf_count();
+    for _ in 0..3 {
+        sim.step()?;
+    }
+    let mut ms = Vec::with_capacity(steps);
+    let mut iters = Vec::with_capacity(steps);
+    let mut residual_max: f64 = 0.0;
+    for _ in 0..steps {
+        let t = Instant::now();
+        let r = sim.step()?;
+        ms.push(t.elapsed().as_secs_f64() * 1e3);
+        iters.push(r.fem.cg_iterations);
+        residual_max = residual_max.max(r.fem.cg_residual);
+    }
+    Ok(ScaleRow {
+        material: "",
+        young_pa: young,
+        tets,
+        dt_s: dt,
+        solver: solver.name(),
+        tolerance: TOLERANCE,
+        steps,
+        iterations_mean: iters.iter().sum::<usize>() as f64 / steps.max(1) as f64,
+        iterations_max: iters.iter().copied().max().unwrap_or(0),
+        ms_p50: percentile(&ms, 50.0),
+        ms_p99: percentile(&ms, 99.0),
+        residual_max,
+    })
+}
+
+pub fn run(args: ScaleArgs) -> Result<()> {
+    let cells = if args.cells.is_empty() {
+        vec![0.025, 0.0125]
+    } else {
+        args.cells.clone()
+    };
+    let dts = if args.dts.is_empty() {
+        vec![0.001, 0.01]
+    } else {
+        args.dts.clone()
+    };
+    let mut rows = Vec::new();
+    for &(material, young) in &MATERIALS {
+        for &cell in &cells {
+            for &dt in &dts {
+                for solver in LinearSolver::ALL {
+                    let mut row = run_one(young, cell, dt, solver, args.steps)?;
+                    row.material = material;
+                    if !args.json {
+                        println!(
+                            "{:<5} {:>6} tets  dt {:>4.1} ms  {:<10}  iters {:>6.1} (max {:>4})  ms/step p50 {:>7.2} p99 {:>7.2}",
+                            row.material,
+                            row.tets,
+                            row.dt_s * 1e3,
+                            row.solver,
+                            row.iterations_mean,
+                            row.iterations_max,
+                            row.ms_p50,
+                            row.ms_p99
+                        );
+                    }
+                    rows.push(row);
+                }
+            }
+        }
+    }
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&rows)?);
+    }
+    Ok(())
+}
