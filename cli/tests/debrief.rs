@@ -233,23 +233,22 @@ fn demo_sites_record_and_the_summary_scores_trainee_a() {
     // The summary's scores of trainee A against the instructor.
     let scores = &summary["scores"];
     assert_eq!(scores["site"], "trainee-a", "{summary}");
-    assert!(scores["reference"].as_str().unwrap().starts_with("instructor@"));
+    assert!(
+        scores["reference"]
+            .as_str()
+            .unwrap()
+            .starts_with("instructor@")
+    );
     assert!(scores["acts"].is_array());
     let mut nums = Vec::new();
     numbers(scores, &mut nums);
     assert!(!nums.is_empty() && nums.iter().all(|x| x.is_finite()));
     let file: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap())
-            .unwrap();
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!(file["scores"], *scores);
 
     // `cosurg score` on the demo's out folder.
-    let text = cosurg(&[
-        "score",
-        out.to_str().unwrap(),
-        "--site",
-        "instructor",
-    ]);
+    let text = cosurg(&["score", out.to_str().unwrap(), "--site", "instructor"]);
     assert!(text.contains("grasp 1 of forceps"), "{text}");
     let json = cosurg(&[
         "score",

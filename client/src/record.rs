@@ -95,7 +95,15 @@ impl SimRecorder {
         interaction: &Interaction,
         damage_strain: Option<f64>,
     ) -> Result<Self> {
-        Self::create_with_local(path, header, settings, sim, interaction, damage_strain, None)
+        Self::create_with_local(
+            path,
+            header,
+            settings,
+            sim,
+            interaction,
+            damage_strain,
+            None,
+        )
     }
 
     /// As [`SimRecorder::create`], for a site of a session: with `local` = `Some(i)`,

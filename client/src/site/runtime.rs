@@ -163,7 +163,8 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                     teaching.on_trajectory(tr);
                 }
                 SessionEvent::Playback(c) => {
-                    if let Some(r) = session_rec.as_mut() {
+                    // (The instructor's own teaching events are its acts, below.)
+                    if !is_instructor && let Some(r) = session_rec.as_mut() {
                         match &c {
                             proto::Command::StartPlayback { trajectory, .. } => r.teaching(
                                 true,
