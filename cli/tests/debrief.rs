@@ -4,10 +4,11 @@
 //! as processes on the recordings.
 
 use std::path::Path;
-use std::process::Command;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
 
 use cosurg::record::record_scripted;
-use debrief::{ActKind, RecorderSettings, Recording, ScoreReport, Tail};
+use debrief::{ActKind, EventKind, RecorderSettings, Recording, ScoreReport, Tail};
 
 const SECONDS: f64 = 5.6;
 
@@ -119,8 +120,9 @@ fn score_and_replay_a_recorded_simulation() {
 
     // A recording cut mid-record (as by a kill) still scores.
     let bytes = std::fs::read(dir.join("A.cosrec")).unwrap();
-    let cut = dir.join("cut");
-    std::fs::create_dir_all(&cut).unwrap();
+    // (Outside `dir`: a directory's recordings include its subdirectories'.)
+    let cut_tmp = tempfile::tempdir().unwrap();
+    let cut = cut_tmp.path();
     std::fs::write(cut.join("A.cosrec"), &bytes[..bytes.len() * 2 / 3 + 3]).unwrap();
     let text = cosurg(&["score", cut.to_str().unwrap(), "--site", "A"]);
     assert!(text.contains("truncated"), "{text}");
@@ -143,4 +145,120 @@ fn score_and_replay_a_recorded_simulation() {
         assert!(pvd.matches("tools_").count() >= frames - 1, "{pvd}");
         assert!(vtu.join(site).join("tools_00001.vtu").exists());
     }
+}
+
+/// Every number in a JSON value (NaN and infinities serialise as null).
+fn numbers(v: &serde_json::Value, out: &mut Vec<f64>) {
+    match v {
+        serde_json::Value::Number(n) => out.push(n.as_f64().unwrap()),
+        serde_json::Value::Array(a) => a.iter().for_each(|x| numbers(x, out)),
+        serde_json::Value::Object(o) => o.values().for_each(|x| numbers(x, out)),
+        _ => {}
+    }
+}
+
+/// `cosurg demo --seconds 8`: every site records `<out>/<site>/<site>.cosrec` (steps,
+/// joins of the others, claims, the end), the instructor's grasp shows as an act in its
+/// recording, the summary scores trainee A against the instructor, and `cosurg score`
+/// reads the demo's out folder.
+#[test]
+fn demo_sites_record_and_the_summary_scores_trainee_a() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_cosurg"))
+        .env("COSURG_LOG", "warn")
+        .args(["demo", "--seconds", "8", "--json", "--vtu-interval", "100"])
+        .arg("--out")
+        .arg(out)
+        .args(["--", "--no-haptics"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(240);
+    while child.try_wait().unwrap().is_none() {
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            panic!("cosurg demo did not finish within 240 s");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let output = child.wait_with_output().unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "demo failed: {:?}\n{stdout}\n{}",
+        output.status,
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let summary: serde_json::Value =
+        serde_json::from_str(&stdout[stdout.find('{').expect("JSON summary")..]).unwrap();
+
+    for site in ["instructor", "trainee-a", "trainee-b"] {
+        let path = out.join(site).join(format!("{site}.cosrec"));
+        let rec = Recording::open(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        assert_eq!(rec.tail, Tail::Complete, "{site}");
+        assert_eq!(rec.header.site, site);
+        let steps = rec.steps().count();
+        assert!(steps > 500, "{site}: {steps} step records in 8 s");
+        let (t0, t1) = rec.time_span().unwrap();
+        assert!(t1 - t0 > 6.0, "{site}: {t0}..{t1} s");
+        assert!(!rec.damage().is_empty(), "{site}: damage measured");
+        let kinds: Vec<EventKind> = rec.events().map(|e| e.kind.clone()).collect();
+        let joins = kinds.iter().filter(|k| **k == EventKind::Join).count();
+        assert!(joins >= 3, "{site}: own join and two others: {kinds:?}");
+        assert_eq!(kinds.last(), Some(&EventKind::Leave), "{site}: {kinds:?}");
+        assert!(
+            kinds.contains(&EventKind::Claim),
+            "{site}: the instructor's grasp claims regions: {kinds:?}"
+        );
+    }
+    // The instructor's grasp (0.5 s + ≈ 2 s) is an act in its own recording.
+    let instructor = Recording::open(out.join("instructor/instructor.cosrec")).unwrap();
+    let own = debrief::score_site(
+        &instructor,
+        "instructor",
+        None,
+        &debrief::ScoreSettings::default(),
+    )
+    .unwrap();
+    assert!(
+        own.acts
+            .iter()
+            .any(|a| a.act.kind == ActKind::Grasp && a.act.tool == "forceps"),
+        "{:?}",
+        own.acts
+    );
+
+    // The summary's scores of trainee A against the instructor.
+    let scores = &summary["scores"];
+    assert_eq!(scores["site"], "trainee-a", "{summary}");
+    assert!(
+        scores["reference"]
+            .as_str()
+            .unwrap()
+            .starts_with("instructor@")
+    );
+    assert!(scores["acts"].is_array());
+    let mut nums = Vec::new();
+    numbers(scores, &mut nums);
+    assert!(!nums.is_empty() && nums.iter().all(|x| x.is_finite()));
+    let file: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(file["scores"], *scores);
+
+    // `cosurg score` on the demo's out folder.
+    let text = cosurg(&["score", out.to_str().unwrap(), "--site", "instructor"]);
+    assert!(text.contains("grasp 1 of forceps"), "{text}");
+    let json = cosurg(&[
+        "score",
+        out.to_str().unwrap(),
+        "--site",
+        "trainee-a",
+        "--reference",
+        "instructor",
+        "--json",
+    ]);
+    let report: ScoreReport = serde_json::from_str(&json).unwrap();
+    assert_eq!(report.site, "trainee-a");
 }

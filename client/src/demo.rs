@@ -21,6 +21,7 @@ use serde::Serialize;
 use crate::cli::out_dir;
 use crate::plot::{Chart, Series, write_chart};
 use crate::site::SiteReport;
+use debrief::{Recording, ScoreReport, ScoreSettings, score_site};
 use sim_core::sync::SyncStrategy;
 
 #[derive(Debug, Args, Clone)]
@@ -152,6 +153,34 @@ pub struct DemoSummary {
     pub preset: Option<String>,
     pub out: PathBuf,
     pub sites: Vec<SiteRow>,
+    /// Trainee A's acts scored against the instructor's recording (`cosurg score`'s
+    /// measures); `None` when there is no trainee A or its recording could not be scored.
+    pub scores: Option<ScoreReport>,
+}
+
+/// The site scored in the summary and its reference.
+pub const SCORED_SITE: &str = "trainee-a";
+pub const REFERENCE_SITE: &str = "instructor";
+
+/// Scores `site`'s recording against `reference`'s (the recordings the sites wrote).
+pub fn score_against(reports: &[SiteReport], site: &str, reference: &str) -> Result<ScoreReport> {
+    let file = |name: &str| {
+        reports
+            .iter()
+            .find(|r| r.name == name)
+            .and_then(|r| r.recording_file.clone())
+            .with_context(|| format!("no recording of site {name}"))
+    };
+    let (mine, theirs) = (file(site)?, file(reference)?);
+    let rec = Recording::open(&mine).with_context(|| format!("opening {}", mine.display()))?;
+    let reference_rec =
+        Recording::open(&theirs).with_context(|| format!("opening {}", theirs.display()))?;
+    Ok(score_site(
+        &rec,
+        site,
+        Some((&reference_rec, reference)),
+        &ScoreSettings::default(),
+    )?)
 }
 
 /// Session options of a multi-site run (shared with `cosurg bench sync`).
@@ -369,6 +398,17 @@ pub fn demo(args: DemoArgs) -> Result<()> {
         })
         .collect();
     write_plots(&out, &series, &reports)?;
+    let scores = if reports.iter().any(|r| r.name == SCORED_SITE) {
+        match score_against(&reports, SCORED_SITE, REFERENCE_SITE) {
+            Ok(s) => Some(s),
+            Err(e) => {
+                eprintln!("cosurg demo: {SCORED_SITE} not scored: {e:#}");
+                None
+            }
+        }
+    } else {
+        None
+    };
     let summary = DemoSummary {
         scene_hash: scene.hash.clone(),
         seconds: args.seconds,
@@ -376,6 +416,7 @@ pub fn demo(args: DemoArgs) -> Result<()> {
         preset: args.preset.clone(),
         out: out.clone(),
         sites: rows,
+        scores,
     };
     std::fs::write(
         out.join("summary.json"),
@@ -386,7 +427,7 @@ pub fn demo(args: DemoArgs) -> Result<()> {
     } else {
         print_table(&summary);
         println!(
-            "\nwrote {}: per-site VTU/PVD series (<site>/vtu/series.pvd), surface recordings (<site>/surfaces.surf), divergence.png/svg, bandwidth.png/svg, summary.json",
+            "\nwrote {}: per-site VTU/PVD series (<site>/vtu/series.pvd), surface recordings (<site>/surfaces.surf), session recordings (<site>/<site>.cosrec), divergence.png/svg, bandwidth.png/svg, summary.json",
             out.display()
         );
     }
@@ -446,6 +487,15 @@ fn print_table(s: &DemoSummary) {
             opt(r.guide_force_mean_n, 3),
             opt(r.playback_distance_mm, 2)
         );
+    }
+    if let Some(sc) = &s.scores {
+        println!(
+            "\n{} against the {}'s recording ({} acts; `cosurg score` for details)",
+            sc.site,
+            REFERENCE_SITE,
+            sc.acts.len()
+        );
+        print!("{}", debrief::report::text_table(sc));
     }
 }
 

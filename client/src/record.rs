@@ -19,6 +19,9 @@ use crate::scene_arg::load_scene;
 /// A comparison threshold between trainees, not a validated injury criterion.
 pub const DAMAGE_STRAIN: f64 = 0.2;
 
+/// The driving site declared for tools other sites drive ([`SimRecorder::create_with_local`]).
+pub const REMOTE_SITE: &str = "remote";
+
 /// A tool's recorded state: pose, jaw, grasp, and its reaction split into contact
 /// (the penetrating samples' forces) and grasp (the rest of the total).
 pub fn tool_state(tool: &Tool, contact: Option<&ToolContact>) -> ToolState {
@@ -86,11 +89,34 @@ impl SimRecorder {
     /// Declares `sim`'s tools (driven by `site`) and surfaces in a new recording at `path`.
     pub fn create(
         path: &Path,
+        header: SessionHeader,
+        settings: RecorderSettings,
+        sim: &Simulation,
+        interaction: &Interaction,
+        damage_strain: Option<f64>,
+    ) -> Result<Self> {
+        Self::create_with_local(
+            path,
+            header,
+            settings,
+            sim,
+            interaction,
+            damage_strain,
+            None,
+        )
+    }
+
+    /// As [`SimRecorder::create`], for a site of a session: with `local` = `Some(i)`,
+    /// only tool `i` is declared as driven by the recording site, the others by
+    /// [`REMOTE_SITE`] (other sites drive them; their samples are what this site saw).
+    pub fn create_with_local(
+        path: &Path,
         mut header: SessionHeader,
         settings: RecorderSettings,
         sim: &Simulation,
         interaction: &Interaction,
         damage_strain: Option<f64>,
+        local: Option<Option<usize>>,
     ) -> Result<Self> {
         header.damage_strain_threshold = damage_strain;
         header.sim_rate_hz = 1.0 / sim.options().dt;
@@ -101,7 +127,14 @@ impl SimRecorder {
             .tools
             .tools
             .iter()
-            .map(|t| recorder.declare_tool(&site, &t.name, &format!("{:?}", t.kind).to_lowercase()))
+            .enumerate()
+            .map(|(i, t)| {
+                let driver = match local {
+                    Some(l) if l != Some(i) => REMOTE_SITE,
+                    _ => site.as_str(),
+                };
+                recorder.declare_tool(driver, &t.name, &format!("{:?}", t.kind).to_lowercase())
+            })
             .collect::<Result<Vec<_>, _>>()?;
         let surfaces = sim
             .surfaces()
@@ -121,6 +154,12 @@ impl SimRecorder {
             damage_interval_s: 0.05,
             last_damage: None,
         })
+    }
+
+    /// Measures the damaged volume every `seconds` of simulated time (default 0.05 s).
+    pub fn with_damage_interval(mut self, seconds: f64) -> Self {
+        self.damage_interval_s = seconds;
+        self
     }
 
     /// Records what the last step produced (call after `sim.step()`).

@@ -329,15 +329,17 @@ impl Recording {
     }
 }
 
-/// The recordings of one session: one file, or every `*.cosrec` in a directory.
+/// The recordings of one session: one file, or every `*.cosrec` in a directory and its
+/// immediate subdirectories.
 #[derive(Clone, Debug)]
 pub struct Session {
     pub recordings: Vec<Recording>,
 }
 
 impl Session {
-    /// Opens a recording file or a directory of recordings (sorted by file name;
-    /// unreadable files in a directory are skipped with a warning).
+    /// Opens a recording file or a directory of recordings, with those of its immediate
+    /// subdirectories (sorted by path; unreadable files in a directory are skipped with
+    /// a warning).
     pub fn open(path: impl AsRef<Path>) -> Result<Session, ReadError> {
         let path = path.as_ref();
         if !path.is_dir() {
@@ -349,11 +351,22 @@ impl Session {
             path: path.to_path_buf(),
             source,
         };
-        let mut files: Vec<PathBuf> = std::fs::read_dir(path)
+        let is_rec = |p: &Path| p.is_file() && p.extension().is_some_and(|e| e == EXTENSION);
+        let entries: Vec<PathBuf> = std::fs::read_dir(path)
             .map_err(io)?
             .filter_map(|e| e.ok().map(|e| e.path()))
-            .filter(|p| p.extension().is_some_and(|e| e == EXTENSION))
             .collect();
+        // The recordings in the directory and in its immediate subdirectories (a demo's
+        // out folder holds one folder per site).
+        let mut files: Vec<PathBuf> = entries.iter().filter(|p| is_rec(p)).cloned().collect();
+        for sub in entries.iter().filter(|p| p.is_dir()) {
+            if let Ok(rd) = std::fs::read_dir(sub) {
+                files.extend(
+                    rd.filter_map(|e| e.ok().map(|e| e.path()))
+                        .filter(|p| is_rec(p)),
+                );
+            }
+        }
         files.sort();
         let mut recordings = Vec::new();
         for f in files {

@@ -98,6 +98,11 @@ pub struct SiteReport {
     pub owned: Vec<(u32, f64, f64)>,
     /// Surface recordings (every 50 ms of simulated time).
     pub surf_file: Option<PathBuf>,
+    /// The session recording (`<out>/<site>.cosrec`) and its size (bytes).
+    #[serde(default)]
+    pub recording_file: Option<PathBuf>,
+    #[serde(default)]
+    pub recording_bytes: Option<u64>,
     pub reconnects: u64,
     /// Haptic loop: ticks per second and p99 period jitter (µs).
     pub haptic_rate_hz: Option<f64>,

@@ -9,7 +9,7 @@ use tracing::{debug, info, warn};
 use sim_core::Simulation;
 
 use super::config::{SiteConfig, SiteReport};
-use super::recording::Recorder;
+use super::recording::{Recorder, SessionRecording};
 use super::status::SiteStatus;
 use super::tools::Tools;
 use crate::cli::Refused;
@@ -94,6 +94,21 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         cfg.script_start,
     );
 
+    // The session recording (`<out>/<site>.cosrec`); flushed as it goes, finished at the
+    // end, and flushed on drop on an error path.
+    let mut session_rec = match &cfg.out {
+        Some(dir) => Some(SessionRecording::create(
+            dir,
+            &cfg.name,
+            &cfg.role.to_string(),
+            &session,
+            &sim,
+            &tools,
+        )?),
+        None => None,
+    };
+    let is_instructor = cfg.role == proto::Role::Instructor;
+
     let start = Instant::now();
     session.start(start, link.as_ref().and_then(|l| l.clock().rtt_us));
     let mut reset_at = cfg.reset_at.clone();
@@ -133,9 +148,39 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                 SessionEvent::SceneReset { epoch } => {
                     info!(site = %cfg.name, epoch, t = sim.time(), "scene reset");
                     tools.reset(&sim);
+                    if let Some(r) = session_rec.as_mut() {
+                        r.reset(epoch, &sim)?;
+                    }
                 }
-                SessionEvent::Teaching(tr) => teaching.on_trajectory(tr),
-                SessionEvent::Playback(c) => teaching.on_command(c, haptic.as_ref()),
+                SessionEvent::Teaching(tr) => {
+                    if let Some(r) = session_rec.as_mut() {
+                        r.other(
+                            "teaching-trajectory",
+                            &format!("trajectory {} ({} samples)", tr.id, tr.samples.len()),
+                            &sim,
+                        )?;
+                    }
+                    teaching.on_trajectory(tr);
+                }
+                SessionEvent::Playback(c) => {
+                    // (The instructor's own teaching events are its acts, below.)
+                    if !is_instructor && let Some(r) = session_rec.as_mut() {
+                        match &c {
+                            proto::Command::StartPlayback { trajectory, .. } => r.teaching(
+                                true,
+                                &format!("playback of trajectory {trajectory}"),
+                                &sim,
+                            )?,
+                            proto::Command::StopPlayback { trajectory } => r.teaching(
+                                false,
+                                &format!("playback of trajectory {trajectory} stopped"),
+                                &sim,
+                            )?,
+                            _ => {}
+                        }
+                    }
+                    teaching.on_command(c, haptic.as_ref());
+                }
                 SessionEvent::CommandRefused { command, reason } => {
                     warn!(site = %cfg.name, %command, %reason, "command refused");
                 }
@@ -160,6 +205,17 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         } else {
             tools.local_input(cfg.script.as_ref(), t - cfg.script_start)
         };
+        if is_instructor
+            && tools.local_index().is_some()
+            && let Some(r) = session_rec.as_mut()
+        {
+            let detail = if local.is_some() {
+                "instructor's act recorded for teaching"
+            } else {
+                "instructor's act sent"
+            };
+            r.teaching(local.is_some(), detail, &sim)?;
+        }
         if let Some(m) = teaching.record(t, local.as_ref()) {
             session.send_control(m);
         }
@@ -201,6 +257,9 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
 
         // 6. Recordings.
         recorder.record(&sim);
+        if let Some(r) = session_rec.as_mut() {
+            r.after_step(&session, &sim, &tools)?;
+        }
         if let Some(w) = &writer
             && t + 1e-9 >= next_vtu
         {
@@ -292,6 +351,11 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         report.clock_offset_us = clock.offset_us;
         report.rtt_us = clock.rtt_us;
         link.close();
+    }
+    if let Some(r) = session_rec.take() {
+        let path = r.path().to_path_buf();
+        report.recording_bytes = Some(r.finish(&sim)?);
+        report.recording_file = Some(path);
     }
     if let Some(dir) = &cfg.out {
         std::fs::create_dir_all(dir)?;

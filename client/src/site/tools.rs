@@ -177,6 +177,11 @@ impl Tools {
             .map_or(V3::zeros(), |t| t.force)
     }
 
+    /// The tools and their contact state (what a recording samples).
+    pub fn interaction(&self) -> &Interaction {
+        &self.interaction
+    }
+
     /// Index of the local tool in the scene's tools.
     pub fn local_index(&self) -> Option<usize> {
         self.local
