@@ -5,9 +5,9 @@
 //! Needs `Xvfb` (Debian: `xvfb`, plus `libgl1-mesa-dri`; `.ci/run` installs them). If no
 //! X server can be started the test FAILS: it never passes without rendering.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 /// An Xvfb server, killed on drop.
 struct Xvfb {
@@ -23,48 +23,51 @@ impl Drop for Xvfb {
 }
 
 fn start_xvfb() -> Xvfb {
-    // a display number of our own: several test binaries may run at once
-    for n in (100 + std::process::id() % 400)..(100 + std::process::id() % 400 + 20) {
-        let socket = PathBuf::from(format!("/tmp/.X11-unix/X{n}"));
-        if socket.exists() || Path::new(&format!("/tmp/.X{n}-lock")).exists() {
-            continue;
+    // `-displayfd 1`: Xvfb picks a free display number itself (several test binaries may
+    // run at once) and writes it on stdout once it accepts connections, so there is no
+    // socket or lock file to probe.
+    let mut child = match Command::new("Xvfb")
+        .args([
+            "-displayfd",
+            "1",
+            "-screen",
+            "0",
+            "1280x720x24",
+            "-nolisten",
+            "tcp",
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+    {
+        Ok(c) => c,
+        Err(e) => panic!(
+            "cannot start Xvfb ({e}): the window test needs a virtual X display; \
+             install it (Debian: apt-get install xvfb libgl1-mesa-dri) or run .ci/run"
+        ),
+    };
+    let stdout = child.stdout.take().expect("piped stdout");
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut line = String::new();
+        let _ = std::io::BufRead::read_line(&mut std::io::BufReader::new(stdout), &mut line);
+        let _ = tx.send(line);
+    });
+    let mut x = Xvfb {
+        child,
+        display: String::new(),
+    };
+    match rx.recv_timeout(Duration::from_secs(20)) {
+        Ok(line) if line.trim().parse::<u32>().is_ok() => {
+            x.display = format!(":{}", line.trim());
+            x
         }
-        let child = match Command::new("Xvfb")
-            .args([
-                &format!(":{n}"),
-                "-screen",
-                "0",
-                "1280x720x24",
-                "-nolisten",
-                "tcp",
-            ])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-        {
-            Ok(c) => c,
-            Err(e) => panic!(
-                "cannot start Xvfb ({e}): the window test needs a virtual X display; \
-                 install it (Debian: apt-get install xvfb libgl1-mesa-dri) or run .ci/run"
-            ),
-        };
-        let mut x = Xvfb {
-            child,
-            display: format!(":{n}"),
-        };
-        let t0 = Instant::now();
-        while t0.elapsed() < Duration::from_secs(10) {
-            if socket.exists() {
-                return x;
-            }
-            if let Ok(Some(status)) = x.child.try_wait() {
-                eprintln!("Xvfb :{n} exited with {status}; trying another display");
-                break;
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
+        Ok(line) => panic!(
+            "Xvfb did not report a display (it wrote {line:?}; exit status {:?})",
+            x.child.try_wait()
+        ),
+        Err(_) => panic!("Xvfb did not become ready within 20 s"),
     }
-    panic!("could not start an Xvfb server on any display :100..:520");
 }
 
 fn screenshot(x: &Xvfb, dir: &Path, name: &str, extra: &[&str]) -> (u32, u32, Vec<u8>) {
