@@ -2,7 +2,7 @@
 //! decide the linear solver by measurement (a sparse direct factorisation "may win on
 //! small meshes — measure"):
 //!
-//! `cargo run --release -p cosurg-sim-fem --features direct --example direct_vs_cg`
+//! `cargo run --release -p cosurg-sim-fem --example direct_vs_cg`
 //!
 //! The beam of the cantilever benchmark (0.4 × 0.1 × 0.1 m, E = 1e5 Pa, ν = 0.45, clamped
 //! at x = 0) is bent by 0.5 s of gravity at dt = 10 ms, then the matrix of the next step

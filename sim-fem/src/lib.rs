@@ -9,6 +9,7 @@
 //! positively oriented), optional shape keys + scale, materials, rotation sources and a
 //! fixed-node mask — see [`FemDesc`]. SI units throughout (m, s, kg, N, Pa).
 
+pub mod direct;
 pub mod element;
 pub mod mesh;
 pub mod mg;
@@ -74,4 +75,7 @@ pub enum FemError {
     /// The state became non-finite.
     #[error("non-finite state after step")]
     NonFinite,
+    /// The sparse direct solver failed (e.g. a matrix not positive definite).
+    #[error("direct solver: {0}")]
+    Solver(String),
 }

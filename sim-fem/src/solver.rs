@@ -64,8 +64,39 @@ fn dot(a: &[V3], b: &[V3]) -> f64 {
     a.iter().zip(b).map(|(p, q)| p.dot(q)).sum()
 }
 
+/// The preconditioner of [`pcg_with`]: `z ≈ A⁻¹ r`.
+pub enum Preconditioner<'a> {
+    /// Jacobi: `z = diag(A)⁻¹ r` (3-vector diagonal; non-positive entries act as 1). Its
+    /// application is fused into the iteration's vector updates, which cost as much as
+    /// the sparse product on small meshes.
+    Jacobi(Vec<V3>),
+    /// Any symmetric positive-definite `apply(r, z)` (e.g. a multigrid V-cycle); `z` is
+    /// projected onto the free nodes after each application.
+    Custom(&'a mut dyn FnMut(&[V3], &mut [V3])),
+}
+
+impl Preconditioner<'_> {
+    /// Jacobi from the operator's diagonal.
+    pub fn jacobi(op: &impl LinearOperator) -> Self {
+        Preconditioner::Jacobi(
+            op.diagonal()
+                .iter()
+                .map(|d| d.map(|c| if c > 0.0 { 1.0 / c } else { 1.0 }))
+                .collect(),
+        )
+    }
+}
+
+fn project(v: &mut [V3], fixed: &[bool]) {
+    for (vi, f) in v.iter_mut().zip(fixed) {
+        if *f {
+            *vi = V3::zeros();
+        }
+    }
+}
+
 /// Solve `A x = b` on the free nodes (`fixed[i]` ⇒ `x_i = 0`) with Jacobi-PCG from the
-/// initial guess in `x`.
+/// initial guess in `x` (see [`pcg_with`]).
 pub fn pcg(
     op: &impl LinearOperator,
     fixed: &[bool],
@@ -73,33 +104,36 @@ pub fn pcg(
     x: &mut [V3],
     params: &SolverParams,
 ) -> CgResult {
+    pcg_with(op, fixed, b, x, params, Preconditioner::jacobi(op))
+}
+
+/// Solve `A x = b` on the free nodes (`fixed[i]` ⇒ `x_i = 0`) by preconditioned CG from
+/// the initial guess in `x`. The guess is kept only if it lowers `½xᵀAx − bᵀx` below its
+/// value at 0. Stops when `‖b − A x‖₂ ≤ tol ‖b‖₂` (recursive residual, free DOFs), after
+/// `max_iters` iterations, or on non-positive curvature.
+pub fn pcg_with(
+    op: &impl LinearOperator,
+    fixed: &[bool],
+    b: &[V3],
+    x: &mut [V3],
+    params: &SolverParams,
+    mut precond: Preconditioner<'_>,
+) -> CgResult {
     let n = b.len();
-    let project = |v: &mut [V3]| {
-        for (vi, f) in v.iter_mut().zip(fixed) {
-            if *f {
-                *vi = V3::zeros();
-            }
-        }
-    };
-    project(x);
+    project(x, fixed);
     let mut bb = b.to_vec();
-    project(&mut bb);
+    project(&mut bb, fixed);
     let bnorm = dot(&bb, &bb).sqrt();
     if bnorm == 0.0 {
         x.iter_mut().for_each(|v| *v = V3::zeros());
         return CgResult::default();
     }
-    let inv_diag: Vec<V3> = op
-        .diagonal()
-        .iter()
-        .map(|d| d.map(|c| if c > 0.0 { 1.0 / c } else { 1.0 }))
-        .collect();
     let mut r = vec![V3::zeros(); n];
     op.apply(x, &mut r);
     for i in 0..n {
         r[i] = bb[i] - r[i];
     }
-    project(&mut r);
+    project(&mut r, fixed);
     // Guard the initial guess: keep it only if it lowers φ(x) = ½xᵀAx − bᵀx below
     // φ(0) = 0, i.e. −½ xᵀ(b + r) < 0.
     let phi0: f64 = -0.5
@@ -111,14 +145,6 @@ pub fn pcg(
         x.iter_mut().for_each(|v| *v = V3::zeros());
         r.copy_from_slice(&bb);
     }
-    let mut z: Vec<V3> = r
-        .iter()
-        .zip(&inv_diag)
-        .map(|(a, d)| a.component_mul(d))
-        .collect();
-    let mut p = z.clone();
-    let mut rz = dot(&r, &z);
-    let mut ap = vec![V3::zeros(); n];
     let mut res = CgResult {
         relative_residual: dot(&r, &r).sqrt() / bnorm,
         ..Default::default()
@@ -126,8 +152,24 @@ pub fn pcg(
     if res.relative_residual <= params.tol {
         return res;
     }
-    // The vector updates of an iteration are fused into two passes over the unknowns (they
-    // cost as much as the sparse product on small meshes).
+    let mut z = vec![V3::zeros(); n];
+    let apply_precond = |precond: &mut Preconditioner<'_>, r: &[V3], z: &mut [V3]| match precond {
+        Preconditioner::Jacobi(inv_diag) => {
+            for ((zi, ri), d) in z.iter_mut().zip(r).zip(inv_diag.iter()) {
+                *zi = ri.component_mul(d);
+            }
+        }
+        Preconditioner::Custom(f) => {
+            f(r, z);
+            project(z, fixed);
+        }
+    };
+    apply_precond(&mut precond, &r, &mut z);
+    let mut p = z.clone();
+    let mut rz = dot(&r, &z);
+    let mut ap = vec![V3::zeros(); n];
+    // The vector updates of an iteration are fused into two passes over the unknowns (three
+    // with a custom preconditioner).
     for k in 0..params.max_iters {
         op.apply(&p, &mut ap);
         let mut pap = 0.0;
@@ -147,17 +189,32 @@ pub fn pcg(
         }
         let alpha = rz / pap;
         let (mut rr, mut rz_new) = (0.0, 0.0);
-        for i in 0..n {
-            x[i] += p[i] * alpha;
-            r[i] -= ap[i] * alpha;
-            rr += r[i].norm_squared();
-            z[i] = r[i].component_mul(&inv_diag[i]);
-            rz_new += r[i].dot(&z[i]);
+        match &mut precond {
+            Preconditioner::Jacobi(inv_diag) => {
+                for i in 0..n {
+                    x[i] += p[i] * alpha;
+                    r[i] -= ap[i] * alpha;
+                    rr += r[i].norm_squared();
+                    z[i] = r[i].component_mul(&inv_diag[i]);
+                    rz_new += r[i].dot(&z[i]);
+                }
+            }
+            Preconditioner::Custom(_) => {
+                for i in 0..n {
+                    x[i] += p[i] * alpha;
+                    r[i] -= ap[i] * alpha;
+                    rr += r[i].norm_squared();
+                }
+            }
         }
         res.iterations = k + 1;
         res.relative_residual = rr.sqrt() / bnorm;
         if res.relative_residual <= params.tol {
             break;
+        }
+        if let Preconditioner::Custom(_) = precond {
+            apply_precond(&mut precond, &r, &mut z);
+            rz_new = dot(&r, &z);
         }
         let beta = rz_new / rz;
         rz = rz_new;

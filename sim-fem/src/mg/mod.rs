@@ -11,12 +11,10 @@
 //! hold free nodes only and need no projection.
 
 mod galerkin;
-mod pcg;
 #[cfg(test)]
 mod tests;
 mod vcycle;
 
-pub use pcg::pcg_preconditioned;
 pub use vcycle::{MgParams, Multigrid};
 
 use crate::FemError;

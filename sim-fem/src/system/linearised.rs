@@ -3,6 +3,7 @@
 
 use nalgebra::Matrix3;
 
+use super::direct::solve_direct;
 use super::multigrid::solve_with_multigrid;
 use super::operator::ElemMats;
 use super::{FemSystem, V3};
@@ -120,6 +121,11 @@ impl FemSystem {
             self.refresh_order();
             mg = Some(self.take_multigrid()?);
         }
+        let mut direct = None;
+        if self.uses_direct(p) {
+            operator = OperatorMode::Assembled;
+            direct = Some(self.take_direct()?);
+        }
         let op = self.build_operator(
             mass_coef.clone(),
             ElemMats::Rotated {
@@ -145,13 +151,17 @@ impl FemSystem {
         } else {
             vec![V3::zeros(); n]
         };
-        let res: CgResult = match mg.as_mut() {
-            Some(c) => solve_with_multigrid(c, &op, &fixed, &rhs, &mut dv, dt, p),
-            None => pcg(&op, &fixed, &rhs, &mut dv, &p.solver),
+        let res: CgResult = match (mg.as_mut(), &direct) {
+            (Some(c), _) => solve_with_multigrid(c, &op, &fixed, &rhs, &mut dv, dt, p),
+            (None, Some(d)) => solve_direct(d, &op, &fixed, &rhs, &mut dv, &p.solver),
+            (None, None) => pcg(&op, &fixed, &rhs, &mut dv, &p.solver),
         };
         self.caches.block_buf = op.into_blocks();
         if let Some(c) = mg {
             self.put_multigrid(c);
+        }
+        if let Some(d) = direct {
+            self.put_direct(d);
         }
         stats.cg_iterations = res.iterations;
         stats.cg_residual = res.relative_residual;

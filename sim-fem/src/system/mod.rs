@@ -29,6 +29,7 @@
 
 mod caches;
 mod construct;
+mod direct;
 mod desc;
 mod energy_guard;
 mod execution;

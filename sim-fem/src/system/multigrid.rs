@@ -5,8 +5,8 @@
 use super::operator::SysOp;
 use super::{FemSystem, V3};
 use crate::FemError;
-use crate::mg::{Hierarchy, MgParams, Multigrid, pcg_preconditioned};
-use crate::solver::{CgResult, LinearOperator};
+use crate::mg::{Hierarchy, MgParams, Multigrid};
+use crate::solver::{CgResult, LinearOperator, Preconditioner, pcg_with};
 use crate::system::{LinearSolver, StepParams};
 
 /// A built preconditioner and its age.
@@ -88,7 +88,13 @@ pub(super) fn solve_with_multigrid(
     cache.age = cache.age.saturating_add(1);
     let mg = &mut cache.mg;
     let mut apply = |x: &[V3], out: &mut [V3]| op.apply(x, out);
-    pcg_preconditioned(op, fixed, rhs, dv, solver, &mut |r, z| {
-        mg.vcycle(&mut apply, r, z)
-    })
+    let mut vcycle = |r: &[V3], z: &mut [V3]| mg.vcycle(&mut apply, r, z);
+    pcg_with(
+        op,
+        fixed,
+        rhs,
+        dv,
+        solver,
+        Preconditioner::Custom(&mut vcycle),
+    )
 }

@@ -47,24 +47,34 @@ pub enum LinearSolver {
     /// [`crate::FemSystem::set_multigrid_hierarchy`] (Jacobi-PCG while none is set). Uses
     /// the assembled operator whatever [`StepParams::operator`] says.
     MgPcg,
+    /// Sparse Cholesky of the assembled matrix on the free nodes ([`crate::direct`]):
+    /// exact up to round-off, whatever the iteration budget says. The symbolic analysis is
+    /// kept until the pattern or the fixed nodes change; the numeric factorisation runs
+    /// every step. Newton and static solves (tangents that may be indefinite) stay on CG.
+    Direct,
 }
 
 impl LinearSolver {
-    /// Every solver with its name (`jacobi-pcg`, `mg-pcg`).
-    pub const ALL: [LinearSolver; 2] = [LinearSolver::JacobiPcg, LinearSolver::MgPcg];
+    /// Every solver with its name (`jacobi-pcg`, `mg-pcg`, `direct`).
+    pub const ALL: [LinearSolver; 3] = [
+        LinearSolver::JacobiPcg,
+        LinearSolver::MgPcg,
+        LinearSolver::Direct,
+    ];
 
     /// The name used in scenes and on the command line.
     pub fn name(self) -> &'static str {
         match self {
             LinearSolver::JacobiPcg => "jacobi-pcg",
             LinearSolver::MgPcg => "mg-pcg",
+            LinearSolver::Direct => "direct",
         }
     }
 }
 
 /// An unknown linear solver name.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("unknown linear solver {0:?} (expected jacobi-pcg or mg-pcg)")]
+#[error("unknown linear solver {0:?} (expected jacobi-pcg, mg-pcg or direct)")]
 pub struct UnknownLinearSolver(pub String);
 
 impl std::str::FromStr for LinearSolver {
