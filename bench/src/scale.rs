@@ -1,7 +1,8 @@
-//! `cosurg bench scale`: Jacobi-PCG against MG-PCG (multigrid-preconditioned CG over the
-//! lattice hierarchy) on the soft (E = 1e5 Pa) and stiff (1e6 Pa) cantilever beams at
-//! 1,536 and 12,288 tets, dt 1 and 10 ms, every step solved to a relative residual of
-//! 1e-6: CG iterations and wall time per step (p50, p99), one thread.
+//! `cosurg bench scale`: Jacobi-PCG, MG-PCG (multigrid-preconditioned CG over the lattice
+//! hierarchy) and the sparse direct solver on the soft (E = 1e5 Pa) and stiff (1e6 Pa)
+//! cantilever beams at 1,536 and 12,288 tets (finer with `--cells`), dt 1 and 10 ms, every
+//! step solved to a relative residual of 1e-6: CG iterations and wall time per step (p50,
+//! p99), one thread; and the exponent of p50 time against tets between the sizes run.
 
 use std::time::Instant;
 
@@ -28,6 +29,59 @@ pub struct ScaleArgs {
     /// Timed steps per run (after 3 untimed ones); default 40.
     #[arg(long, default_value_t = 40)]
     pub steps: usize,
+    /// Solvers to run, comma-separated; default all (jacobi-pcg, mg-pcg, direct).
+    #[arg(long, value_delimiter = ',')]
+    pub solvers: Vec<LinearSolver>,
+}
+
+/// How p50 time grows with the mesh for one (beam, dt, solver): `t ∝ tets^exponent`
+/// between its smallest and largest mesh.
+#[derive(Debug, Serialize)]
+pub struct ScaleExponent {
+    pub material: &'static str,
+    pub dt_s: f64,
+    pub solver: &'static str,
+    pub tets_from: usize,
+    pub tets_to: usize,
+    pub exponent: f64,
+}
+
+/// Everything `--json` prints.
+#[derive(Debug, Serialize)]
+pub struct ScaleReport {
+    pub rows: Vec<ScaleRow>,
+    pub exponents: Vec<ScaleExponent>,
+}
+
+/// The exponent of each (beam, dt, solver) run at two or more sizes.
+fn exponents(rows: &[ScaleRow]) -> Vec<ScaleExponent> {
+    let mut out: Vec<ScaleExponent> = Vec::new();
+    for r in rows {
+        if out
+            .iter()
+            .any(|e| e.material == r.material && e.dt_s == r.dt_s && e.solver == r.solver)
+        {
+            continue;
+        }
+        let same: Vec<&ScaleRow> = rows
+            .iter()
+            .filter(|s| s.material == r.material && s.dt_s == r.dt_s && s.solver == r.solver)
+            .collect();
+        let small = same.iter().min_by_key(|s| s.tets).expect("r itself");
+        let big = same.iter().max_by_key(|s| s.tets).expect("r itself");
+        if big.tets > small.tets && small.ms_p50 > 0.0 {
+            out.push(ScaleExponent {
+                material: r.material,
+                dt_s: r.dt_s,
+                solver: r.solver,
+                tets_from: small.tets,
+                tets_to: big.tets,
+                exponent: (big.ms_p50 / small.ms_p50).ln()
+                    / (big.tets as f64 / small.tets as f64).ln(),
+            });
+        }
+    }
+    out
 }
 
 /// One (beam, dt, solver) run.
@@ -101,11 +155,16 @@ pub fn run(args: ScaleArgs) -> Result<()> {
     } else {
         args.dts.clone()
     };
+    let solvers = if args.solvers.is_empty() {
+        LinearSolver::ALL.to_vec()
+    } else {
+        args.solvers.clone()
+    };
     let mut rows = Vec::new();
     for &(material, young) in &MATERIALS {
         for &cell in &cells {
             for &dt in &dts {
-                for solver in LinearSolver::ALL {
+                for &solver in &solvers {
                     let mut row = run_one(young, cell, dt, solver, args.steps)?;
                     row.material = material;
                     if !args.json {
@@ -126,8 +185,22 @@ pub fn run(args: ScaleArgs) -> Result<()> {
             }
         }
     }
+    let exponents = exponents(&rows);
     if args.json {
-        println!("{}", serde_json::to_string_pretty(&rows)?);
+        let report = ScaleReport { rows, exponents };
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        for e in &exponents {
+            println!(
+                "{:<5} dt {:>4.1} ms  {:<10}  time ∝ tets^{:.2} ({} → {} tets)",
+                e.material,
+                e.dt_s * 1e3,
+                e.solver,
+                e.exponent,
+                e.tets_from,
+                e.tets_to
+            );
+        }
     }
     Ok(())
 }

@@ -127,3 +127,36 @@ fn stress_quick_json() {
         );
     }
 }
+
+#[test]
+fn scale_json_every_solver_converges_and_the_exponents_are_reported() {
+    let out = Command::new(env!("CARGO_BIN_EXE_cosurg"))
+        .args(["bench", "scale", "--json", "--cells", "0.05,0.025"])
+        .args(["--dts", "0.01", "--steps", "2"])
+        .output()
+        .expect("run cosurg");
+    assert!(
+        out.status.success(),
+        "cosurg bench scale failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r: Value = serde_json::from_slice(&out.stdout).expect("JSON");
+    let rows = r["rows"].as_array().expect("rows");
+    // 2 beams × 2 meshes × 1 dt × 3 solvers.
+    assert_eq!(rows.len(), 12, "{r}");
+    for row in rows {
+        let residual = num(row, "residual_max");
+        assert!(residual <= 1e-6, "not converged: {row}");
+        if row["solver"] == "direct" {
+            assert_eq!(num(row, "iterations_max"), 0.0, "{row}");
+            // Exact up to round-off, not just to the tolerance.
+            assert!(residual < 1e-9, "{row}");
+        }
+    }
+    let exps = r["exponents"].as_array().expect("exponents");
+    assert_eq!(exps.len(), 6, "{r}");
+    for e in exps {
+        assert!(num(e, "tets_to") > num(e, "tets_from"), "{e}");
+        assert!(num(e, "exponent").is_finite(), "{e}");
+    }
+}

@@ -436,8 +436,9 @@ pub struct SimulationSettings {
     pub cg_iterations: u32,
     /// Relative CG residual tolerance (> 0, default 1e-6).
     pub cg_tolerance: f64,
-    /// Linear solver of the implicit step: `jacobi-pcg` (default) or `mg-pcg` (CG
-    /// preconditioned by a multigrid V-cycle over the lattice's bisection hierarchy).
+    /// Linear solver of the implicit step: `jacobi-pcg` (default), `mg-pcg` (CG
+    /// preconditioned by a multigrid V-cycle over the lattice's bisection hierarchy) or
+    /// `direct` (sparse Cholesky).
     pub solver: LinearSolver,
     /// Polar decomposition method (default `byers-xu`).
     pub polar: PolarMethod,
