@@ -353,6 +353,9 @@ fn direct_steps_agree_with_converged_jacobi_pcg_also_after_the_fixed_nodes_chang
             .map(|(a, b)| (a - b).norm())
             .fold(0.0, f64::max);
         // The tip sags by centimetres; both solve every step to ≤ 1e-10 relative.
-        assert!(worst < 1e-8, "fix {fix:?}: max position difference {worst:e} m");
+        assert!(
+            worst < 1e-8,
+            "fix {fix:?}: max position difference {worst:e} m"
+        );
     }
 }

@@ -29,8 +29,8 @@
 
 mod caches;
 mod construct;
-mod direct;
 mod desc;
+mod direct;
 mod energy_guard;
 mod execution;
 mod forces;
