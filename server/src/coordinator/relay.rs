@@ -119,9 +119,13 @@ pub(super) fn relay_streams(
                 let conn = peer.conn.clone();
                 let shared = shared.clone();
                 tokio::spawn(async move {
+                    let len = payload.len();
                     let r = send_stream_once(&conn, payload, Some(crx)).await;
                     match &r {
-                        Ok(true) => inc(&shared.counters.keyframes_relayed),
+                        Ok(true) => {
+                            inc(&shared.counters.keyframes_relayed);
+                            add(&shared.counters.bytes_relayed, len);
+                        }
                         Ok(false) => inc(&shared.counters.keyframe_streams_reset),
                         Err(e) => debug!(to = id, region, error = %e, "keyframe relay failed"),
                     }
