@@ -351,3 +351,96 @@ async fn two_sessions_never_see_each_others_messages() {
     .await
     .expect("test timed out");
 }
+
+/// `cosurg-server create-session` against `server`; returns (success, stdout + stderr).
+fn create_session(server: &Server, name: &str, admin: &str, instructor: &str) -> (bool, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_cosurg-server"))
+        .args(["create-session", "--coordinator", &server.addr.to_string()])
+        .args(["--pin", &server.fingerprint, "--session", name])
+        .args(["--token", instructor, "--admin-token", admin])
+        .args(["--scene-hash", SCENE])
+        .env_remove("COSURG_ADMIN_TOKEN")
+        .output()
+        .expect("run cosurg-server create-session");
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (out.status.success(), text)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sessions_created_at_run_time_and_from_the_file_all_resume_after_a_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path().to_str().unwrap();
+    let file = sessions_file(dir.path());
+    let first = start(
+        dir.path(),
+        &["--state-dir", d, "--sessions", &file, "--admin-token", "operator"],
+    );
+    // A wrong admin token is refused with the reason; the right one creates the session.
+    let (ok, text) = create_session(&first, "gamma", "guess", "gamma-secret");
+    assert!(!ok, "{text}");
+    assert!(text.contains("admin token"), "{text}");
+    let (ok, text) = create_session(&first, "gamma", "operator", "gamma-secret");
+    assert!(ok, "{text}");
+    assert!(text.contains("session \"gamma\" created"), "{text}");
+    let (ok, text) = create_session(&first, "gamma", "operator", "other");
+    assert!(!ok && text.contains("already exists"), "{text}");
+
+    // Invitations minted before the restart, one per session.
+    let invitations: Vec<(&str, Credential)> = ["alpha", "beta", "gamma"]
+        .into_iter()
+        .map(|s| (s, invitation(dir.path(), s, Role::Trainee)))
+        .collect();
+    tokio::time::timeout(T, async {
+        let ep = endpoint(&first);
+        let g = join(&ep, &first, "gamma", "g1", Role::Instructor, token("gamma-secret"))
+            .await
+            .unwrap();
+        g.leave("restart").await;
+    })
+    .await
+    .expect("timed out");
+    let fingerprint = first.fingerprint.clone();
+    drop(first); // SIGKILL
+
+    // Restarted with the state directory alone: every session is back.
+    let second = start(dir.path(), &["--state-dir", d]);
+    assert_eq!(second.fingerprint, fingerprint);
+    tokio::time::timeout(T, async {
+        let ep = endpoint(&second);
+        let mut instructors = Vec::new();
+        for (session, secret) in [("alpha", "alpha-secret"), ("beta", "beta-secret"), ("gamma", "gamma-secret")] {
+            let i = join(&ep, &second, session, "prof", Role::Instructor, token(secret))
+                .await
+                .unwrap_or_else(|e| panic!("{session}: {e}"));
+            assert_eq!(i.welcome.session.name, session);
+            assert_eq!(i.welcome.session.scene_hash, SCENE);
+            instructors.push(i);
+        }
+        let mut trainees = Vec::new();
+        for (session, inv) in &invitations {
+            let t = join(&ep, &second, session, "trainee", Role::Trainee, inv.clone())
+                .await
+                .unwrap_or_else(|e| panic!("{session}: {e}"));
+            assert_eq!(&t.welcome.session.name, session);
+            // both members are there: the instructor and the trainee
+            assert_eq!(t.welcome.sites.len(), 2, "{session}");
+            trainees.push(t);
+        }
+        // beta's limit from the file survived too (4 sites).
+        assert_eq!(
+            join(&ep, &second, "beta", "x", Role::Trainee, invitation(dir.path(), "beta", Role::Trainee))
+                .await
+                .unwrap()
+                .welcome
+                .session
+                .max_sites,
+            4
+        );
+    })
+    .await
+    .expect("timed out");
+}
