@@ -294,7 +294,9 @@ fn table(b: &CoordinatorBench) -> String {
 
 fn write_plots(out: &Path, rows: &[LoadRow]) -> Result<()> {
     let pts = |f: &dyn Fn(&LoadRow) -> f64| -> Vec<(f64, f64)> {
-        rows.iter().map(|r| (r.sites as f64, f(r).max(1e-3))).collect()
+        rows.iter()
+            .map(|r| (r.sites as f64, f(r).max(1e-3)))
+            .collect()
     };
     write_chart(
         out,
@@ -517,7 +519,10 @@ fn keyframe_of_size(bytes: usize) -> Result<RegionKeyframe> {
             .iter()
             .map(|&i| [i as f64 * 1e-4, (i % 7) as f64 * 1e-3, 0.02])
             .collect();
-        let vel: Vec<[f64; 3]> = ids.iter().map(|&i| [0.0, 0.0, (i % 5) as f64 * 1e-3]).collect();
+        let vel: Vec<[f64; 3]> = ids
+            .iter()
+            .map(|&i| [0.0, 0.0, (i % 5) as f64 * 1e-3])
+            .collect();
         Ok(RegionKeyframe {
             region: 0,
             keyframe_id: 1,

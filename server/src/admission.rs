@@ -111,7 +111,10 @@ impl Admission {
     /// The revocation list last loaded by [`Admission::poll_revocations`], if any (for a
     /// session created after it was loaded).
     pub fn current_revocations(&self) -> Option<BTreeSet<Nonce>> {
-        self.current.lock().unwrap_or_else(|p| p.into_inner()).clone()
+        self.current
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
     }
 }
 

@@ -259,7 +259,8 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         .unwrap_or_else(tls::default_state_dir);
     let state = StateDir::new(&dir);
     // The sessions: persisted ones, replaced by those of --sessions, then --session.
-    let mut hosted = SessionsFile::load_persisted(&dir).context("sessions of the state directory")?;
+    let mut hosted =
+        SessionsFile::load_persisted(&dir).context("sessions of the state directory")?;
     if let Some(path) = &args.sessions {
         let file = SessionsFile::load(path)?;
         SessionsFile::persist(&dir, file.sessions.clone())

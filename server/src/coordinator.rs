@@ -53,8 +53,8 @@ use crate::tls::{Identity, TlsError};
 
 mod hub;
 mod relay;
-use hub::{Hub, accept_loop, handle_admin, no_such_session, revocation_loop};
 pub use hub::session_config;
+use hub::{Hub, accept_loop, handle_admin, no_such_session, revocation_loop};
 use relay::{relay_streams, send_stream_once, uni_loop};
 
 /// Queue length of a site's control-stream writer; a site that lets it overflow is closed

@@ -143,12 +143,22 @@ impl<S: Source> Collector for SampleCollector<S> {
             c.refused,
         )?;
         let s = &sample.sessions;
-        per_session(&mut enc, s, "cosurg_session_sites", "Sites in the session.", true, |s| {
-            s.sites
-        })?;
-        per_session(&mut enc, s, "cosurg_session_joins", "Sites admitted.", false, |s| {
-            s.stats.joined
-        })?;
+        per_session(
+            &mut enc,
+            s,
+            "cosurg_session_sites",
+            "Sites in the session.",
+            true,
+            |s| s.sites,
+        )?;
+        per_session(
+            &mut enc,
+            s,
+            "cosurg_session_joins",
+            "Sites admitted.",
+            false,
+            |s| s.stats.joined,
+        )?;
         per_session(
             &mut enc,
             s,
@@ -264,7 +274,10 @@ async fn answer<S: Source>(mut stream: TcpStream, source: Arc<S>) -> std::io::Re
     tokio::time::timeout(Duration::from_secs(5), read)
         .await
         .map_err(|_| std::io::Error::new(std::io::ErrorKind::TimedOut, "request head"))??;
-    let line = head.split(|&b| b == b'\r' || b == b'\n').next().unwrap_or(&[]);
+    let line = head
+        .split(|&b| b == b'\r' || b == b'\n')
+        .next()
+        .unwrap_or(&[]);
     let mut words = line.split(|&b| b == b' ');
     let (method, path) = (words.next().unwrap_or(&[]), words.next().unwrap_or(&[]));
     let path = path.split(|&b| b == b'?').next().unwrap_or(&[]);
@@ -344,7 +357,10 @@ mod tests {
             "# TYPE cosurg_session_sites gauge",
             "# TYPE cosurg_session_keyframes counter",
         ] {
-            assert!(text.lines().any(|l| l == line), "{line:?} missing in\n{text}");
+            assert!(
+                text.lines().any(|l| l == line),
+                "{line:?} missing in\n{text}"
+            );
         }
         assert!(text.trim_end().ends_with("# EOF"), "{text}");
         // label values are escaped

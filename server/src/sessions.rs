@@ -172,7 +172,10 @@ impl SessionsFile {
     }
 
     /// Add or replace `specs` in the state directory's sessions file.
-    pub fn persist(dir: &Path, specs: impl IntoIterator<Item = SessionSpec>) -> Result<(), SessionsError> {
+    pub fn persist(
+        dir: &Path,
+        specs: impl IntoIterator<Item = SessionSpec>,
+    ) -> Result<(), SessionsError> {
         let mut file = Self::load_persisted(dir)?;
         file.upsert(specs);
         file.save_persisted(dir)
@@ -214,7 +217,12 @@ mod tests {
         assert!(e.to_string().contains("not hex"), "{e}");
 
         let dir = tempfile::tempdir().unwrap();
-        assert!(SessionsFile::load_persisted(dir.path()).unwrap().sessions.is_empty());
+        assert!(
+            SessionsFile::load_persisted(dir.path())
+                .unwrap()
+                .sessions
+                .is_empty()
+        );
         SessionsFile::persist(dir.path(), f.sessions.clone()).unwrap();
         let mut changed = f.sessions[1].clone();
         changed.token = "tb2".into();

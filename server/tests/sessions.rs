@@ -267,23 +267,66 @@ async fn two_sessions_never_see_each_others_messages() {
     );
     tokio::time::timeout(T, async {
         let ep = endpoint(&server);
-        let mut a1 = join(&ep, &server, "alpha", "a1", Role::Instructor, token("alpha-secret")).await.unwrap();
+        let mut a1 = join(
+            &ep,
+            &server,
+            "alpha",
+            "a1",
+            Role::Instructor,
+            token("alpha-secret"),
+        )
+        .await
+        .unwrap();
         let inv_a = invitation(dir.path(), "alpha", Role::Trainee);
-        let mut a2 = join(&ep, &server, "alpha", "a2", Role::Trainee, inv_a.clone()).await.unwrap();
-        let mut b1 = join(&ep, &server, "beta", "b1", Role::Instructor, token("beta-secret")).await.unwrap();
+        let mut a2 = join(&ep, &server, "alpha", "a2", Role::Trainee, inv_a.clone())
+            .await
+            .unwrap();
+        let mut b1 = join(
+            &ep,
+            &server,
+            "beta",
+            "b1",
+            Role::Instructor,
+            token("beta-secret"),
+        )
+        .await
+        .unwrap();
 
         // An invitation of alpha is refused in beta, with the reason.
         let r = refusal(join(&ep, &server, "beta", "b2", Role::Trainee, inv_a.clone()).await);
         assert_eq!(r.reason, RefusalReason::WrongSession);
-        assert!(r.text.contains("\"alpha\"") && r.text.contains("\"beta\""), "{}", r.text);
+        assert!(
+            r.text.contains("\"alpha\"") && r.text.contains("\"beta\""),
+            "{}",
+            r.text
+        );
         // So is alpha's instructor token, and an unknown session.
-        let r = refusal(join(&ep, &server, "beta", "b2", Role::Instructor, token("alpha-secret")).await);
+        let r = refusal(
+            join(
+                &ep,
+                &server,
+                "beta",
+                "b2",
+                Role::Instructor,
+                token("alpha-secret"),
+            )
+            .await,
+        );
         assert_eq!(r.reason, RefusalReason::WrongToken);
         let r = refusal(join(&ep, &server, "gamma", "g", Role::Instructor, token("x")).await);
         assert_eq!(r.reason, RefusalReason::WrongSession);
         assert!(r.text.contains("no session named \"gamma\""), "{}", r.text);
 
-        let mut b2 = join(&ep, &server, "beta", "b2", Role::Trainee, invitation(dir.path(), "beta", Role::Trainee)).await.unwrap();
+        let mut b2 = join(
+            &ep,
+            &server,
+            "beta",
+            "b2",
+            Role::Trainee,
+            invitation(dir.path(), "beta", Role::Trainee),
+        )
+        .await
+        .unwrap();
         // Site ids are per session: both sessions may hand out the same ids.
         assert_eq!(a1.welcome.session.name, "alpha");
         assert_eq!(b1.welcome.session.name, "beta");
@@ -309,8 +352,14 @@ async fn two_sessions_never_see_each_others_messages() {
         );
         // Each session's traffic arrived in its own session (poses are datagrams: most, not
         // necessarily all, on loopback) ...
-        assert!(ra2.poses.iter().filter(|p| p.tool == 1).count() as u32 >= N / 2, "{ra2:?}");
-        assert!(rb2.poses.iter().filter(|p| p.tool == 2).count() as u32 >= N / 2, "{rb2:?}");
+        assert!(
+            ra2.poses.iter().filter(|p| p.tool == 1).count() as u32 >= N / 2,
+            "{ra2:?}"
+        );
+        assert!(
+            rb2.poses.iter().filter(|p| p.tool == 2).count() as u32 >= N / 2,
+            "{rb2:?}"
+        );
         assert!(ra2.keyframes.iter().any(|k| k.region == 100), "{ra2:?}");
         assert!(rb2.keyframes.iter().any(|k| k.region == 200), "{rb2:?}");
         // ... and nothing of it in the other.
@@ -320,14 +369,25 @@ async fn two_sessions_never_see_each_others_messages() {
             ("b1", &rb1, 1, 100, 1000.0),
             ("b2", &rb2, 1, 100, 1000.0),
         ] {
-            assert!(r.poses.iter().all(|p| p.tool != foreign_tool), "{name}: {r:?}");
-            assert!(r.keyframes.iter().all(|k| k.region != foreign_region), "{name}: {r:?}");
             assert!(
-                r.sim_times.iter().all(|s| s.sim_time_s < foreign_time || s.sim_time_s >= foreign_time + 1000.0),
+                r.poses.iter().all(|p| p.tool != foreign_tool),
+                "{name}: {r:?}"
+            );
+            assert!(
+                r.keyframes.iter().all(|k| k.region != foreign_region),
+                "{name}: {r:?}"
+            );
+            assert!(
+                r.sim_times
+                    .iter()
+                    .all(|s| s.sim_time_s < foreign_time || s.sim_time_s >= foreign_time + 1000.0),
                 "{name}: {r:?}"
             );
             let foreign_names = if name.starts_with('a') { "b" } else { "a" };
-            assert!(r.joined_names.iter().all(|n| !n.starts_with(foreign_names)), "{name}: {r:?}");
+            assert!(
+                r.joined_names.iter().all(|n| !n.starts_with(foreign_names)),
+                "{name}: {r:?}"
+            );
         }
         // The senders hear nothing of their own (sanity: the relay excludes the sender).
         assert!(ra1.poses.iter().all(|p| p.tool != 1), "{ra1:?}");
@@ -337,16 +397,37 @@ async fn two_sessions_never_see_each_others_messages() {
         assert_eq!(metric(&m, "cosurg_sessions"), 2);
         assert_eq!(metric(&m, "cosurg_session_sites{session=\"alpha\"}"), 2);
         assert_eq!(metric(&m, "cosurg_session_sites{session=\"beta\"}"), 2);
-        assert_eq!(metric(&m, "cosurg_session_keyframes_total{session=\"alpha\"}"), 1);
-        assert_eq!(metric(&m, "cosurg_session_keyframes_total{session=\"beta\"}"), 1);
+        assert_eq!(
+            metric(&m, "cosurg_session_keyframes_total{session=\"alpha\"}"),
+            1
+        );
+        assert_eq!(
+            metric(&m, "cosurg_session_keyframes_total{session=\"beta\"}"),
+            1
+        );
         // beta refused alpha's invitation and alpha's token; gamma was not routed.
-        assert_eq!(metric(&m, "cosurg_session_refusals_total{session=\"beta\"}"), 2);
-        assert_eq!(metric(&m, "cosurg_session_refusals_total{session=\"alpha\"}"), 0);
+        assert_eq!(
+            metric(&m, "cosurg_session_refusals_total{session=\"beta\"}"),
+            2
+        );
+        assert_eq!(
+            metric(&m, "cosurg_session_refusals_total{session=\"alpha\"}"),
+            0
+        );
         assert_eq!(metric(&m, "cosurg_unrouted_refusals_total"), 1);
-        let relayed_a = metric(&m, "cosurg_session_messages_relayed_total{session=\"alpha\"}");
+        let relayed_a = metric(
+            &m,
+            "cosurg_session_messages_relayed_total{session=\"alpha\"}",
+        );
         // At least the poses, stamps and keyframe a2 received.
-        assert!(relayed_a >= (ra2.poses.len() + ra2.sim_times.len()) as u64, "{m}");
-        assert!(metric(&m, "cosurg_session_bytes_relayed_total{session=\"beta\"}") > 0, "{m}");
+        assert!(
+            relayed_a >= (ra2.poses.len() + ra2.sim_times.len()) as u64,
+            "{m}"
+        );
+        assert!(
+            metric(&m, "cosurg_session_bytes_relayed_total{session=\"beta\"}") > 0,
+            "{m}"
+        );
     })
     .await
     .expect("test timed out");
@@ -377,7 +458,14 @@ async fn sessions_created_at_run_time_and_from_the_file_all_resume_after_a_resta
     let file = sessions_file(dir.path());
     let first = start(
         dir.path(),
-        &["--state-dir", d, "--sessions", &file, "--admin-token", "operator"],
+        &[
+            "--state-dir",
+            d,
+            "--sessions",
+            &file,
+            "--admin-token",
+            "operator",
+        ],
     );
     // A wrong admin token is refused with the reason; the right one creates the session.
     let (ok, text) = create_session(&first, "gamma", "guess", "gamma-secret");
@@ -396,9 +484,16 @@ async fn sessions_created_at_run_time_and_from_the_file_all_resume_after_a_resta
         .collect();
     tokio::time::timeout(T, async {
         let ep = endpoint(&first);
-        let g = join(&ep, &first, "gamma", "g1", Role::Instructor, token("gamma-secret"))
-            .await
-            .unwrap();
+        let g = join(
+            &ep,
+            &first,
+            "gamma",
+            "g1",
+            Role::Instructor,
+            token("gamma-secret"),
+        )
+        .await
+        .unwrap();
         g.leave("restart").await;
     })
     .await
@@ -412,10 +507,21 @@ async fn sessions_created_at_run_time_and_from_the_file_all_resume_after_a_resta
     tokio::time::timeout(T, async {
         let ep = endpoint(&second);
         let mut instructors = Vec::new();
-        for (session, secret) in [("alpha", "alpha-secret"), ("beta", "beta-secret"), ("gamma", "gamma-secret")] {
-            let i = join(&ep, &second, session, "prof", Role::Instructor, token(secret))
-                .await
-                .unwrap_or_else(|e| panic!("{session}: {e}"));
+        for (session, secret) in [
+            ("alpha", "alpha-secret"),
+            ("beta", "beta-secret"),
+            ("gamma", "gamma-secret"),
+        ] {
+            let i = join(
+                &ep,
+                &second,
+                session,
+                "prof",
+                Role::Instructor,
+                token(secret),
+            )
+            .await
+            .unwrap_or_else(|e| panic!("{session}: {e}"));
             assert_eq!(i.welcome.session.name, session);
             assert_eq!(i.welcome.session.scene_hash, SCENE);
             instructors.push(i);
@@ -432,12 +538,19 @@ async fn sessions_created_at_run_time_and_from_the_file_all_resume_after_a_resta
         }
         // beta's limit from the file survived too (4 sites).
         assert_eq!(
-            join(&ep, &second, "beta", "x", Role::Trainee, invitation(dir.path(), "beta", Role::Trainee))
-                .await
-                .unwrap()
-                .welcome
-                .session
-                .max_sites,
+            join(
+                &ep,
+                &second,
+                "beta",
+                "x",
+                Role::Trainee,
+                invitation(dir.path(), "beta", Role::Trainee)
+            )
+            .await
+            .unwrap()
+            .welcome
+            .session
+            .max_sites,
             4
         );
     })

@@ -93,7 +93,12 @@ impl Hub {
     }
 
     pub(super) fn abort_all(&self) {
-        for h in self.tasks.lock().unwrap_or_else(|p| p.into_inner()).drain(..) {
+        for h in self
+            .tasks
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .drain(..)
+        {
             h.abort();
         }
     }
@@ -195,7 +200,10 @@ impl Hub {
             max_sites,
         } = &req.action
         else {
-            return Err(refuse(RefusalReason::Malformed, "not a CreateSession".into()));
+            return Err(refuse(
+                RefusalReason::Malformed,
+                "not a CreateSession".into(),
+            ));
         };
         let Some(admin) = &self.admin_token else {
             return Err(refuse(

@@ -95,7 +95,13 @@ async fn read_keyframe_stream(shared: Arc<Shared>, site: SiteId, mut recv: RecvS
         let actions = peer
             .streams
             .submit(region, stored.frame.clone(), now, stall);
-        debug!(to = id, region, keyframe_id, bytes = stored.frame.len(), "relaying keyframe");
+        debug!(
+            to = id,
+            region,
+            keyframe_id,
+            bytes = stored.frame.len(),
+            "relaying keyframe"
+        );
         relay_streams(&shared, peer, id, actions);
     }
 }
