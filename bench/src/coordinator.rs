@@ -10,9 +10,11 @@
 //! * tool poses as datagrams at `--pose-hz` (the demo: every 16 ms of simulated time);
 //! * sim-time stamps as datagrams at `--stamp-hz` (the demo: every 50 ms);
 //! * heartbeats at the session's heartbeat interval;
-//! * keyframes of its own region on unidirectional streams at `--keyframe-hz`, of
-//!   `--keyframe-bytes` each (see docs/RESULTS.md for the sizes measured in the demo), each
-//!   acknowledged by every receiver on its control stream (relayed to the sender).
+//! * keyframes of its own region on unidirectional streams, `--keyframe-hz` per session
+//!   shared equally by the session's sites, of `--keyframe-bytes` each, each acknowledged
+//!   by every receiver on its control stream. The defaults are what the demo sends: 19.8
+//!   keyframes per second per session (mostly from the region owner), 1620 bytes on average
+//!   (p50 735, p90 3491, max 3820; docs/results/coordinator/demo-keyframe-sizes.txt).
 //!
 //! The send time (this process's monotonic clock, since the start of the run) travels in
 //! the payload (`ToolPose::sim_time_s`, `SimTimeStamp::wall_send_us`,
@@ -109,10 +111,10 @@ pub struct CoordinatorArgs {
     /// Sim-time stamps per second per site.
     #[arg(long, default_value_t = 20.0)]
     pub stamp_hz: f64,
-    /// Keyframes per second per site.
-    #[arg(long, default_value_t = 15.0)]
+    /// Keyframes per second per session (shared equally by its sites).
+    #[arg(long, default_value_t = 20.0)]
     pub keyframe_hz: f64,
-    /// Size of one keyframe frame (bytes, approximately).
+    /// Size of one keyframe frame (bytes, approximately; default: the demo's mean).
     #[arg(long, default_value_t = DEMO_KEYFRAME_BYTES)]
     pub keyframe_bytes: usize,
     /// The `cosurg-server` executable (default: beside this executable, else on PATH).
@@ -120,8 +122,9 @@ pub struct CoordinatorArgs {
     pub server: Option<PathBuf>,
 }
 
-/// Median keyframe frame size the demo sends (bytes); see docs/RESULTS.md.
-pub const DEMO_KEYFRAME_BYTES: usize = 2000;
+/// Mean keyframe frame size the demo sends (bytes), measured from the coordinator's relay
+/// log of `cosurg demo` (docs/results/coordinator/demo-keyframe-sizes.txt).
+pub const DEMO_KEYFRAME_BYTES: usize = 1620;
 
 /// Goal: relay p99 at most this (ms) with nothing dropped.
 pub const GOAL_P99_MS: f64 = 2.0;
@@ -278,7 +281,7 @@ fn table(b: &CoordinatorBench) -> String {
         );
     }
     s += &format!(
-        "mix per site: poses {} Hz, stamps {} Hz, keyframes {} Hz × ~{} B; window {} s after {} s warm-up; {} cores shared by the coordinator and all synthetic sites\nknee (largest load meeting p99 ≤ {GOAL_P99_MS} ms, nothing dropped): {}\n",
+        "mix: poses {} Hz and stamps {} Hz per site, keyframes {} Hz per session × ~{} B; window {} s after {} s warm-up; {} cores shared by the coordinator and all synthetic sites\nknee (largest load meeting p99 ≤ {GOAL_P99_MS} ms, nothing dropped): {}\n",
         b.pose_hz,
         b.stamp_hz,
         b.keyframe_hz,
@@ -620,7 +623,7 @@ async fn run_load(server_exe: &Path, load: Load, args: &CoordinatorArgs) -> Resu
             let params = SendParams {
                 pose_hz: args.pose_hz,
                 stamp_hz: args.stamp_hz,
-                keyframe_hz: args.keyframe_hz,
+                keyframe_hz: args.keyframe_hz / load.sites_per_session as f64,
                 // Spread the sites' phases over one pose period.
                 phase: (k as f64 * 0.37).fract() / args.pose_hz,
             };
