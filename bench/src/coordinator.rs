@@ -155,6 +155,11 @@ pub struct LoadRow {
     pub coordinator_cpu_percent: f64,
     /// Coordinator CPU per site (% of one core).
     pub cpu_percent_per_site: f64,
+    /// CPU of this process, all synthetic sites together, over the window (% of one core):
+    /// they share the machine with the coordinator.
+    pub sites_cpu_percent: f64,
+    /// The machine's 1-minute load average when the load started (other work included).
+    pub load_average: f64,
     /// Coordinator resident memory at the end (MiB) and its growth per site over the idle
     /// coordinator (KiB).
     pub coordinator_rss_mib: f64,
@@ -245,7 +250,7 @@ pub fn run(mut args: CoordinatorArgs) -> Result<()> {
 
 fn table(b: &CoordinatorBench) -> String {
     let mut s = format!(
-        "{:>8} {:>5} {:>9} {:>9} {:>9} {:>8} {:>8} {:>9} {:>9} {:>7} {:>9} {:>8} {:>9} {:>5}\n",
+        "{:>8} {:>5} {:>9} {:>9} {:>9} {:>8} {:>8} {:>9} {:>9} {:>11} {:>7} {:>8} {:>9} {:>7} {:>5} {:>5}\n",
         "sessions",
         "sites",
         "p50 ms",
@@ -259,11 +264,13 @@ fn table(b: &CoordinatorBench) -> String {
         "CPU %",
         "CPU/site",
         "RSS MiB",
+        "sites %",
+        "load",
         "goal"
     );
     for r in &b.rows {
         s += &format!(
-            "{:>8} {:>5} {:>9.3} {:>9.3} {:>9.2} {:>8.2} {:>8.2} {:>9} {:>8.3}% {:>7} {:>9.1} {:>8.2} {:>9.1} {:>5}\n",
+            "{:>8} {:>5} {:>9.3} {:>9.3} {:>9.2} {:>8.2} {:>8.2} {:>9} {:>8.3}% {:>11} {:>7.1} {:>8.2} {:>9.1} {:>7.0} {:>5.1} {:>5}\n",
             r.sessions,
             r.sites,
             r.relay_p50_ms,
@@ -277,6 +284,8 @@ fn table(b: &CoordinatorBench) -> String {
             r.coordinator_cpu_percent,
             r.cpu_percent_per_site,
             r.coordinator_rss_mib,
+            r.sites_cpu_percent,
+            r.load_average,
             if r.meets_goal { "yes" } else { "no" }
         );
     }
@@ -551,6 +560,10 @@ async fn run_load(server_exe: &Path, load: Load, args: &CoordinatorArgs) -> Resu
     let (key, _) = server::state::StateDir::new(state.path())
         .invite_key()
         .context("invitation key")?;
+    let load_average = std::fs::read_to_string("/proc/loadavg")
+        .ok()
+        .and_then(|s| s.split_whitespace().next()?.parse().ok())
+        .unwrap_or(f64::NAN);
     let server = start_server(server_exe, state.path(), load)?;
     let pid = server.child.id();
     let idle_rss = rss_kib(pid).unwrap_or(0);
@@ -633,9 +646,10 @@ async fn run_load(server_exe: &Path, load: Load, args: &CoordinatorArgs) -> Resu
     // CPU over the window.
     let tick = clock_ticks_per_s();
     tokio::time::sleep(Duration::from_secs_f64(start)).await;
-    let (c0, t0) = (cpu_ticks(pid), Instant::now());
+    let me = std::process::id();
+    let (c0, s0, t0) = (cpu_ticks(pid), cpu_ticks(me), Instant::now());
     tokio::time::sleep(Duration::from_secs_f64(args.seconds)).await;
-    let (c1, t1) = (cpu_ticks(pid), Instant::now());
+    let (c1, s1, t1) = (cpu_ticks(pid), cpu_ticks(me), Instant::now());
     let rss = rss_kib(pid).unwrap_or(0);
     let mut datagram_latency = Vec::new();
     let mut keyframe_latency = Vec::new();
@@ -656,10 +670,12 @@ async fn run_load(server_exe: &Path, load: Load, args: &CoordinatorArgs) -> Resu
     let datagrams_expected = datagrams_sent * others;
     let keyframes_expected = keyframes_sent * others;
     let datagrams_received = datagram_latency.len() as u64;
-    let cpu = match (c0, c1) {
-        (Some(a), Some(b)) => 100.0 * (b - a) as f64 / tick / (t1 - t0).as_secs_f64(),
+    let percent = |a: Option<u64>, b: Option<u64>| match (a, b) {
+        (Some(a), Some(b)) => 100.0 * b.saturating_sub(a) as f64 / tick / (t1 - t0).as_secs_f64(),
         _ => f64::NAN,
     };
+    let cpu = percent(c0, c1);
+    let sites_cpu = percent(s0, s1);
     let (p50, p99, max) = percentiles(&mut datagram_latency);
     let (kp50, kp99, _) = percentiles(&mut keyframe_latency);
     let loss = if datagrams_expected == 0 {
@@ -686,6 +702,8 @@ async fn run_load(server_exe: &Path, load: Load, args: &CoordinatorArgs) -> Resu
         keyframe_p99_ms: kp99,
         coordinator_cpu_percent: cpu,
         cpu_percent_per_site: cpu / sites as f64,
+        sites_cpu_percent: sites_cpu,
+        load_average,
         coordinator_rss_mib: rss as f64 / 1024.0,
         rss_kib_per_site: rss.saturating_sub(idle_rss) as f64 / sites as f64,
         meets_goal: p99 <= GOAL_P99_MS
