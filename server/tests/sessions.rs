@@ -557,3 +557,27 @@ async fn sessions_created_at_run_time_and_from_the_file_all_resume_after_a_resta
     .await
     .expect("timed out");
 }
+
+#[test]
+fn log_json_writes_one_json_object_per_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_cosurg-server"))
+        .args(["--listen", "127.0.0.1:0", "--session", "s", "--token", "t"])
+        .args(["--seconds", "0.3", "--log-json", "--state-dir"])
+        .arg(dir.path())
+        .env("RUST_LOG", "info")
+        .output()
+        .expect("run cosurg-server");
+    assert!(out.status.success(), "{out:?}");
+    let err = String::from_utf8(out.stderr).unwrap();
+    let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
+    assert!(lines.len() >= 2, "{err}");
+    for l in &lines {
+        let v: serde_json::Value = serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l:?}"));
+        assert!(v["level"].is_string() && v["fields"].is_object(), "{l}");
+    }
+    assert!(
+        lines.iter().any(|l| l.contains("coordinator listening")),
+        "{err}"
+    );
+}
