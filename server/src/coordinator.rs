@@ -390,7 +390,7 @@ async fn housekeeping(shared: Arc<Shared>, interval: Duration) {
         let actions = st.session.poll_liveness(now);
         for a in &actions {
             if let Action::Close { site, .. } = a {
-                warn!(site, "site timed out (no heartbeat)");
+                warn!(session = %shared.name, site, "site timed out (no heartbeat)");
             }
         }
         shared.execute(st, actions);
@@ -443,6 +443,7 @@ async fn status_loop(shared: Arc<Shared>, interval: Duration) {
         }
         let c = shared.counters.snapshot();
         info!(
+            session = %shared.name,
             sites = parts.len(),
             up_kB_s = format!("{:.1}", up_total / 1000.0),
             down_kB_s = format!("{:.1}", down_total / 1000.0),
