@@ -5,6 +5,7 @@ use clap::{Args, Subcommand};
 
 mod beam;
 pub mod cantilever;
+pub mod coordinator;
 pub mod scale;
 pub mod stress;
 pub mod sweep;
@@ -28,6 +29,9 @@ pub enum BenchCommand {
     Sweep(sweep::SweepArgs),
     /// Multi-site sync quality: strategy × network preset, over real QUIC.
     Sync(sync::SyncArgs),
+    /// Coordinator load: synthetic sites over real QUIC against one coordinator process,
+    /// sessions × sites until it breaks; relay latency, CPU, memory, drops.
+    Coordinator(coordinator::CoordinatorArgs),
 }
 
 pub fn run(args: BenchArgs) -> Result<()> {
@@ -37,5 +41,6 @@ pub fn run(args: BenchArgs) -> Result<()> {
         BenchCommand::Stress(a) => stress::run(a),
         BenchCommand::Sweep(a) => sweep::run(a),
         BenchCommand::Sync(a) => sync::run(a),
+        BenchCommand::Coordinator(a) => coordinator::run(a),
     }
 }

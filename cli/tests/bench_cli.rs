@@ -1,6 +1,7 @@
-//! Smoke test of `cosurg bench cantilever --quick --json` and `cosurg bench stress --quick
-//! --json`: the JSON schema and the invariants (no NaN, finite non-negative deviations,
-//! co-rotational closer to the non-linear reference than linear on the soft beam).
+//! Smoke test of `cosurg bench cantilever --quick --json`, `cosurg bench stress --quick
+//! --json` and `cosurg bench coordinator --quick --json`: the JSON schema and the invariants
+//! (no NaN, finite non-negative deviations, co-rotational closer to the non-linear reference
+//! than linear on the soft beam; the coordinator bench's counts, not its timings).
 
 use std::process::Command;
 
@@ -158,5 +159,60 @@ fn scale_json_every_solver_converges_and_the_exponents_are_reported() {
     for e in exps {
         assert!(num(e, "tets_to") > num(e, "tets_from"), "{e}");
         assert!(num(e, "exponent").is_finite(), "{e}");
+
+fn coordinator_quick_json() {
+    // The bench starts `cosurg-server` (another package's binary) as its coordinator.
+    let server = test_support::exe::sibling_exe(env!("CARGO_BIN_EXE_cosurg"), "cosurg-server");
+    let r = bench(&[
+        "coordinator",
+        "--quick",
+        "--json",
+        "--server",
+        server.to_str().unwrap(),
+    ]);
+    assert!(num(&r, "keyframe_bytes") > 0.0);
+    let rows = r["rows"].as_array().expect("rows");
+    assert_eq!(rows.len(), 2, "{r}");
+    for (row, (sessions, per)) in rows.iter().zip([(1u64, 3u64), (2, 3)]) {
+        assert_eq!(row["sessions"].as_u64(), Some(sessions), "{row}");
+        assert_eq!(row["sites_per_session"].as_u64(), Some(per), "{row}");
+        assert_eq!(row["sites"].as_u64(), Some(sessions * per), "{row}");
+        let sent = row["datagrams_sent"].as_u64().unwrap();
+        let expected = row["datagrams_expected"].as_u64().unwrap();
+        let received = row["datagrams_received"].as_u64().unwrap();
+        // 1 s at 60 + 20 Hz per site: each datagram goes to the session's other sites.
+        assert!(sent >= sessions * per * 40, "{row}");
+        assert_eq!(expected, sent * (per - 1), "{row}");
+        // Loopback loses little; nothing is delivered twice or across sessions.
+        assert!(
+            received <= expected && received * 10 >= expected * 9,
+            "{row}"
+        );
+        let kf_sent = row["keyframes_sent"].as_u64().unwrap();
+        // 20 keyframes per second per session by default.
+        assert!(kf_sent >= sessions * 10, "{row}");
+        assert_eq!(
+            row["keyframes_expected"].as_u64(),
+            Some(kf_sent * (per - 1)),
+            "{row}"
+        );
+        assert!(
+            row["keyframes_received"].as_u64().unwrap() <= kf_sent * (per - 1),
+            "{row}"
+        );
+        for key in [
+            "relay_p50_ms",
+            "relay_p99_ms",
+            "coordinator_cpu_percent",
+            "coordinator_rss_mib",
+        ] {
+            let v = num(row, key);
+            assert!(v.is_finite() && v >= 0.0, "{key} in {row}");
+        }
+        assert!(
+            num(row, "relay_p50_ms") <= num(row, "relay_p99_ms"),
+            "{row}"
+        );
+        assert!(row["meets_goal"].is_boolean(), "{row}");
     }
 }

@@ -474,6 +474,16 @@ pub enum AdminAction {
         site: Option<String>,
         valid_for_s: u64,
     },
+    /// Create a session on a coordinator hosting several (authenticated by the operator's
+    /// `--admin-token`, not an instructor token; `AdminRequest::session` names the new
+    /// session). `instructor_token` becomes the new session's instructor secret;
+    /// `scene_hash`: required scene (`None`: the first site fixes it); `max_sites`: `0`
+    /// takes the coordinator's default. Answered with [`Message::SessionCreated`].
+    CreateSession {
+        instructor_token: String,
+        scene_hash: Option<String>,
+        max_sites: u16,
+    },
 }
 
 /// A minted invitation (answer to [`AdminAction::MintInvitation`]).
@@ -520,6 +530,8 @@ pub enum Message {
     Invitation(InvitationIssued),
     /// The coordinator refused a command (to the sender only, control stream).
     CommandRefused(CommandRefusal),
+    /// Answer to [`AdminAction::CreateSession`]: the session now hosted.
+    SessionCreated(SessionInfo),
 }
 
 /// Which transport a message normally travels on.
@@ -561,6 +573,7 @@ impl Message {
             Message::Admin(_) => "admin",
             Message::Invitation(_) => "invitation",
             Message::CommandRefused(_) => "command-refused",
+            Message::SessionCreated(_) => "session-created",
         }
     }
 

@@ -140,6 +140,20 @@ fn message() -> impl Strategy<Value = Message> {
                 })
             }
         ),
+        (s(), s(), proptest::option::of(s()), any::<u16>(), s()).prop_map(
+            |(sess, instructor_token, scene_hash, max_sites, tok)| {
+                Message::Admin(AdminRequest {
+                    protocol_version: PROTOCOL_VERSION,
+                    session: sess,
+                    credential: Credential::Token(tok),
+                    action: AdminAction::CreateSession {
+                        instructor_token,
+                        scene_hash,
+                        max_sites,
+                    },
+                })
+            }
+        ),
         (s(), role(), proptest::option::of(s()), any::<u64>(), s()).prop_map(
             |(invitation, role, site, expires_unix_s, nonce_hex)| {
                 Message::Invitation(InvitationIssued {

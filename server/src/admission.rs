@@ -40,6 +40,8 @@ pub struct Admission {
     state_dir: Option<StateDir>,
     /// Modification time of the revocation list last loaded (`None`: not loaded yet).
     revoked_seen: Mutex<Option<Option<SystemTime>>>,
+    /// The revocation list last loaded.
+    current: Mutex<Option<BTreeSet<Nonce>>>,
 }
 
 impl Admission {
@@ -48,6 +50,7 @@ impl Admission {
             limiter: Mutex::new(JoinRateLimiter::new(rate_limit)),
             state_dir,
             revoked_seen: Mutex::new(None),
+            current: Mutex::new(None),
         }
     }
 
@@ -92,12 +95,26 @@ impl Admission {
         }
         *seen = Some(mtime);
         match dir.revoked() {
-            Ok(set) => Some(set),
+            Ok(set) => {
+                *self.current.lock().unwrap_or_else(|p| p.into_inner()) = Some(set.clone());
+                Some(set)
+            }
             Err(e) => {
                 warn!(error = %e, "revocation list not loaded");
                 None
             }
         }
+    }
+}
+
+impl Admission {
+    /// The revocation list last loaded by [`Admission::poll_revocations`], if any (for a
+    /// session created after it was loaded).
+    pub fn current_revocations(&self) -> Option<BTreeSet<Nonce>> {
+        self.current
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
     }
 }
 
@@ -113,7 +130,13 @@ pub fn answer_admin(
         role,
         site,
         valid_for_s,
-    } = &req.action;
+    } = &req.action
+    else {
+        return Err(Refusal {
+            reason: RefusalReason::Malformed,
+            text: "not an invitation request".into(),
+        });
+    };
     let config = session.config();
     let key = config.invite_key.as_ref().ok_or_else(|| Refusal {
         reason: RefusalReason::InvalidInvitation,

@@ -48,10 +48,13 @@ pub use crate::clock::WallClock;
 use crate::ratelimit::RateLimitConfig;
 use crate::session::{Action, DatagramVerdict, Session, Target};
 pub use crate::stats::CoordinatorStats;
-use crate::stats::{Counters, inc};
+use crate::stats::{Counters, add, inc};
 use crate::tls::{Identity, TlsError};
 
+mod hub;
 mod relay;
+pub use hub::session_config;
+use hub::{Hub, accept_loop, handle_admin, no_such_session, revocation_loop};
 use relay::{relay_streams, send_stream_once, uni_loop};
 
 /// Queue length of a site's control-stream writer; a site that lets it overflow is closed
@@ -63,6 +66,14 @@ pub const CONTROL_QUEUE: usize = 4096;
 pub enum ServerError {
     #[error(transparent)]
     Tls(#[from] TlsError),
+    #[error("session: {0}")]
+    Session(String),
+    #[error("metrics on {addr}: {source}")]
+    Metrics {
+        addr: SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
     #[error("cannot listen on {addr}: {source}")]
     Bind {
         addr: SocketAddr,
@@ -88,6 +99,16 @@ pub struct CoordinatorConfig {
     pub state_dir: Option<PathBuf>,
     /// Failed joins per source address.
     pub rate_limit: RateLimitConfig,
+    /// Further sessions served on the same endpoint besides `session` (names must differ);
+    /// each isolated from the others (see the `hub` module).
+    pub more_sessions: Vec<SessionConfig>,
+    /// The operator's secret that allows creating sessions at run time
+    /// ([`proto::AdminAction::CreateSession`]); `None`: no sessions are created at run time.
+    pub admin_token: Option<String>,
+    /// Maximum number of sessions hosted (configured and created at run time).
+    pub max_sessions: usize,
+    /// Serve Prometheus metrics over HTTP on this (local) address; `None`: off.
+    pub metrics: Option<SocketAddr>,
 }
 
 impl CoordinatorConfig {
@@ -102,6 +123,10 @@ impl CoordinatorConfig {
             max_frame: proto::DEFAULT_MAX_FRAME,
             state_dir: None,
             rate_limit: RateLimitConfig::default(),
+            more_sessions: Vec::new(),
+            admin_token: None,
+            max_sessions: 256,
+            metrics: None,
         }
     }
 
@@ -133,13 +158,13 @@ struct State {
     peers: HashMap<SiteId, Peer>,
 }
 
+/// One hosted session: its state and the peers of its sites.
 struct Shared {
+    name: String,
     clock: WallClock,
     state: Mutex<State>,
     counters: Counters,
     max_frame: usize,
-    join_timeout: Duration,
-    admission: Admission,
 }
 
 impl Shared {
@@ -160,7 +185,10 @@ impl Shared {
                             continue;
                         }
                         match peer.ctrl.try_send(CtrlItem::Frame(frame.clone())) {
-                            Ok(()) => {}
+                            Ok(()) => {
+                                inc(&self.counters.control_frames_out);
+                                add(&self.counters.bytes_relayed, frame.len());
+                            }
                             Err(mpsc::error::TrySendError::Full(_)) => overloaded.push(id),
                             Err(mpsc::error::TrySendError::Closed(_)) => {}
                         }
@@ -201,11 +229,14 @@ impl Shared {
 
 /// Handle of a running coordinator.
 pub struct CoordinatorHandle {
+    hub: Arc<Hub>,
+    /// The first session (`CoordinatorConfig::session`).
     shared: Arc<Shared>,
     endpoint: Endpoint,
     tasks: JoinSet<()>,
     local_addr: SocketAddr,
     fingerprint: String,
+    metrics_addr: Option<SocketAddr>,
 }
 
 /// The coordinator.
@@ -225,42 +256,34 @@ impl Coordinator {
             addr: config.listen,
             source,
         })?;
-        let heartbeat_us = config.session.heartbeat_interval_us.max(10_000);
-        let shared = Arc::new(Shared {
-            clock: WallClock::new(),
-            state: Mutex::new(State {
-                session: Session::new(config.session.clone()),
-                peers: HashMap::new(),
-            }),
-            counters: Counters::default(),
-            max_frame: config.max_frame,
-            join_timeout: config.join_timeout,
-            admission: Admission::new(
-                config.rate_limit,
-                config.state_dir.clone().map(crate::state::StateDir::new),
-            ),
-        });
-        apply_revocations(&shared);
-        let mut tasks = JoinSet::new();
-        tasks.spawn(accept_loop(shared.clone(), endpoint.clone()));
-        tasks.spawn(housekeeping(
-            shared.clone(),
-            Duration::from_micros(heartbeat_us),
-        ));
-        if let Some(iv) = config.status_interval.filter(|d| !d.is_zero()) {
-            tasks.spawn(status_loop(shared.clone(), iv));
+        let hub = Arc::new(Hub::new(&config));
+        let refused = |r: proto::Refusal| ServerError::Session(r.text);
+        let shared = hub.add_session(config.session.clone()).map_err(refused)?;
+        for more in &config.more_sessions {
+            hub.add_session(more.clone()).map_err(refused)?;
         }
+        hub.apply_revocations();
+        let mut tasks = JoinSet::new();
+        tasks.spawn(accept_loop(hub.clone(), endpoint.clone()));
+        tasks.spawn(revocation_loop(hub.clone(), Duration::from_secs(1)));
+        let metrics_addr = match config.metrics {
+            Some(addr) => Some(crate::metrics::serve(hub.clone(), addr, &mut tasks)?),
+            None => None,
+        };
         let fingerprint = config.identity.fingerprint();
         info!(
             %local_addr,
             session = %config.session.name,
+            sessions = 1 + config.more_sessions.len(),
             max_sites = config.session.max_sites,
             %fingerprint,
             "coordinator listening"
         );
         Ok((
             CoordinatorHandle {
+                hub,
                 shared,
+                metrics_addr,
                 endpoint,
                 tasks,
                 local_addr,
@@ -281,14 +304,42 @@ impl CoordinatorHandle {
         &self.fingerprint
     }
 
+    /// Counters of the whole coordinator (all sessions).
     pub fn stats(&self) -> CoordinatorStats {
-        self.shared.counters.snapshot()
+        let mut total = self.hub.counters.snapshot();
+        for s in self.hub.all() {
+            total += s.counters.snapshot();
+        }
+        total
     }
 
-    /// The current site table.
+    /// Counters of one session (`None`: no such session).
+    pub fn session_stats(&self, session: &str) -> Option<CoordinatorStats> {
+        Some(self.hub.session(session)?.counters.snapshot())
+    }
+
+    /// The names of the hosted sessions.
+    pub fn sessions(&self) -> Vec<String> {
+        self.hub.all().iter().map(|s| s.name.clone()).collect()
+    }
+
+    /// The current site table of the first session.
     pub fn status(&self) -> proto::Status {
         let now = self.shared.clock.now_us();
         self.shared.lock().session.status(now)
+    }
+
+    /// The current site table of session `session`.
+    pub fn session_status(&self, session: &str) -> Option<proto::Status> {
+        let s = self.hub.session(session)?;
+        let now = s.clock.now_us();
+        let status = s.lock().session.status(now);
+        Some(status)
+    }
+
+    /// Address of the metrics endpoint, when serving one.
+    pub fn metrics_addr(&self) -> Option<SocketAddr> {
+        self.metrics_addr
     }
 
     /// Coordinator clock now (µs).
@@ -303,17 +354,9 @@ impl CoordinatorHandle {
             b"coordinator shutting down",
         );
         self.tasks.abort_all();
+        self.hub.abort_all();
         let _ = tokio::time::timeout(Duration::from_secs(1), self.endpoint.wait_idle()).await;
         info!("coordinator stopped");
-    }
-}
-
-async fn accept_loop(shared: Arc<Shared>, endpoint: Endpoint) {
-    let mut conns = JoinSet::new();
-    while let Some(incoming) = endpoint.accept().await {
-        inc(&shared.counters.connections);
-        conns.spawn(handle_incoming(shared.clone(), incoming));
-        while conns.try_join_next().is_some() {}
     }
 }
 
@@ -323,7 +366,6 @@ async fn housekeeping(shared: Arc<Shared>, interval: Duration) {
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         tick.tick().await;
-        apply_revocations(&shared);
         let now = shared.clock.now_us();
         let mut st = shared.lock();
         let st = &mut *st;
@@ -348,55 +390,10 @@ async fn housekeeping(shared: Arc<Shared>, interval: Duration) {
         let actions = st.session.poll_liveness(now);
         for a in &actions {
             if let Action::Close { site, .. } = a {
-                warn!(site, "site timed out (no heartbeat)");
+                warn!(session = %shared.name, site, "site timed out (no heartbeat)");
             }
         }
         shared.execute(st, actions);
-    }
-}
-
-/// Load the state directory's revocation list if it changed; members admitted by a revoked
-/// invitation are removed.
-fn apply_revocations(shared: &Shared) {
-    if let Some(revoked) = shared.admission.poll_revocations() {
-        let mut st = shared.lock();
-        let st = &mut *st;
-        let actions = st.session.set_revoked(revoked);
-        for a in &actions {
-            if let Action::Close { site, .. } = a {
-                warn!(site, "site removed: its invitation was revoked");
-            }
-        }
-        shared.execute(st, actions);
-    }
-}
-
-/// Answer an administrative connection (see [`crate::admin`]): one request, one answer,
-/// closed. It never becomes a site.
-async fn handle_admin(
-    shared: &Shared,
-    conn: &Connection,
-    send: &mut SendStream,
-    remote: SocketAddr,
-    req: proto::AdminRequest,
-) {
-    let now = shared.clock.now_us();
-    let answer = crate::admission::answer_admin(&shared.lock().session, &req, now);
-    match answer {
-        Ok(issued) => {
-            info!(%remote, role = %issued.role, site = ?issued.site, nonce = %issued.nonce_hex, expires_unix_s = issued.expires_unix_s, "invitation minted by the instructor");
-            let frame = proto::encode_frame(&Message::Invitation(issued));
-            if send.write_all(&frame).await.is_ok() && send.finish().is_ok() {
-                let _ = tokio::time::timeout(Duration::from_secs(2), send.stopped()).await;
-            }
-            conn.close(VarInt::from_u32(close_code::NORMAL), b"done");
-        }
-        Err(refusal) => {
-            inc(&shared.counters.refused);
-            info!(%remote, reason = ?refusal.reason, "admin request refused");
-            shared.admission.record(remote.ip(), &refusal, now);
-            refuse(conn, Some(send), refusal).await;
-        }
     }
 }
 
@@ -446,6 +443,7 @@ async fn status_loop(shared: Arc<Shared>, interval: Duration) {
         }
         let c = shared.counters.snapshot();
         info!(
+            session = %shared.name,
             sites = parts.len(),
             up_kB_s = format!("{:.1}", up_total / 1000.0),
             down_kB_s = format!("{:.1}", down_total / 1000.0),
@@ -490,18 +488,18 @@ fn alpn_of(conn: &Connection) -> Option<Vec<u8>> {
         .protocol
 }
 
-async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
+async fn handle_incoming(hub: Arc<Hub>, incoming: quinn::Incoming) {
     let remote = incoming.remote_address();
     let conn = match incoming.await {
         Ok(c) => c,
         Err(e) => {
-            inc(&shared.counters.handshake_failures);
+            inc(&hub.counters.handshake_failures);
             info!(%remote, error = %e, "handshake failed");
             return;
         }
     };
     if alpn_of(&conn).as_deref() != Some(proto::ALPN) {
-        inc(&shared.counters.handshake_failures);
+        inc(&hub.counters.handshake_failures);
         warn!(%remote, "connection without the cosurg ALPN; closing");
         conn.close(
             VarInt::from_u32(close_code::PROTOCOL_ERROR),
@@ -509,7 +507,7 @@ async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
         );
         return;
     }
-    let deadline = tokio::time::Instant::now() + shared.join_timeout;
+    let deadline = tokio::time::Instant::now() + hub.join_timeout;
     let (mut send, mut recv) = match tokio::time::timeout_at(deadline, conn.accept_bi()).await {
         Ok(Ok(s)) => s,
         Ok(Err(e)) => {
@@ -524,13 +522,13 @@ async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
             return;
         }
     };
-    let mut dec = FrameDecoder::new(shared.max_frame.min(64 * 1024));
+    let mut dec = FrameDecoder::new(hub.max_frame.min(64 * 1024));
     let first = tokio::time::timeout_at(deadline, read_one(&mut recv, &mut dec)).await;
-    let now = shared.clock.now_us();
+    let now = hub.clock.now_us();
     if let Ok(Ok(_)) = &first
-        && let Some(refusal) = shared.admission.blocked(remote.ip(), now)
+        && let Some(refusal) = hub.admission.blocked(remote.ip(), now)
     {
-        inc(&shared.counters.refused);
+        inc(&hub.counters.refused);
         debug!(%remote, "join from a blocked address refused");
         refuse(&conn, Some(&mut send), refusal).await;
         return;
@@ -538,22 +536,22 @@ async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
     let join = match first {
         Ok(Ok(Message::Join(j))) => j,
         Ok(Ok(Message::Admin(req))) => {
-            handle_admin(&shared, &conn, &mut send, remote, req).await;
+            handle_admin(&hub, &conn, &mut send, remote, req).await;
             return;
         }
         Ok(Ok(other)) => {
-            inc(&shared.counters.refused);
+            inc(&hub.counters.refused);
             warn!(%remote, kind = other.kind(), "first control message is not a Join");
             let refusal = proto::Refusal {
                 reason: proto::RefusalReason::Malformed,
                 text: format!("expected Join, got {}", other.kind()),
             };
-            shared.admission.record(remote.ip(), &refusal, now);
+            hub.admission.record(remote.ip(), &refusal, now);
             refuse(&conn, Some(&mut send), refusal).await;
             return;
         }
         Ok(Err(e)) => {
-            inc(&shared.counters.refused);
+            inc(&hub.counters.refused);
             let refusal = match e {
                 // A peer of another protocol version: its messages carry another wire tag.
                 FirstMessageError::Frame(FrameError::Decode(
@@ -569,7 +567,7 @@ async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
                     ),
                 },
                 e => {
-                    inc(&shared.counters.malformed_control);
+                    inc(&hub.counters.malformed_control);
                     warn!(%remote, error = %e, "bad Join");
                     proto::Refusal {
                         reason: proto::RefusalReason::Malformed,
@@ -577,11 +575,11 @@ async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
                     }
                 }
             };
-            if let Some(blocked) = shared.admission.blocked(remote.ip(), now) {
+            if let Some(blocked) = hub.admission.blocked(remote.ip(), now) {
                 refuse(&conn, Some(&mut send), blocked).await;
                 return;
             }
-            shared.admission.record(remote.ip(), &refusal, now);
+            hub.admission.record(remote.ip(), &refusal, now);
             refuse(&conn, Some(&mut send), refusal).await;
             return;
         }
@@ -592,6 +590,15 @@ async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
             );
             return;
         }
+    };
+    // The session the site names; the connection belongs to it for its whole life.
+    let Some(shared) = hub.session(&join.session) else {
+        inc(&hub.counters.refused);
+        let refusal = no_such_session(&join.session);
+        info!(%remote, site = %join.site_name, session = %join.session, "join for an unknown session refused");
+        hub.admission.record(remote.ip(), &refusal, now);
+        refuse(&conn, Some(&mut send), refusal).await;
+        return;
     };
     // From here on control frames may be large (teaching trajectories); frames pipelined
     // after the Join stay buffered in `dec`.
@@ -628,7 +635,7 @@ async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
         Err(refusal) => {
             inc(&shared.counters.refused);
             info!(%remote, site = %join.site_name, reason = ?refusal.reason, "join refused");
-            shared.admission.record(remote.ip(), &refusal, now);
+            hub.admission.record(remote.ip(), &refusal, now);
             refuse(&conn, Some(&mut send), refusal).await;
             return;
         }
@@ -638,7 +645,7 @@ async fn handle_incoming(shared: Arc<Shared>, incoming: quinn::Incoming) {
         inc(&shared.counters.resumed);
         info!(%remote, site, old, name = %join.site_name, "site reconnected; replaced its silent previous connection");
     }
-    info!(%remote, site, name = %join.site_name, role = %join.role, "site joined");
+    info!(%remote, session = %shared.name, site, name = %join.site_name, role = %join.role, "site joined");
     tokio::spawn(control_writer(conn.clone(), send, rx));
     {
         let frame = Bytes::from(proto::encode_frame(&Message::Snapshot(snapshot)));
@@ -834,7 +841,10 @@ async fn datagram_loop(shared: &Shared, site: SiteId, conn: &Connection) -> Stri
                         continue;
                     }
                     match p.conn.send_datagram(bytes.clone()) {
-                        Ok(()) => inc(&shared.counters.datagrams_relayed),
+                        Ok(()) => {
+                            inc(&shared.counters.datagrams_relayed);
+                            add(&shared.counters.bytes_relayed, bytes.len());
+                        }
                         Err(quinn::SendDatagramError::TooLarge)
                             if matches!(msg, Message::TreeDelta(_)) =>
                         {

@@ -1,6 +1,8 @@
 //! cosurg coordinator: the QUIC endpoint that relays simulation clocks and state deltas
 //! between sites, arbitrates region ownership and keeps the latest keyframes for late joiners.
 //!
+//! * [`sessions`] — the sessions hosted (sessions file, persistence in the state directory);
+//! * [`metrics`] — Prometheus metrics over HTTP (`--metrics`);
 //! * [`session`] — the session logic, sans IO (joins, roles, relay decisions, ownership);
 //! * [`coordinator`] — the async shell: [`Coordinator::bind`] → ([`CoordinatorHandle`], address);
 //! * [`state`] — the state directory: invitation key, revocations ([`state::mint`]);
@@ -15,8 +17,10 @@ pub mod admission;
 pub mod cli;
 pub mod clock;
 pub mod coordinator;
+pub mod metrics;
 pub mod ratelimit;
 pub mod session;
+pub mod sessions;
 pub mod state;
 mod stats;
 pub mod tls;

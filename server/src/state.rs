@@ -6,6 +6,7 @@
 //! | `invite-key` | the invitation signing key, 64 hex digits (mode 0600) |
 //! | `revoked-invitations` | one revoked invitation nonce (32 hex digits) per line; `#` comments |
 //! | `session` | the name of the session last served (default of `cosurg-server invite`) |
+//! | `sessions.toml` | the sessions hosted from a sessions file or created at run time, with their instructor tokens (mode 0600; see [`crate::sessions`]) |
 //!
 //! `cosurg-server invite` and `revoke` work on these files directly, on the coordinator's
 //! host, also while the coordinator runs: it re-reads the revocation list when the file

@@ -24,6 +24,8 @@ pub(crate) struct Counters {
     pub(crate) malformed_streams: AtomicU64,
     pub(crate) dropped_messages: AtomicU64,
     pub(crate) overloaded: AtomicU64,
+    pub(crate) control_frames_out: AtomicU64,
+    pub(crate) bytes_relayed: AtomicU64,
 }
 
 /// Snapshot of the coordinator's counters.
@@ -61,6 +63,11 @@ pub struct CoordinatorStats {
     pub dropped_messages: u64,
     /// Sites closed because their control queue overflowed.
     pub overloaded: u64,
+    /// Control frames queued to sites (one per recipient).
+    pub control_frames_out: u64,
+    /// Bytes relayed to sites: datagrams, keyframe streams and control frames (one count
+    /// per recipient; QUIC overhead not included).
+    pub bytes_relayed: u64,
 }
 
 impl Counters {
@@ -86,8 +93,47 @@ impl Counters {
             malformed_streams: g(&self.malformed_streams),
             dropped_messages: g(&self.dropped_messages),
             overloaded: g(&self.overloaded),
+            control_frames_out: g(&self.control_frames_out),
+            bytes_relayed: g(&self.bytes_relayed),
         }
     }
+}
+
+impl CoordinatorStats {
+    /// Messages relayed to sites (datagrams, keyframes, control frames; one per recipient).
+    pub fn messages_relayed(&self) -> u64 {
+        self.datagrams_relayed + self.keyframes_relayed + self.control_frames_out
+    }
+}
+
+impl std::ops::AddAssign for CoordinatorStats {
+    fn add_assign(&mut self, o: Self) {
+        self.connections += o.connections;
+        self.handshake_failures += o.handshake_failures;
+        self.refused += o.refused;
+        self.joined += o.joined;
+        self.resumed += o.resumed;
+        self.left += o.left;
+        self.datagrams_in += o.datagrams_in;
+        self.datagrams_relayed += o.datagrams_relayed;
+        self.datagrams_send_failed += o.datagrams_send_failed;
+        self.malformed_datagrams += o.malformed_datagrams;
+        self.control_frames_in += o.control_frames_in;
+        self.malformed_control += o.malformed_control;
+        self.keyframes_in += o.keyframes_in;
+        self.keyframes_relayed += o.keyframes_relayed;
+        self.keyframe_streams_reset += o.keyframe_streams_reset;
+        self.superseded_streams_in += o.superseded_streams_in;
+        self.malformed_streams += o.malformed_streams;
+        self.dropped_messages += o.dropped_messages;
+        self.overloaded += o.overloaded;
+        self.control_frames_out += o.control_frames_out;
+        self.bytes_relayed += o.bytes_relayed;
+    }
+}
+
+pub(crate) fn add(a: &AtomicU64, n: usize) {
+    a.fetch_add(n as u64, Ordering::Relaxed);
 }
 
 pub(crate) fn inc(a: &AtomicU64) {

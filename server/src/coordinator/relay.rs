@@ -95,7 +95,13 @@ async fn read_keyframe_stream(shared: Arc<Shared>, site: SiteId, mut recv: RecvS
         let actions = peer
             .streams
             .submit(region, stored.frame.clone(), now, stall);
-        debug!(to = id, region, keyframe_id, "relaying keyframe");
+        debug!(
+            to = id,
+            region,
+            keyframe_id,
+            bytes = stored.frame.len(),
+            "relaying keyframe"
+        );
         relay_streams(&shared, peer, id, actions);
     }
 }
@@ -119,9 +125,13 @@ pub(super) fn relay_streams(
                 let conn = peer.conn.clone();
                 let shared = shared.clone();
                 tokio::spawn(async move {
+                    let len = payload.len();
                     let r = send_stream_once(&conn, payload, Some(crx)).await;
                     match &r {
-                        Ok(true) => inc(&shared.counters.keyframes_relayed),
+                        Ok(true) => {
+                            inc(&shared.counters.keyframes_relayed);
+                            add(&shared.counters.bytes_relayed, len);
+                        }
                         Ok(false) => inc(&shared.counters.keyframe_streams_reset),
                         Err(e) => debug!(to = id, region, error = %e, "keyframe relay failed"),
                     }
