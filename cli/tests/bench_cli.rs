@@ -159,7 +159,10 @@ fn scale_json_every_solver_converges_and_the_exponents_are_reported() {
     for e in exps {
         assert!(num(e, "tets_to") > num(e, "tets_from"), "{e}");
         assert!(num(e, "exponent").is_finite(), "{e}");
+    }
+}
 
+#[test]
 fn coordinator_quick_json() {
     // The bench starts `cosurg-server` (another package's binary) as its coordinator.
     let server = test_support::exe::sibling_exe(env!("CARGO_BIN_EXE_cosurg"), "cosurg-server");
