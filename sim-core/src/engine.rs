@@ -14,8 +14,8 @@ use crate::error::SimError;
 use crate::options::SimOptions;
 
 mod cutting;
-pub use cutting::TopologyChange;
 use crate::sharing::RotationSharing;
+pub use cutting::TopologyChange;
 
 type V3 = Vector3<f64>;
 

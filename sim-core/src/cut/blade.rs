@@ -1,13 +1,18 @@
 //! Blade strokes: the surface a blade's cutting edge sweeps through a body, turned into
 //! [`CutOp`]s.
 //!
-//! Every step the blade's edge (world coordinates) is mapped to rest coordinates through
-//! the element that holds it ([`Simulation::rest_point_of`]). While the edge is inside the
-//! body, a new edge sample is kept whenever an end moved more than `spacing` (m) since the
-//! last one; the edge before entering and the edge after leaving are kept too, so the swept
-//! sheet reaches beyond the body. When the edge leaves the body the stroke is committed as
-//! one cut op: two triangles between consecutive edge samples. Only the cutting site runs
-//! this; the op carries the rest-space triangles to every site.
+//! Every step the blade's edge (world coordinates) is sampled at [`EDGE_SAMPLES`] points.
+//! Samples inside the body are mapped to rest coordinates through the element that holds
+//! them ([`Simulation::rest_point_of`]); samples outside it take the displacement of the
+//! nearest inside sample of the same edge (so the sheet continues straight beyond the
+//! body instead of following an extrapolated element). While the edge is inside the body, a
+//! new edge is kept whenever a sample moved more than `spacing` (m) since the last kept
+//! edge. The edge of the step before entering and the edge after leaving are kept too, with
+//! the displacements of the first and last inside edges, and both are pushed one more
+//! `spacing` outward along the motion so the sheet surely reaches beyond the body. When the
+//! edge leaves the body the stroke is committed as one cut op: two triangles between
+//! neighbouring samples of consecutive edges. Only the cutting site runs this; the op
+//! carries the rest-space triangles to every site.
 
 use nalgebra::Vector3;
 
@@ -18,15 +23,19 @@ use crate::tools::ToolSet;
 
 type V3 = Vector3<f64>;
 
-/// Number of points along the edge tested for being inside the body.
-const EDGE_PROBES: usize = 5;
+/// Points along the blade's edge (both ends included).
+pub const EDGE_SAMPLES: usize = 5;
+
+type Edge = [V3; EDGE_SAMPLES];
 
 #[derive(Clone, Debug, Default)]
 struct Stroke {
-    /// Edge samples (rest coordinates) of the stroke under way.
-    edges: Vec<[V3; 2]>,
-    /// The edge of the previous step (rest coordinates) while outside the body.
-    before: Option<[V3; 2]>,
+    /// Kept edges (rest coordinates) of the stroke under way.
+    edges: Vec<Edge>,
+    /// World edge of the previous step while outside the body.
+    before: Option<Edge>,
+    /// Displacement (world − rest) of every sample of the last inside edge.
+    last_displacement: Option<Edge>,
 }
 
 /// The strokes of a simulation's blades.
@@ -64,36 +73,53 @@ impl BladeStrokes {
             let Some((a, b)) = tool.blade_edge() else {
                 continue;
             };
-            let mut inside = false;
-            for k in 0..EDGE_PROBES {
-                let s = k as f64 / (EDGE_PROBES - 1) as f64;
-                if let Some((_, true)) = sim.rest_point_of(&(a + s * (b - a))) {
-                    inside = true;
-                    break;
-                }
-            }
-            let (Some((ra, _)), Some((rb, _))) = (sim.rest_point_of(&a), sim.rest_point_of(&b))
-            else {
-                continue;
-            };
-            let edge = [ra, rb];
-            if inside {
+            let world: Edge =
+                std::array::from_fn(|k| a + (k as f64 / (EDGE_SAMPLES - 1) as f64) * (b - a));
+            let mapped: Vec<Option<(V3, bool)>> =
+                world.iter().map(|q| sim.rest_point_of(q)).collect();
+            let inside: Vec<usize> = (0..EDGE_SAMPLES)
+                .filter(|&k| matches!(mapped[k], Some((_, true))))
+                .collect();
+            if !inside.is_empty() {
+                // Displacement of every sample: its own inside, the nearest inside one's
+                // outside.
+                let u: Edge = std::array::from_fn(|k| {
+                    let j = *inside
+                        .iter()
+                        .min_by_key(|&&j| (j as isize - k as isize).abs())
+                        .expect("non-empty");
+                    world[j] - mapped[j].expect("inside").0
+                });
+                let edge: Edge = std::array::from_fn(|k| world[k] - u[k]);
                 if stroke.edges.is_empty() {
-                    stroke.edges.push(stroke.before.unwrap_or(edge));
+                    let before = stroke.before.unwrap_or(world);
+                    let first: Edge = std::array::from_fn(|k| before[k] - u[k]);
+                    stroke.edges.push(extend(&first, &edge, self.spacing));
+                    stroke.edges.push(first);
                 }
                 let last = stroke.edges.last().expect("non-empty");
-                if (last[0] - edge[0]).norm().max((last[1] - edge[1]).norm()) > self.spacing {
+                let moved = (0..EDGE_SAMPLES)
+                    .map(|k| (last[k] - edge[k]).norm())
+                    .fold(0.0, f64::max);
+                if moved > self.spacing {
                     stroke.edges.push(edge);
                 }
+                stroke.last_displacement = Some(u);
                 stroke.before = None;
             } else {
-                if !stroke.edges.is_empty() {
-                    stroke.edges.push(edge);
+                if let (false, Some(u)) = (stroke.edges.is_empty(), stroke.last_displacement) {
+                    let exit: Edge = std::array::from_fn(|k| world[k] - u[k]);
+                    let last = *stroke.edges.last().expect("non-empty");
+                    stroke.edges.push(exit);
+                    stroke.edges.push(extend(&exit, &last, self.spacing));
                     let edges = std::mem::take(&mut stroke.edges);
-                    if let Some(op) = strip(&edges, OpId {
-                        site: self.site,
-                        seq: self.next_seq,
-                    }) {
+                    if let Some(op) = strip(
+                        &edges,
+                        OpId {
+                            site: self.site,
+                            seq: self.next_seq,
+                        },
+                    ) {
                         self.next_seq += 1;
                         tracing::info!(
                             tool = %tool.name,
@@ -106,22 +132,34 @@ impl BladeStrokes {
                         applied += 1;
                     }
                 }
-                stroke.before = Some(edge);
+                stroke.edges.clear();
+                stroke.last_displacement = None;
+                stroke.before = Some(world);
             }
         }
         Ok(applied)
     }
 }
 
-/// The triangles between consecutive edge samples (degenerate ones dropped); `None` if
-/// none is left.
-pub fn strip(edges: &[[V3; 2]], id: OpId) -> Option<CutOp> {
+/// `edge` pushed `spacing` further away from `from` (along the mean motion between them;
+/// by `spacing` along the first motion direction it can find otherwise).
+fn extend(edge: &Edge, from: &Edge, spacing: f64) -> Edge {
+    let motion: V3 = (0..EDGE_SAMPLES).map(|k| edge[k] - from[k]).sum::<V3>() / EDGE_SAMPLES as f64;
+    let dir = motion.try_normalize(1e-12).unwrap_or_else(V3::zeros);
+    std::array::from_fn(|k| edge[k] + spacing * dir)
+}
+
+/// The triangles between neighbouring samples of consecutive edges (degenerate ones
+/// dropped); `None` if none is left.
+pub fn strip(edges: &[Edge], id: OpId) -> Option<CutOp> {
     let mut triangles = Vec::new();
     for w in edges.windows(2) {
-        let ([a0, b0], [a1, b1]) = (w[0], w[1]);
-        for t in [[a0, b0, b1], [a0, b1, a1]] {
-            if predicates::non_degenerate(&t) {
-                triangles.push(t.map(|p| [p.x, p.y, p.z]));
+        for k in 0..EDGE_SAMPLES - 1 {
+            let (a0, b0, a1, b1) = (w[0][k], w[0][k + 1], w[1][k], w[1][k + 1]);
+            for t in [[a0, b0, b1], [a0, b1, a1]] {
+                if predicates::non_degenerate(&t) {
+                    triangles.push(t.map(|p| [p.x, p.y, p.z]));
+                }
             }
         }
     }

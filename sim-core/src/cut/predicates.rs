@@ -37,10 +37,7 @@ pub fn side(tri: &[V3; 3], p: &V3) -> bool {
 /// projection has a non-zero exact 2D orientation).
 pub fn non_degenerate(tri: &[V3; 3]) -> bool {
     let proj = |k: usize, l: usize| {
-        let p = |v: &V3| robust::Coord {
-            x: v[k],
-            y: v[l],
-        };
+        let p = |v: &V3| robust::Coord { x: v[k], y: v[l] };
         robust::orient2d(p(&tri[0]), p(&tri[1]), p(&tri[2])) != 0.0
     };
     proj(0, 1) || proj(1, 2) || proj(2, 0)

@@ -348,9 +348,8 @@ pub fn separate(lattice: &Lattice, sheet: &Sheet) -> Separation {
         .filter_map(|(&root, ms)| {
             let (ci, k) = members[ms[0]];
             let node = copies[ci].dofs[k];
-            (primary.get(&node) != Some(&root)).then(|| {
-                (lattice.node_grid(NodeId(node as u32)), ms[0], root)
-            })
+            (primary.get(&node) != Some(&root))
+                .then(|| (lattice.node_grid(NodeId(node as u32)), ms[0], root))
         })
         .collect();
     extra.sort_unstable();

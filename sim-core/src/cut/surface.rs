@@ -186,7 +186,11 @@ pub(crate) fn ear_clip(vertices: &[V3], polygon: &[u32]) -> Result<Vec<[u32; 3]>
         .try_normalize(0.0)
         .ok_or_else(|| "a loop with zero area".to_string())?;
     // In-plane axes (u, w) with u × w = normal, so the polygon is counter-clockwise.
-    let helper = if normal.x.abs() < 0.9 { V3::x() } else { V3::y() };
+    let helper = if normal.x.abs() < 0.9 {
+        V3::x()
+    } else {
+        V3::y()
+    };
     let u = helper.cross(&normal).normalize();
     let w = normal.cross(&u);
     let p2: Vec<Vector2<f64>> = polygon
@@ -196,9 +200,7 @@ pub(crate) fn ear_clip(vertices: &[V3], polygon: &[u32]) -> Result<Vec<[u32; 3]>
             Vector2::new(p.dot(&u), p.dot(&w))
         })
         .collect();
-    let cross = |a: Vector2<f64>, b: Vector2<f64>, c: Vector2<f64>| {
-        (b - a).perp(&(c - a))
-    };
+    let cross = |a: Vector2<f64>, b: Vector2<f64>, c: Vector2<f64>| (b - a).perp(&(c - a));
     let mut idx: Vec<usize> = (0..n).collect();
     let mut out = Vec::with_capacity(n - 2);
     while idx.len() > 3 {

@@ -371,10 +371,18 @@ impl Simulation {
     /// extrapolation). Returns the rest point and whether the point is inside the body.
     /// Not shared state: only the cutting site calls it, and its op carries the result.
     pub fn rest_point_of(&self, q: &V3) -> Option<(V3, bool)> {
-        let rest = self.dof_rest();
         let mut best: Option<(f64, [usize; 4], [f64; 4])> = None;
         let mut visit = |dofs: [usize; 4]| {
             let p = dofs.map(|d| self.x[d]);
+            // Box pre-test: a point far outside this element's box cannot beat a
+            // containing element (worst barycentric < 0 either way).
+            if best.as_ref().is_some_and(|b| b.0 >= 0.0) {
+                let lo = p[0].inf(&p[1]).inf(&p[2]).inf(&p[3]);
+                let hi = p[0].sup(&p[1]).sup(&p[2]).sup(&p[3]);
+                if (0..3).any(|k| q[k] < lo[k] || q[k] > hi[k]) {
+                    return;
+                }
+            }
             let m = nalgebra::Matrix3::from_columns(&[p[1] - p[0], p[2] - p[0], p[3] - p[0]]);
             let Some(inv) = m.try_inverse() else { return };
             let l = inv * (q - p[0]);
@@ -393,7 +401,13 @@ impl Simulation {
                 .for_each(|&t| visit(self.lattice.tet_nodes(t).map(|n| n.0 as usize))),
         }
         let (worst, dofs, w) = best?;
-        let r = (0..4).map(|k| w[k] * rest[dofs[k]]).sum();
+        let node_of = |d: usize| match &self.cut {
+            Some(c) => c.separation.dof_node(d),
+            None => NodeId(d as u32),
+        };
+        let r = (0..4)
+            .map(|k| w[k] * self.lattice.node_rest(node_of(dofs[k])))
+            .sum();
         Some((r, worst >= -1e-9))
     }
 
