@@ -5,7 +5,8 @@
 //! adaptive-precision orientation test of the `robust` crate (Shewchuk's predicates): its
 //! sign is exact for the given `f64` inputs, so it does not depend on evaluation order,
 //! FMA contraction or the machine. A point exactly on a sheet's plane counts as lying on
-//! its positive side (a fixed tie-break, so a lattice node on a sheet belongs to one side
+//! its positive side (where `orient3d` > 0: below a triangle that is counter-clockwise
+//! seen from above) (a fixed tie-break, so a lattice node on a sheet belongs to one side
 //! and no edge is cut "twice"). Only intersection *points* (where the sheet crosses an
 //! edge) are computed in floating point, after the exact decision.
 
@@ -23,7 +24,8 @@ fn c(p: &V3) -> Coord3D<f64> {
 }
 
 /// Exact sign (and adaptive magnitude) of the orientation of `d` relative to the plane
-/// through `a, b, c`: proportional to the signed volume of the tetrahedron.
+/// through `a, b, c`: positive when `d` lies below the plane of `a, b, c` seen
+/// counter-clockwise from above; proportional to the signed volume of the tetrahedron.
 pub fn orient3d(a: &V3, b: &V3, c3: &V3, d: &V3) -> f64 {
     robust::orient3d(c(a), c(b), c(c3), c(d))
 }
