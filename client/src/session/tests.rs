@@ -90,6 +90,7 @@ fn snapshot(sim_time_s: f64, epoch: Epoch, keyframes: Vec<proto::RegionKeyframe>
         epoch,
         owners: Vec::new(),
         keyframes,
+        topology: Vec::new(),
     })
 }
 

@@ -61,6 +61,7 @@ fn kf(region: RegionId, id: KeyframeId, owner: SiteId, epoch: u32) -> RegionKeyf
         epoch,
         tree_bits: vec![1],
         nodes: QuantisedNodes::default(),
+        topology: 0,
     }
 }
 

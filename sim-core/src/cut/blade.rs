@@ -49,6 +49,9 @@ pub struct BladeStrokes {
     pub spacing: f64,
     /// Ops made so far, in order (the caller shares them with the other sites).
     pub made: Vec<TopologyOp>,
+    /// Which tools may cut here (default: every blade). A networked site lets only the
+    /// blade it drives cut: the others' cuts arrive as their ops.
+    pub enabled: Vec<bool>,
 }
 
 impl BladeStrokes {
@@ -61,6 +64,7 @@ impl BladeStrokes {
             next_seq: 0,
             spacing: 0.25 * sim.lattice().params().cell,
             made: Vec::new(),
+            enabled: vec![true; tools.tools.len()],
         }
     }
 
@@ -69,7 +73,14 @@ impl BladeStrokes {
     pub fn update(&mut self, sim: &mut Simulation, tools: &ToolSet) -> Result<usize, SimError> {
         let mut applied = 0;
         self.strokes.resize(tools.tools.len(), Stroke::default());
-        for (tool, stroke) in tools.tools.iter().zip(self.strokes.iter_mut()) {
+        self.enabled.resize(tools.tools.len(), true);
+        for ((tool, stroke), _) in tools
+            .tools
+            .iter()
+            .zip(self.strokes.iter_mut())
+            .zip(&self.enabled)
+            .filter(|(_, on)| **on)
+        {
             let Some((a, b)) = tool.blade_edge() else {
                 continue;
             };
