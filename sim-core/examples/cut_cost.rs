@@ -21,7 +21,9 @@ fn percentile(v: &[f64], p: f64) -> f64 {
 
 fn main() {
     let mut args = std::env::args().skip(1);
-    let path = args.next().map(PathBuf::from).unwrap_or_else(|| {
+    let given = args.next();
+    let label = given.clone().unwrap_or_else(|| "scenes/cut-block.toml".into());
+    let path = given.map(PathBuf::from).unwrap_or_else(|| {
         PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../scenes/cut-block.toml")
     });
     let seconds: f64 = args.next().map_or(1.8, |s| s.parse().expect("seconds"));
@@ -64,8 +66,7 @@ fn main() {
         }
     }
     println!(
-        "scene {}: {} leaves, {} elements after the cut, dt {dt} s, {steps} steps",
-        path.display(),
+        "scene {label}: {} leaves, {} elements after the cut, dt {dt} s, {steps} steps",
         sim.lattice().leaf_count(),
         sim.separation().map_or(0, |s| s.copies.len())
     );
