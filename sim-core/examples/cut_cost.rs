@@ -22,7 +22,9 @@ fn percentile(v: &[f64], p: f64) -> f64 {
 fn main() {
     let mut args = std::env::args().skip(1);
     let given = args.next();
-    let label = given.clone().unwrap_or_else(|| "scenes/cut-block.toml".into());
+    let label = given
+        .clone()
+        .unwrap_or_else(|| "scenes/cut-block.toml".into());
     let path = given.map(PathBuf::from).unwrap_or_else(|| {
         PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../scenes/cut-block.toml")
     });
