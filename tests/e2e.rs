@@ -51,6 +51,11 @@ fn start_server() -> Server {
 /// revocations).
 fn start_server_in(state: tempfile::TempDir) -> Server {
     let scene = sim_core::sim_scene::builtin::cholecystectomy();
+    start_server_for(state, &scene.hash)
+}
+
+/// A coordinator for the scene whose hash is `scene_hash`.
+fn start_server_for(state: tempfile::TempDir, scene_hash: &str) -> Server {
     // `cosurg-server` belongs to another package: no CARGO_BIN_EXE_ for it here.
     let server_exe = test_support::exe::sibling_exe(env!("CARGO_BIN_EXE_cosurg"), "cosurg-server");
     let mut child = Command::new(server_exe)
@@ -62,7 +67,7 @@ fn start_server_in(state: tempfile::TempDir) -> Server {
             "--token",
             TOKEN,
         ])
-        .args(["--scene-hash", &scene.hash, "--seconds", "300"])
+        .args(["--scene-hash", scene_hash, "--seconds", "300"])
         .arg("--state-dir")
         .arg(state.path())
         .env("COSURG_LOG", "warn")
@@ -802,4 +807,61 @@ fn demo_scene_reset_keeps_the_sites_together() {
         after < LOOPBACK_MOTION_BOUND_MM,
         "after the reset: {after} mm"
     );
+}
+
+/// `scenes/cut-block.toml`: the instructor's blade cuts the block at 0.65 s of simulated
+/// time; a trainee joining after the cut receives it in its join snapshot and ends with the
+/// same topology (epoch and digest of the ops and the separated element set).
+#[test]
+fn late_joiner_after_a_cut_has_the_cut() {
+    let _serial = serial();
+    let scene_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/cut-block.toml");
+    let scene = sim_core::sim_scene::Scene::load(&scene_path).expect("cut-block scene");
+    let server = start_server_for(tempfile::tempdir().unwrap(), &scene.hash);
+    let dir = session_dir();
+    let scene_arg = scene_path.to_str().unwrap();
+    let instructor = spawn_site(
+        &server,
+        dir.path(),
+        "instructor",
+        "instructor",
+        &[
+            "--scene",
+            scene_arg,
+            "--tool",
+            "blade",
+            "--seconds",
+            "3.0",
+            "--expect-sites",
+            "1",
+        ],
+    );
+    // Join once the instructor's clock is past the cut (0.65 s simulated; real-time pacing
+    // plus start-up).
+    std::thread::sleep(Duration::from_millis(2500));
+    let trainee = spawn_site(
+        &server,
+        dir.path(),
+        "trainee",
+        "trainee",
+        &["--scene", scene_arg, "--no-tool", "--seconds", "3.0"],
+    );
+    let r_instructor = wait_report(
+        instructor,
+        Duration::from_secs(120),
+        dir.path().join("instructor.log"),
+    );
+    let r_trainee = wait_report(
+        trainee,
+        Duration::from_secs(120),
+        dir.path().join("trainee.log"),
+    );
+    assert_eq!(
+        r_instructor.topology_epoch, 1,
+        "the instructor's blade cut once"
+    );
+    assert!(r_instructor.topology_bytes_sent > 0);
+    assert_eq!(r_trainee.topology_epoch, 1, "the late joiner has the cut");
+    assert_eq!(r_trainee.topology_ops_received, 1);
+    assert_eq!(r_trainee.topology_digest, r_instructor.topology_digest);
 }

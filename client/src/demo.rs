@@ -143,6 +143,10 @@ pub struct SiteRow {
     pub playback_distance_mm: Option<f64>,
     /// Scene epoch at the end (one per reset).
     pub epoch: u32,
+    /// Topology at the end: epoch (topology ops applied) and digest (hex; equal on every
+    /// site with the same cuts).
+    pub topology_epoch: u32,
+    pub topology_digest: String,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -395,6 +399,8 @@ pub fn demo(args: DemoArgs) -> Result<()> {
             guide_force_mean_n: r.guide_force_mean_n,
             playback_distance_mm: r.playback_distance_mm,
             epoch: r.epoch,
+            topology_epoch: r.topology_epoch,
+            topology_digest: r.topology_digest.clone(),
         })
         .collect();
     write_plots(&out, &series, &reports)?;

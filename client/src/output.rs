@@ -79,24 +79,48 @@ impl Frame {
             );
             fixed.push(sim.is_fixed(node) as i32);
         }
-        let leaves = lattice.leaves();
+        // After a cut, the elements are the leaves' copies (virtual node algorithm) and the
+        // virtual nodes follow the lattice's nodes.
+        let elements: Vec<(sim_core::TetId, [usize; 4])> = match sim.separation() {
+            Some(sep) => {
+                compact.resize(sep.dof_count(), u32::MAX);
+                for (k, node) in sep.virtual_nodes.iter().enumerate() {
+                    let i = sep.capacity + k;
+                    compact[i] = points.len() as u32;
+                    points.push(x[i]);
+                    displacement.push(x[i] - lattice.node_rest(*node));
+                    velocity.push(v[i]);
+                    contact_force.push(V3::zeros());
+                    fixed.push(sim.is_fixed(*node) as i32);
+                }
+                sep.copies.iter().map(|c| (c.leaf, c.dofs)).collect()
+            }
+            None => lattice
+                .leaves()
+                .iter()
+                .map(|&t| (t, lattice.tet_nodes(t).map(|n| n.0 as usize)))
+                .collect(),
+        };
         Frame {
             time: sim.time(),
-            tets: leaves
+            tets: elements
                 .iter()
-                .map(|&t| lattice.tet_nodes(t).map(|n| compact[n.0 as usize]))
+                .map(|(_, dofs)| dofs.map(|d| compact[d]))
                 .collect(),
-            level: leaves
+            level: elements
                 .iter()
-                .map(|&t| i32::from(lattice.tet_level(t)))
+                .map(|(t, _)| i32::from(lattice.tet_level(*t)))
                 .collect(),
-            tet_type: leaves.iter().map(|&t| lattice.tet_type(t) as i32).collect(),
-            material: leaves
+            tet_type: elements
                 .iter()
-                .map(|&t| sim.leaf_material(t).map_or(-1, |m| m as i32))
+                .map(|(t, _)| lattice.tet_type(*t) as i32)
                 .collect(),
-            root: leaves.iter().map(|t| t.root).collect(),
-            heap: leaves.iter().map(|t| t.heap).collect(),
+            material: elements
+                .iter()
+                .map(|(t, _)| sim.leaf_material(*t).map_or(-1, |m| m as i32))
+                .collect(),
+            root: elements.iter().map(|(t, _)| t.root).collect(),
+            heap: elements.iter().map(|(t, _)| t.heap).collect(),
             points,
             displacement,
             velocity,

@@ -79,6 +79,9 @@ pub struct SimRecorder {
     site: String,
     tools: Vec<ToolId>,
     surfaces: Vec<SurfaceId>,
+    /// Vertices each surface was declared with: a cut appends vertices (the original ones
+    /// keep their indices), and the recording keeps the declared ones.
+    surface_vertices: Vec<usize>,
     grasping: Vec<bool>,
     damage_strain: Option<f64>,
     damage_interval_s: f64,
@@ -144,7 +147,13 @@ impl SimRecorder {
                 recorder.declare_surface(&s.name, &rest, &s.rest.triangles)
             })
             .collect::<Result<Vec<_>, _>>()?;
+        let surface_vertices = sim
+            .surfaces()
+            .iter()
+            .map(|s| s.rest.vertices.len())
+            .collect();
         Ok(SimRecorder {
+            surface_vertices,
             grasping: vec![false; tools.len()],
             recorder,
             site,
@@ -196,9 +205,14 @@ impl SimRecorder {
             self.recorder
                 .damage(step, time, damaged_volume(sim, threshold))?;
         }
-        for (s, id) in sim.surfaces().iter().zip(&self.surfaces) {
+        for ((s, id), n) in sim
+            .surfaces()
+            .iter()
+            .zip(&self.surfaces)
+            .zip(&self.surface_vertices)
+        {
             if self.recorder.wants_surface(*id, time) {
-                let v: Vec<[f64; 3]> = s.deformed.iter().map(|p| (*p).into()).collect();
+                let v: Vec<[f64; 3]> = s.deformed.iter().take(*n).map(|p| (*p).into()).collect();
                 self.recorder.surface(step, time, *id, &v)?;
             }
         }

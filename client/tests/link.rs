@@ -169,6 +169,7 @@ fn keyframe(region: u32, id: u64, nodes: u32) -> RegionKeyframe {
             ids,
             ..QuantisedNodes::default()
         },
+        topology: 0,
     }
 }
 

@@ -40,6 +40,7 @@ fn keyframe(nodes: usize) -> Message {
         epoch: 0,
         tree_bits: vec![0xA5; nodes / 4],
         nodes: QuantisedNodes::encode_default(&ids, &pos, &vel).unwrap(),
+        topology: 0,
     })
 }
 

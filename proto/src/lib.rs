@@ -40,7 +40,10 @@ pub mod streams;
 ///
 /// Version 2: `Join` carries a [`msg::Credential`] (instructor token or invitation) instead of
 /// one shared token; refusals for invitations and rate limiting; admin requests.
-pub const PROTOCOL_VERSION: u16 = 2;
+/// Version 3: topology operations (`Message::Topology`, cuts), the snapshot's `topology`
+/// and the keyframe's `topology` epoch; sessions created at run time
+/// (`AdminAction::CreateSession` → `Message::SessionCreated`).
+pub const PROTOCOL_VERSION: u16 = 3;
 
 /// A keyframe stream is reset in favour of a newer keyframe of the same region only after
 /// it has been in flight this long. Resetting younger streams starves paths whose round

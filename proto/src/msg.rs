@@ -263,6 +263,10 @@ pub struct RegionKeyframe {
     pub tree_bits: Vec<u8>,
     /// Node ids with quantised positions and velocities.
     pub nodes: QuantisedNodes,
+    /// The sender's topology epoch (how many [`TopologyOp`]s it had applied): a site that
+    /// has applied fewer drops the keyframe (its topology is not there yet; the owner's
+    /// next keyframe replaces it).
+    pub topology: u32,
 }
 
 /// Change of a region's tree state relative to an acknowledged keyframe (datagram when it
@@ -351,6 +355,32 @@ pub struct Snapshot {
     pub owners: Vec<RegionOwner>,
     /// Latest keyframe of every region.
     pub keyframes: Vec<RegionKeyframe>,
+    /// Every topology operation of the current scene epoch, in arrival order: a late
+    /// joiner applies them all (the result does not depend on their order).
+    pub topology: Vec<TopologyOp>,
+}
+
+/// A topology operation on the shared scene (control stream: reliable and ordered per
+/// sender; relayed to every other site and kept by the coordinator for late joiners until
+/// the scene is reset). Every site applies it with exact predicates, so the topology that
+/// results depends only on the set of operations, not on their order or duplicates.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TopologyOp {
+    /// Scene epoch the operation belongs to (operations of another epoch are dropped).
+    pub epoch: Epoch,
+    /// Site that made it.
+    pub site: SiteId,
+    /// That site's sequence number (from 0); (site, seq) identifies and orders the op.
+    pub seq: u32,
+    pub kind: TopologyKind,
+}
+
+/// What a [`TopologyOp`] does.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum TopologyKind {
+    /// A cut: the triangles a blade swept, in rest coordinates (m; exact `f64`, since every
+    /// site decides with exact predicates on them).
+    Cut { triangles: Vec<[[f64; 3]; 3]> },
 }
 
 /// One timed tool sample of a teaching trajectory.
@@ -499,7 +529,7 @@ pub struct InvitationIssued {
     pub nonce_hex: String,
 }
 
-/// Every message of protocol version 2. Append new variants at the end only.
+/// Every message of protocol version 3. Append new variants at the end only.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum Message {
     Join(Join),
@@ -532,6 +562,8 @@ pub enum Message {
     CommandRefused(CommandRefusal),
     /// Answer to [`AdminAction::CreateSession`]: the session now hosted.
     SessionCreated(SessionInfo),
+    /// A topology operation (a cut), relayed to every other site (control stream).
+    Topology(TopologyOp),
 }
 
 /// Which transport a message normally travels on.
@@ -574,6 +606,7 @@ impl Message {
             Message::Invitation(_) => "invitation",
             Message::CommandRefused(_) => "command-refused",
             Message::SessionCreated(_) => "session-created",
+            Message::Topology(_) => "topology",
         }
     }
 

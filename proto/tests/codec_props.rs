@@ -72,18 +72,42 @@ fn keyframe() -> impl Strategy<Value = RegionKeyframe> {
         any::<u32>(),
         vec(any::<u8>(), 0..64),
         nodes(),
+        any::<u32>(),
     )
         .prop_map(
-            |(region, keyframe, owner, sim_time_s, epoch, tree_bits, nodes)| RegionKeyframe {
-                region,
-                keyframe_id: keyframe,
-                owner,
-                sim_time: sim_time_s,
-                epoch,
-                tree_bits,
-                nodes,
+            |(region, keyframe, owner, sim_time_s, epoch, tree_bits, nodes, topology)| {
+                RegionKeyframe {
+                    region,
+                    keyframe_id: keyframe,
+                    owner,
+                    sim_time: sim_time_s,
+                    epoch,
+                    tree_bits,
+                    nodes,
+                    topology,
+                }
             },
         )
+}
+
+fn topology_op() -> impl Strategy<Value = TopologyOp> {
+    (
+        any::<u32>(),
+        any::<u16>(),
+        any::<u32>(),
+        vec(vec(-1.0e3f64..1.0e3, 9), 0..4),
+    )
+        .prop_map(|(epoch, site, seq, tris)| TopologyOp {
+            epoch,
+            site,
+            seq,
+            kind: TopologyKind::Cut {
+                triangles: tris
+                    .into_iter()
+                    .map(|t| std::array::from_fn(|i| std::array::from_fn(|k| t[3 * i + k])))
+                    .collect(),
+            },
+        })
 }
 fn sample() -> impl Strategy<Value = ToolSample> {
     (simt(), f3(), f4(), -1.0f32..1.0).prop_map(|(t_s, position, orientation, jaw_rad)| {
@@ -306,19 +330,21 @@ fn message() -> impl Strategy<Value = Message> {
             simt(),
             any::<u32>(),
             vec((any::<u32>(), any::<u16>()), 0..4),
-            vec(keyframe(), 0..3)
+            vec(keyframe(), 0..3),
+            vec(topology_op(), 0..3)
         )
-            .prop_map(|(sim_time_s, epoch, owners, keyframes)| Message::Snapshot(
-                Snapshot {
+            .prop_map(|(sim_time_s, epoch, owners, keyframes, topology)| {
+                Message::Snapshot(Snapshot {
                     sim_time_s,
                     epoch,
                     owners: owners
                         .into_iter()
                         .map(|(region, site)| RegionOwner { region, site })
                         .collect(),
-                    keyframes
-                }
-            )),
+                    keyframes,
+                    topology,
+                })
+            }),
         (any::<u32>(), any::<u8>(), vec(sample(), 0..20)).prop_map(|(id, tool, samples)| {
             Message::Teaching(TeachingTrajectory { id, tool, samples })
         }),
@@ -355,6 +381,7 @@ fn message() -> impl Strategy<Value = Message> {
                     .collect()
             })),
         entry().prop_map(Message::SiteJoined),
+        topology_op().prop_map(Message::Topology),
     ]
 }
 

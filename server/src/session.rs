@@ -31,6 +31,10 @@ impl Target {
 }
 
 /// Why a message was not relayed or applied.
+/// Topology operations kept per scene epoch (cuts of one training session are a few
+/// dozen; the bound keeps a misbehaving site from growing the coordinator's memory).
+pub const MAX_TOPOLOGY_OPS: usize = 4096;
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum DropReason {
     /// Observers only receive.
@@ -139,6 +143,8 @@ pub struct Session {
     keyframes: BTreeMap<RegionId, StoredKeyframe>,
     epoch: u32,
     trajectories: BTreeMap<u32, TeachingTrajectory>,
+    /// Topology operations (cuts) of the current epoch, in arrival order, for late joiners.
+    topology: Vec<proto::TopologyOp>,
     playback: Option<Command>,
 }
 
@@ -151,6 +157,7 @@ impl Session {
             keyframes: BTreeMap::new(),
             epoch: 0,
             trajectories: BTreeMap::new(),
+            topology: Vec::new(),
             playback: None,
         }
     }
@@ -202,6 +209,7 @@ impl Session {
                 .values()
                 .map(|k| k.keyframe.clone())
                 .collect(),
+            topology: self.topology.clone(),
         }
     }
 
@@ -570,6 +578,35 @@ impl Session {
                 a
             }
             Message::Heartbeat(_) => Vec::new(),
+            Message::Topology(mut op) => {
+                if role == Role::Observer {
+                    return Self::drop_action(site, &Message::Topology(op), DropReason::Observer);
+                }
+                if op.epoch != self.epoch {
+                    return Self::drop_action(site, &Message::Topology(op), DropReason::StaleEpoch);
+                }
+                // The op is the sender's: its id is the sender's site id.
+                op.site = site;
+                if self
+                    .topology
+                    .iter()
+                    .any(|o| (o.site, o.seq) == (op.site, op.seq))
+                {
+                    return Vec::new();
+                }
+                if self.topology.len() >= MAX_TOPOLOGY_OPS {
+                    return Self::drop_action(
+                        site,
+                        &Message::Topology(op),
+                        DropReason::Inconsistent,
+                    );
+                }
+                self.topology.push(op.clone());
+                vec![Action::Control {
+                    to: Target::AllExcept(site),
+                    msg: Message::Topology(op),
+                }]
+            }
             m @ (Message::SimTime(_) | Message::ToolPose(_) | Message::TreeDelta(_)) => {
                 let kind = m.kind();
                 match self.check_state_msg(site, m, now_us) {
@@ -589,6 +626,7 @@ impl Session {
             Command::ResetScene { sim_time_s, .. } => {
                 self.epoch = self.epoch.wrapping_add(1);
                 self.keyframes.clear();
+                self.topology.clear();
                 self.arbiter.clear();
                 self.playback = None;
                 vec![Action::Control {

@@ -138,6 +138,7 @@ fn keyframe(region: RegionId, id: KeyframeId, owner: SiteId, bits: usize) -> Reg
         epoch: 0,
         tree_bits: vec![0x5A; bits],
         nodes: QuantisedNodes::encode_default(&ids, &pos, &vel).unwrap(),
+        topology: 0,
     }
 }
 

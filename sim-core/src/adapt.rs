@@ -210,6 +210,11 @@ impl Adaptivity {
                 if !self.created.contains_key(g) {
                     continue;
                 }
+                // A diamond along a cut stays: merging it would reconnect separated
+                // material.
+                if sim.cut_pins_node(c.node) {
+                    continue;
+                }
                 let lat = sim.lattice_mut();
                 if !lat.node_alive(c.node) || lat.node_grid(c.node) != *g {
                     self.created.remove(g);

@@ -9,9 +9,13 @@ use sim_fem::{
 use sim_lattice::{Embedding, Lattice, LatticeParams, NodeId, ShapeKey, TetId, TopologyEvent};
 use sim_scene::{Aabb, BodyShape, InclusionShape, LoadedScene, TriMesh};
 
+use crate::cut::TopologyLog;
 use crate::error::SimError;
 use crate::options::SimOptions;
+
+mod cutting;
 use crate::sharing::RotationSharing;
+pub use cutting::TopologyChange;
 
 type V3 = Vector3<f64>;
 
@@ -120,6 +124,10 @@ pub struct Simulation {
     probes: Embedding,
     time: f64,
     steps: u64,
+    /// Applied topology operations (cuts), epoch and digest.
+    topology: TopologyLog,
+    /// Separation, virtual nodes and cut surfaces; `None` before the first cut.
+    cut: Option<cutting::CutState>,
 }
 
 impl Simulation {
@@ -303,6 +311,8 @@ impl Simulation {
             probes,
             time: 0.0,
             steps: 0,
+            topology: TopologyLog::default(),
+            cut: None,
             scene,
         };
         sim.select_nodes()?;
@@ -352,16 +362,18 @@ impl Simulation {
 
     /// Rebuilds the FEM system from the current leaves (after a topology change).
     fn rebuild_fem(&mut self) -> Result<(), SimError> {
-        let cap = self.lattice.node_capacity();
-        let mut rest = vec![V3::zeros(); cap];
-        let mut alive = vec![false; cap];
-        for n in self.lattice.nodes() {
-            rest[n.0 as usize] = self.lattice.node_rest(n);
-            alive[n.0 as usize] = true;
-        }
+        let rest = self.dof_rest();
+        let alive = self.dof_alive();
+        let mut materials = self.materials.clone();
         let mut elements = Vec::with_capacity(self.lattice.leaf_count());
-        for &t in self.lattice.leaves() {
-            let nodes = self.lattice.tet_nodes(t).map(|n| n.0 as usize);
+        let cut_elements = self.cut_elements().unwrap_or_else(|| {
+            self.lattice
+                .leaves()
+                .iter()
+                .map(|&t| (self.lattice.tet_nodes(t).map(|n| n.0 as usize), t, 1.0))
+                .collect()
+        });
+        for (nodes, t, fraction) in cut_elements {
             let shape = if self.options.template_stiffness() {
                 let key = self.lattice.tet_shape(t);
                 let next_id = self.shape_ids.len() as u64;
@@ -373,9 +385,24 @@ impl Simulation {
             } else {
                 None
             };
+            let base = self.leaf_material[&t];
+            // A copy of a cut leaf carries its volume fraction of the leaf's stiffness and
+            // mass (virtual node algorithm): a material scaled by the fraction (E and ρ
+            // scale, ν and the Rayleigh coefficients stay).
+            let material = if fraction < 1.0 {
+                let m = self.materials[base];
+                materials.push(sim_fem::Material {
+                    young: m.young * fraction,
+                    density: m.density * fraction,
+                    ..m
+                });
+                materials.len() - 1
+            } else {
+                base
+            };
             elements.push(ElementDesc {
                 nodes,
-                material: self.leaf_material[&t],
+                material,
                 shape,
                 rotation_source: None,
             });
@@ -386,11 +413,11 @@ impl Simulation {
         let mut fem = FemSystem::new(&FemDesc {
             rest,
             elements,
-            materials: self.materials.clone(),
+            materials,
             fixed: fixed.clone(),
             rotation_sources,
         })?;
-        if self.options.step.linear_solver == LinearSolver::MgPcg {
+        if self.options.step.linear_solver == LinearSolver::MgPcg && self.cut.is_none() {
             fem.set_multigrid_hierarchy(crate::multigrid::lattice_hierarchy(&self.lattice)?)?;
         }
         self.fem_fixed = fixed;
@@ -429,9 +456,7 @@ impl Simulation {
         // The Dirichlet set changes only with prescriptions (a rebuild already used the
         // current ones), so a step without them, after one without them, skips this.
         if !report.rebuilt && (!self.prescribed.is_empty() || self.prescribed_last_step) {
-            let alive: Vec<bool> = (0..self.lattice.node_capacity())
-                .map(|i| self.lattice.node_alive(NodeId(i as u32)))
-                .collect();
+            let alive = self.dof_alive();
             let fixed = self.effective_fixed(&alive);
             if fixed != self.fem_fixed {
                 self.fem
@@ -489,6 +514,9 @@ impl Simulation {
 
     /// Recomputes the deformed surfaces and probes from the node positions.
     pub fn update_surfaces(&mut self) {
+        if self.interpolate_cut_surfaces() {
+            return;
+        }
         for s in &mut self.surfaces {
             s.embedding
                 .interpolate(&self.lattice, &self.x, &mut s.deformed);
@@ -529,8 +557,23 @@ impl Simulation {
 
     /// Applies lattice topology events to the node state: new nodes start at their edge's
     /// midpoint with the average velocity. Then re-hosts surfaces, reassigns materials,
-    /// reselects fixed/loaded nodes and marks the FEM system for rebuilding.
+    /// reselects fixed/loaded nodes and marks the FEM system for rebuilding. With a cut,
+    /// the lattice is refined along the cut again and re-separated (virtual nodes keep
+    /// their state).
     pub fn after_topology_change(&mut self, events: &[TopologyEvent]) -> Result<(), SimError> {
+        if events.is_empty() {
+            return Ok(());
+        }
+        let old = self.detach_virtual();
+        self.apply_lattice_events_only(events)?;
+        self.after_lattice_change_cut(old)?;
+        self.update_surfaces();
+        Ok(())
+    }
+
+    /// [`Simulation::after_topology_change`] on the lattice layout of the node arrays
+    /// (no virtual nodes), without the cut's re-separation.
+    fn apply_lattice_events_only(&mut self, events: &[TopologyEvent]) -> Result<(), SimError> {
         if events.is_empty() {
             return Ok(());
         }
@@ -553,7 +596,6 @@ impl Simulation {
         self.assign_materials();
         self.select_nodes()?;
         self.fem = None;
-        self.update_surfaces();
         Ok(())
     }
 
@@ -613,13 +655,10 @@ impl Simulation {
     pub fn velocities(&self) -> &[V3] {
         &self.v
     }
-    /// Rest position (m) of every node slot (zeros for dead slots).
+    /// Rest position (m) of every node slot (zeros for dead slots), virtual nodes of cuts
+    /// after the lattice's slots.
     pub fn rest_positions(&self) -> Vec<V3> {
-        let mut rest = vec![V3::zeros(); self.lattice.node_capacity()];
-        for n in self.lattice.nodes() {
-            rest[n.0 as usize] = self.lattice.node_rest(n);
-        }
-        rest
+        self.dof_rest()
     }
     /// Whether a node is clamped by the scene.
     pub fn is_fixed(&self, n: NodeId) -> bool {

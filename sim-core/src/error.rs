@@ -25,4 +25,7 @@ pub enum SimError {
     /// The state stopped being finite; the step was rolled back.
     #[error("simulation state became non-finite at t = {time} s; step rolled back")]
     NonFinite { time: f64 },
+    /// A topology operation (a cut) is malformed.
+    #[error("topology operation rejected: {0}")]
+    Topology(String),
 }

@@ -4,6 +4,7 @@
 
 use crate::adapt::{AdaptParams, AdaptReport, Adaptivity};
 use crate::contact::{ContactParams, ContactPipeline, ContactState};
+use crate::cut::BladeStrokes;
 use crate::engine::Simulation;
 use crate::error::SimError;
 use crate::tools::{ToolInput, ToolSet};
@@ -21,6 +22,8 @@ pub struct InteractionReport {
     pub narrow_tests: u64,
     /// Adaptivity.
     pub adapt: AdaptReport,
+    /// Cuts a blade committed (and applied) in this pass.
+    pub cuts: usize,
 }
 
 /// Tools, contact and tool-following adaptivity of one simulation.
@@ -32,6 +35,8 @@ pub struct Interaction {
     pub contact: ContactPipeline,
     /// Refinement following the tools.
     pub adapt: Adaptivity,
+    /// The blades' strokes (cuts); ops they made are in `blades.made`.
+    pub blades: BladeStrokes,
 }
 
 impl Interaction {
@@ -50,6 +55,7 @@ impl Interaction {
         Interaction {
             contact: ContactPipeline::new(sim, &tools, contact),
             adapt: Adaptivity::new(sim, adapt),
+            blades: BladeStrokes::new(sim, &tools, 0),
             tools,
         }
     }
@@ -71,6 +77,7 @@ impl Interaction {
             });
             tool.set_input(&input, dt);
         }
+        let cuts = self.blades.update(sim, &self.tools)?;
         let focus = self.contact.focus_points();
         let adapt = self.adapt.update(sim, &focus)?;
         let before = self.contact.state().stats;
@@ -82,6 +89,7 @@ impl Interaction {
             grasped: st.tools.iter().map(|t| t.grasped).sum(),
             narrow_tests: st.stats.narrow_tests - before.narrow_tests,
             adapt,
+            cuts,
         })
     }
 

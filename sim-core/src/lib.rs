@@ -10,6 +10,8 @@
 //!   whenever the lattice topology changes.
 //! * [`SimOptions`] — every knob of a step (model, polar method and tolerance, rotation
 //!   sharing angle, stiffness kernel, solver budget), defaulted from the scene.
+//! * [`cut`] — cutting (virtual node algorithm on the lattice, cut and capped surfaces)
+//!   as topology operations shared across sites ([`Simulation::apply_topology_op`]).
 //! * [`Interaction`] — the scene's tools ([`tools`]), tool–tissue contact and grasping
 //!   ([`contact`]) and refinement following the tools ([`adapt`]): call
 //!   [`Interaction::before_step`] with the tool inputs before every [`Simulation::step`].
@@ -22,6 +24,7 @@
 
 pub mod adapt;
 pub mod contact;
+pub mod cut;
 mod engine;
 mod error;
 mod interaction;
@@ -36,7 +39,7 @@ pub use contact::{
     ContactParams, ContactPipeline, ContactState, ContactStats, Interaction, InteractionReport,
     LocalModel, ToolContact,
 };
-pub use engine::{Simulation, StepReport, Surface};
+pub use engine::{Simulation, StepReport, Surface, TopologyChange};
 pub use error::SimError;
 pub use multigrid::lattice_hierarchy;
 pub use options::SimOptions;

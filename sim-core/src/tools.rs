@@ -126,6 +126,8 @@ impl Tool {
                     samples.push((p, ToolPart::Body))
                 });
             }
+            // A blade cuts (crate::cut::blade) and does not push: no contact samples.
+            ToolKind::Blade => {}
             ToolKind::Forceps => {
                 capsule_samples(
                     V3::new(0.0, 0.0, r),
@@ -227,6 +229,17 @@ impl Tool {
     /// Whether a forceps holding tissue must let go.
     pub fn wants_release(&self) -> bool {
         self.kind != ToolKind::Forceps || self.jaw > self.grasp.open
+    }
+
+    /// A blade's cutting edge in world coordinates (m): tip → `length` along the shaft;
+    /// `None` for other kinds.
+    pub fn blade_edge(&self) -> Option<(V3, V3)> {
+        (self.kind == ToolKind::Blade).then(|| {
+            (
+                self.tip(),
+                (self.pose * nalgebra::Point3::new(0.0, 0.0, self.length)).coords,
+            )
+        })
     }
 
     /// Axis-aligned box of the samples (m), inflated by `margin`.

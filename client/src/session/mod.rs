@@ -26,6 +26,7 @@ pub mod claims;
 pub mod inbox;
 pub mod pacing;
 pub mod sites;
+pub mod topology;
 pub mod wire;
 
 #[cfg(test)]
@@ -144,6 +145,13 @@ pub struct SessionStats {
     /// Sum and count of per-step lags behind the sites followed (s).
     pub behind_sum: f64,
     pub behind_steps: u64,
+    /// Topology ops received and applied (duplicates not counted), their CPU time (µs,
+    /// sum), keyframes dropped because their topology was not reached yet, and the bytes of
+    /// the topology ops we sent (framed).
+    pub topology_applied: u64,
+    pub topology_apply_us_total: f64,
+    pub keyframes_topology_dropped: u64,
+    pub topology_bytes_sent: u64,
 }
 
 /// What a renderer or HUD reads of the session (see `site::SiteStatus`).
@@ -184,6 +192,9 @@ pub struct SiteSession {
     transmits: VecDeque<Transmit>,
     events: VecDeque<SessionEvent>,
     stats: SessionStats,
+    /// Our simulation's topology epoch when frames were last produced (stamped on our
+    /// keyframes).
+    topology_epoch: u32,
 }
 
 /// The sync tuning of a site. Extrapolation stays gentle: tissue under a surgeon's hand
@@ -228,6 +239,7 @@ impl SiteSession {
             transmits: VecDeque::new(),
             events: VecDeque::new(),
             stats: SessionStats::default(),
+            topology_epoch: 0,
         }
     }
 
@@ -347,6 +359,15 @@ impl SiteSession {
                 self.events.push_back(SessionEvent::RemotePose(p));
             }
             Message::Keyframe(kf) if self.sites.is_other(kf.owner) => {
+                if kf.topology > sim.topology().epoch() {
+                    debug!(
+                        region = kf.region,
+                        topology = kf.topology,
+                        "keyframe of a topology not reached yet dropped"
+                    );
+                    self.stats.keyframes_topology_dropped += 1;
+                    return Ok(());
+                }
                 if !self.accepts_epoch(kf.epoch) {
                     debug!(
                         region = kf.region,
@@ -370,8 +391,16 @@ impl SiteSession {
                     info!(epoch = s.epoch, "taking the session's scene epoch");
                     self.epoch = s.epoch;
                 }
+                for op in &s.topology {
+                    if op.epoch == self.epoch {
+                        self.apply_topology(sim, op)?;
+                    }
+                }
                 for kf in s.keyframes {
-                    if self.sites.is_other(kf.owner) && kf.epoch == self.epoch {
+                    if self.sites.is_other(kf.owner)
+                        && kf.epoch == self.epoch
+                        && kf.topology <= sim.topology().epoch()
+                    {
                         self.receive(sim, kf.epoch, wire::keyframe_from_wire(&kf))?;
                     }
                 }
@@ -438,6 +467,13 @@ impl SiteSession {
                 });
             }
             Message::Teaching(tr) => self.events.push_back(SessionEvent::Teaching(tr)),
+            Message::Topology(op) => {
+                if op.epoch == self.epoch {
+                    self.apply_topology(sim, &op)?;
+                } else {
+                    debug!(epoch = op.epoch, "topology op of another epoch dropped");
+                }
+            }
             other => debug!(kind = other.kind(), "ignored message"),
         }
         Ok(())
@@ -510,6 +546,7 @@ impl SiteSession {
     /// others end where we are). Input-only sites claim too: ownership then says whose
     /// organ the others are compared with. Observers never claim.
     pub fn handle_touched(&mut self, sim: &Simulation, touched: &[RegionId], now: Now) {
+        self.topology_epoch = sim.topology().epoch();
         if !self.cfg.linked || self.cfg.role == Role::Observer {
             return;
         }
@@ -536,6 +573,42 @@ impl SiteSession {
         }
     }
 
+    /// Applies a received topology op (a duplicate changes nothing); counts it and its
+    /// CPU time.
+    fn apply_topology(
+        &mut self,
+        sim: &mut Simulation,
+        op: &proto::TopologyOp,
+    ) -> Result<(), SimError> {
+        let t0 = Instant::now();
+        let change = sim.apply_topology_op(topology::topology_from_wire(op))?;
+        if change.applied {
+            self.stats.topology_applied += 1;
+            self.stats.topology_apply_us_total += t0.elapsed().as_secs_f64() * 1e6;
+            info!(
+                site = op.site,
+                seq = op.seq,
+                epoch = sim.topology().epoch(),
+                crossed = change.crossed,
+                "topology op applied"
+            );
+        }
+        Ok(())
+    }
+
+    /// Sends the topology ops our own tools made (already applied to our simulation) to
+    /// the others.
+    pub fn share_topology(&mut self, ops: &[sim_core::cut::TopologyOp]) {
+        if self.cfg.role == Role::Observer {
+            return;
+        }
+        for op in ops {
+            let msg = Message::Topology(topology::topology_to_wire(op, self.epoch));
+            self.stats.topology_bytes_sent += proto::encode_frame(&msg).len() as u64;
+            self.control(msg);
+        }
+    }
+
     /// Before the step: remote regions follow their owners.
     pub fn before_step(&mut self, sim: &mut Simulation) {
         self.sync.before_step(sim);
@@ -544,6 +617,7 @@ impl SiteSession {
     /// After the step: the frames we owe the others for the regions we own, and our time
     /// stamp.
     pub fn after_step(&mut self, sim: &Simulation, now: Now) {
+        self.topology_epoch = sim.topology().epoch();
         if !self.cfg.linked || self.cfg.role == Role::Observer {
             return;
         }
@@ -678,7 +752,8 @@ impl SiteSession {
 
     fn send_frame(&mut self, frame: sim_core::sync::SyncFrame, me: SiteId, now: Now) {
         match wire::frame_to_wire(frame, me, self.epoch) {
-            Some(WireFrame::Keyframe(kf)) => {
+            Some(WireFrame::Keyframe(mut kf)) => {
+                kf.topology = self.topology_epoch;
                 for r in self.sites.receivers() {
                     self.baselines
                         .on_sent(r, kf.region, kf.keyframe_id, now.coordinator_us);

@@ -90,6 +90,7 @@ fn snapshot(sim_time_s: f64, epoch: Epoch, keyframes: Vec<proto::RegionKeyframe>
         epoch,
         owners: Vec::new(),
         keyframes,
+        topology: Vec::new(),
     })
 }
 
@@ -560,4 +561,103 @@ impl Pair {
             other => panic!("{other:?}"),
         }
     }
+}
+
+/// A cut through the middle of the organ (x = mid-point of its rest box plus 1.3 mm, off
+/// the lattice planes), as A would send it.
+fn cut_message(sim: &Simulation, epoch: Epoch) -> proto::TopologyOp {
+    let rest = sim.rest_positions();
+    let (lo, hi) = rest
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+            (lo.min(p.x), hi.max(p.x))
+        });
+    let x = 0.5 * (lo + hi) + 0.0013;
+    proto::TopologyOp {
+        epoch,
+        site: 1,
+        seq: 0,
+        kind: proto::TopologyKind::Cut {
+            triangles: vec![
+                [[x, -1.0, -1.0], [x, 1.0, -1.0], [x, 1.0, 1.0]],
+                [[x, -1.0, -1.0], [x, 1.0, 1.0], [x, -1.0, 1.0]],
+            ],
+        },
+    }
+}
+
+#[test]
+fn topology_ops_apply_once_and_keyframes_of_an_unreached_topology_are_dropped() {
+    let mut p = pair();
+    // A keyframe from a sender that already applied one topology op: B has not.
+    let mut ahead = p.a_keyframe_after_grant(0);
+    ahead.topology = 1;
+    ahead.sim_time = p.sim_b.time();
+    let applied = p.b.stats().keyframes_applied;
+    let now = p.clock.now();
+    p.b.handle_message(&mut p.sim_b, Message::Keyframe(ahead.clone()), now)
+        .unwrap();
+    assert_eq!(p.b.stats().keyframes_applied, applied);
+    assert_eq!(p.b.stats().keyframes_topology_dropped, 1);
+    assert!(
+        acks(&drain(&mut p.b)).is_empty(),
+        "a dropped keyframe is not acknowledged"
+    );
+
+    // The op arrives twice (a duplicate) and one of another epoch: applied once.
+    let op = cut_message(&p.sim_b, 0);
+    for m in [
+        op.clone(),
+        op.clone(),
+        proto::TopologyOp {
+            epoch: 7,
+            ..op.clone()
+        },
+    ] {
+        let now = p.clock.now();
+        p.b.handle_message(&mut p.sim_b, Message::Topology(m), now)
+            .unwrap();
+    }
+    assert_eq!(p.sim_b.topology().epoch(), 1);
+    assert_eq!(p.b.stats().topology_applied, 1);
+    assert!(p.sim_b.separation().is_some_and(|s| !s.crossed.is_empty()));
+
+    // A late joiner takes the op from its snapshot and reaches the same topology.
+    let clock = FakeClock::new();
+    let mut sim_c = new_sim();
+    let mut c = session(Role::Trainee, &sim_c, &clock);
+    c.handle_welcome(
+        &welcome(
+            3,
+            &[
+                (1, Role::Instructor),
+                (2, Role::Trainee),
+                (3, Role::Trainee),
+            ],
+        ),
+        clock.now(),
+    );
+    let Message::Snapshot(mut s) = snapshot(p.sim_b.time(), 0, Vec::new()) else {
+        unreachable!()
+    };
+    s.topology = vec![op.clone()];
+    c.handle_message(&mut sim_c, Message::Snapshot(s), clock.now())
+        .unwrap();
+    assert_eq!(sim_c.topology().digest(), p.sim_b.topology().digest());
+
+    // The owner's ops go out on the control stream with our scene epoch.
+    let own = sim_core::cut::TopologyOp::Cut(sim_core::cut::CutOp {
+        id: sim_core::cut::OpId { site: 1, seq: 0 },
+        triangles: match &op.kind {
+            proto::TopologyKind::Cut { triangles } => triangles.clone(),
+        },
+    });
+    p.a.share_topology(&[own]);
+    let sent: Vec<Transmit> = drain(&mut p.a);
+    assert!(
+        sent.iter()
+            .any(|t| matches!(t, Transmit::Control(Message::Topology(m)) if *m == op)),
+        "{sent:?}"
+    );
+    assert!(p.a.stats().topology_bytes_sent > 0);
 }

@@ -56,6 +56,7 @@ pub fn frame_to_wire(frame: SyncFrame, me: SiteId, epoch: Epoch) -> Option<WireF
                 epoch,
                 tree_bits: kf.tree_bits,
                 nodes,
+                topology: 0,
             }))
         }
         SyncFrame::TreeDelta(d) => Some(WireFrame::Delta(proto::TreeDelta {

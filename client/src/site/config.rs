@@ -66,6 +66,22 @@ pub struct SiteConfig {
 /// What a site did, printed by `cosurg join` and collected by `cosurg demo`.
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct SiteReport {
+    /// Topology at the end: epoch (topology ops applied), digest of the ops and the
+    /// separated element set (hex; equal on sites with the same topology), ops received and
+    /// applied, their mean apply time (µs), keyframes dropped for a topology not reached
+    /// yet, and the bytes of the ops this site sent.
+    #[serde(default)]
+    pub topology_epoch: u32,
+    #[serde(default)]
+    pub topology_digest: String,
+    #[serde(default)]
+    pub topology_ops_received: u64,
+    #[serde(default)]
+    pub topology_apply_us_mean: f64,
+    #[serde(default)]
+    pub keyframes_topology_dropped: u64,
+    #[serde(default)]
+    pub topology_bytes_sent: u64,
     pub name: String,
     pub role: String,
     pub strategy: String,

@@ -220,6 +220,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
             session.send_control(m);
         }
         let touched = tools.before_step(&mut sim, local, &session)?;
+        session.share_topology(&tools.take_topology_ops());
         report.max_tool_force_n = report.max_tool_force_n.max(tools.local_force().norm());
         if let Some(h) = &haptic {
             h.publish(&tools, t);
@@ -316,6 +317,16 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     report.paced_seconds = stats.paced_seconds;
     report.reconnects = stats.reconnects;
     report.resets = stats.resets;
+    report.topology_epoch = sim.topology().epoch();
+    report.topology_digest = format!("{:016x}", sim.topology().digest());
+    report.topology_ops_received = stats.topology_applied;
+    report.topology_apply_us_mean = if stats.topology_applied == 0 {
+        0.0
+    } else {
+        stats.topology_apply_us_total / stats.topology_applied as f64
+    };
+    report.keyframes_topology_dropped = stats.keyframes_topology_dropped;
+    report.topology_bytes_sent = stats.topology_bytes_sent;
     report.epoch = session.epoch();
     report.owned = session.owned_intervals(sim.time());
     report.keyframes_applied = stats.keyframes_applied;

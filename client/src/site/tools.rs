@@ -37,7 +37,7 @@ pub struct Tools {
 
 impl Tools {
     pub fn new(sim: &Simulation, local: Option<&str>, strategy: SyncStrategy) -> Result<Self> {
-        let interaction = Interaction::new(sim);
+        let mut interaction = Interaction::new(sim);
         let local = match local {
             Some(name) => Some(
                 interaction
@@ -47,6 +47,10 @@ impl Tools {
             ),
             None => None,
         };
+        // Only the blade this site drives cuts here; the others' cuts arrive as ops.
+        interaction.blades.enabled = (0..interaction.tools.len())
+            .map(|i| Some(i) == local)
+            .collect();
         Ok(Tools {
             remote: vec![None; interaction.tools.len()],
             remote_track: vec![PoseTrack::default(); interaction.tools.len()],
@@ -58,10 +62,18 @@ impl Tools {
         })
     }
 
+    /// The topology ops (cuts) our blade made since the last call, to share.
+    pub fn take_topology_ops(&mut self) -> Vec<sim_core::cut::TopologyOp> {
+        std::mem::take(&mut self.interaction.blades.made)
+    }
+
     /// After a scene reset: contact starts again on the rebuilt simulation (grasps and
     /// contact state of the old one are gone); remote tool tracks are kept.
     pub fn reset(&mut self, sim: &Simulation) {
         self.interaction = Interaction::new(sim);
+        self.interaction.blades.enabled = (0..self.interaction.tools.len())
+            .map(|i| Some(i) == self.local)
+            .collect();
         self.touch_radius = 2.0 * sim.lattice().params().cell;
     }
 
@@ -120,6 +132,7 @@ impl Tools {
                 }
             })
             .collect();
+        self.interaction.blades.site = session.site_id().map_or(0, u32::from);
         self.interaction.before_step(sim, &inputs)?;
         let Some(i) = self.local else {
             return Ok(Vec::new());

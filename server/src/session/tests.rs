@@ -61,6 +61,7 @@ fn kf(region: RegionId, id: KeyframeId, owner: SiteId, epoch: u32) -> RegionKeyf
         epoch,
         tree_bits: vec![1],
         nodes: QuantisedNodes::default(),
+        topology: 0,
     }
 }
 
@@ -462,4 +463,64 @@ fn revoking_an_invitation_removes_its_members_only() {
     assert!(s.site(b).is_some() && s.site(i).is_some());
     // the same list again changes nothing
     assert!(s.set_revoked(BTreeSet::from([[1; 16]])).is_empty());
+}
+
+fn cut(epoch: u32, site: SiteId, seq: u32) -> TopologyOp {
+    TopologyOp {
+        epoch,
+        site,
+        seq,
+        kind: TopologyKind::Cut {
+            triangles: vec![[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]],
+        },
+    }
+}
+
+#[test]
+fn topology_ops_are_relayed_once_kept_for_late_joiners_and_cleared_by_a_reset() {
+    let mut s = session();
+    let i = join(&mut s, "prof", Role::Instructor);
+    let a = join(&mut s, "a", Role::Trainee);
+    let o = join(&mut s, "o", Role::Observer);
+    // Relayed to the others, stamped with the sender's id.
+    let acts = s.on_control(a, Message::Topology(cut(0, 99, 0)), 0);
+    assert_eq!(
+        acts,
+        vec![Action::Control {
+            to: Target::AllExcept(a),
+            msg: Message::Topology(cut(0, a, 0)),
+        }]
+    );
+    // A duplicate is not relayed again; an op of another epoch or from an observer is
+    // dropped.
+    assert!(
+        s.on_control(a, Message::Topology(cut(0, a, 0)), 0)
+            .is_empty()
+    );
+    assert!(matches!(
+        s.on_control(a, Message::Topology(cut(3, a, 1)), 0)[0],
+        Action::Drop {
+            reason: DropReason::StaleEpoch,
+            ..
+        }
+    ));
+    assert!(matches!(
+        s.on_control(o, Message::Topology(cut(0, o, 0)), 0)[0],
+        Action::Drop {
+            reason: DropReason::Observer,
+            ..
+        }
+    ));
+    // A late joiner's snapshot holds it.
+    assert_eq!(s.snapshot().topology, vec![cut(0, a, 0)]);
+    // A reset starts a new scene: no topology.
+    s.on_control(
+        i,
+        Message::Command(Command::ResetScene {
+            epoch: 0,
+            sim_time_s: 1.0,
+        }),
+        0,
+    );
+    assert!(s.snapshot().topology.is_empty());
 }

@@ -48,10 +48,13 @@ impl SurfaceRecorder {
     /// Samples the marks passed since the last call.
     pub fn record(&mut self, sim: &Simulation) {
         let t = sim.time();
+        // A cut appends vertices to a surface (its original ones keep their indices): the
+        // recording keeps the vertices it declared.
         let cur: Vec<V3> = sim
             .surfaces()
             .iter()
-            .flat_map(|s| s.deformed.iter().copied())
+            .zip(&self.recording.surface_sizes)
+            .flat_map(|(s, &n)| s.deformed.iter().take(n as usize).copied())
             .collect();
         let dt = self.recording.interval_s;
         loop {

@@ -357,6 +357,9 @@ pub enum ToolKind {
     Probe,
     /// Dissection hook.
     Hook,
+    /// Blade (scalpel or scissors closing): its cutting edge runs along the shaft from the
+    /// tip to `length`; the surface it sweeps through a body is cut. No contact.
+    Blade,
 }
 
 fn default_orientation() -> [f64; 4] {

@@ -1,0 +1,37 @@
+//! Topology operations (cuts) between sim-core and the wire, and their handling in the
+//! session: ops made here go to the coordinator on the control stream (reliable, ordered)
+//! and are relayed to every other site; the coordinator keeps them for late joiners' snapshots.
+//! Every site applies every op it receives (duplicates are no-ops, the order does not
+//! matter: `sim_core::cut`). A keyframe whose sender had applied more ops than we have is
+//! dropped (`SiteSession::handle_message`): its nodes belong to a topology we have not
+//! reached, and the owner's next keyframe replaces it.
+
+use proto::{Epoch, SiteId};
+use sim_core::cut::{CutOp, OpId, TopologyOp};
+
+/// An op of ours as the wire message of scene epoch `epoch`.
+pub fn topology_to_wire(op: &TopologyOp, epoch: Epoch) -> proto::TopologyOp {
+    match op {
+        TopologyOp::Cut(c) => proto::TopologyOp {
+            epoch,
+            site: c.id.site as SiteId,
+            seq: c.id.seq,
+            kind: proto::TopologyKind::Cut {
+                triangles: c.triangles.clone(),
+            },
+        },
+    }
+}
+
+/// A received op in sim-core's terms.
+pub fn topology_from_wire(op: &proto::TopologyOp) -> TopologyOp {
+    match &op.kind {
+        proto::TopologyKind::Cut { triangles } => TopologyOp::Cut(CutOp {
+            id: OpId {
+                site: u32::from(op.site),
+                seq: op.seq,
+            },
+            triangles: triangles.clone(),
+        }),
+    }
+}

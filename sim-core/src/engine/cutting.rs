@@ -1,0 +1,418 @@
+//! The simulation side of cutting: applying topology operations, keeping the virtual
+//! nodes' state across topology changes, the element copies of the FEM system, the cut
+//! surfaces, and mapping deformed points back to rest coordinates (for the blade).
+//!
+//! Layout of the node arrays once a cut exists: slots `0..capacity` are the lattice's
+//! nodes as before (indexed by [`NodeId`]), slots `capacity..` are the virtual nodes of
+//! [`Separation::virtual_nodes`]. A lattice topology change moves the virtual block (its
+//! state follows the element copies, see [`Simulation::reseparate`]).
+
+use nalgebra::Vector3;
+use sim_lattice::{NodeId, TetId, TopologyEvent};
+use sim_scene::TriMesh;
+
+use super::Simulation;
+use crate::cut::{Separation, Sheet, TopologyOp, cut_surface, separate::separate};
+use crate::error::SimError;
+
+type V3 = Vector3<f64>;
+
+/// Cut state of a simulation (present once a cut op is applied).
+#[derive(Clone, Debug)]
+pub(crate) struct CutState {
+    pub(crate) sheet: Sheet,
+    pub(crate) separation: Separation,
+    /// Every surface's rest mesh before any cut (cuts are recomputed from it).
+    pub(crate) original: Vec<TriMesh>,
+    /// Per surface and vertex: the degrees of freedom and weights it is interpolated from.
+    pub(crate) hosts: Vec<Vec<([usize; 4], [f64; 4])>>,
+    /// Why a surface could not be cut (it is then left uncut), per surface.
+    pub(crate) surface_errors: Vec<Option<String>>,
+}
+
+/// What applying a topology op did.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TopologyChange {
+    /// Whether the op was new (false: a duplicate, nothing changed).
+    pub applied: bool,
+    /// Leaves split to reach the deepest level along the cut.
+    pub refined: usize,
+    /// Leaves separated into copies (all cuts).
+    pub crossed: usize,
+    /// Virtual nodes (all cuts).
+    pub virtual_nodes: usize,
+}
+
+impl Simulation {
+    /// Applies a topology operation (a cut). Idempotent: an op already applied (same
+    /// [`crate::cut::OpId`]) changes nothing. The result depends only on the set of ops
+    /// applied, not on their order.
+    pub fn apply_topology_op(&mut self, op: TopologyOp) -> Result<TopologyChange, SimError> {
+        match &op {
+            TopologyOp::Cut(c) => c.validate().map_err(SimError::Topology)?,
+        }
+        if !self.topology.insert(op) {
+            return Ok(TopologyChange::default());
+        }
+        let sheet = self.topology.sheet();
+        if self.cut.is_none() {
+            let original = self.surfaces.iter().map(|s| s.rest.clone()).collect();
+            self.cut = Some(CutState {
+                sheet: sheet.clone(),
+                separation: Separation {
+                    copies: Vec::new(),
+                    capacity: self.lattice.node_capacity(),
+                    virtual_nodes: Vec::new(),
+                    crossed: Vec::new(),
+                },
+                original,
+                hosts: Vec::new(),
+                surface_errors: Vec::new(),
+            });
+            // Rotation sharing and the lattice multigrid index lattice nodes only.
+            self.sharing = crate::sharing::RotationSharing::new(None);
+        }
+        let cut = self.cut.as_mut().expect("set above");
+        cut.sheet = sheet;
+        let old = self.detach_virtual();
+        let refined = self.refine_along_sheet()?;
+        self.cut_surfaces()?;
+        self.reseparate(old)?;
+        let cut = self.cut.as_ref().expect("set above");
+        self.topology.update_digest(&cut.separation);
+        Ok(TopologyChange {
+            applied: true,
+            refined,
+            crossed: cut.separation.crossed.len(),
+            virtual_nodes: cut.separation.virtual_nodes.len(),
+        })
+    }
+
+    /// Takes the virtual nodes' state out of the node arrays (they then have the lattice
+    /// layout again); `None` without a cut.
+    pub(crate) fn detach_virtual(&mut self) -> Option<(Separation, Vec<V3>, Vec<V3>)> {
+        let cut = self.cut.as_ref()?;
+        let sep = cut.separation.clone();
+        let cap = sep.capacity;
+        let xs = if self.x.len() > cap {
+            self.x.split_off(cap)
+        } else {
+            Vec::new()
+        };
+        let vs = if self.v.len() > cap {
+            self.v.split_off(cap)
+        } else {
+            Vec::new()
+        };
+        for a in [&mut self.f_extra, &mut self.f_scene] {
+            a.truncate(cap);
+        }
+        self.fixed_scene.truncate(cap);
+        Some((sep, xs, vs))
+    }
+
+    /// Refines every leaf the sheet may touch to the lattice's deepest level.
+    fn refine_along_sheet(&mut self) -> Result<usize, SimError> {
+        let Some(cut) = &self.cut else { return Ok(0) };
+        let sheet = cut.sheet.clone();
+        let mut events = Vec::new();
+        let split = self.lattice.refine_where(
+            |lat, t| sheet.may_touch_tet(&lat.tet_nodes(t).map(|n| lat.node_rest(n))),
+            &mut events,
+        );
+        self.apply_lattice_events(&events)?;
+        Ok(split)
+    }
+
+    /// Recomputes every surface's cut from its original mesh.
+    fn cut_surfaces(&mut self) -> Result<(), SimError> {
+        let Some(cut) = &mut self.cut else {
+            return Ok(());
+        };
+        cut.surface_errors.clear();
+        for (s, original) in self.surfaces.iter_mut().zip(&cut.original) {
+            match cut_surface(original, &cut.sheet) {
+                Ok(c) => {
+                    s.embedding = sim_lattice::Embedding::new(&self.lattice, &c.mesh.vertices)?;
+                    s.rest = c.mesh;
+                    cut.surface_errors.push(None);
+                }
+                Err(e) => {
+                    tracing::warn!(surface = %s.name, error = %e, "surface left uncut");
+                    cut.surface_errors.push(Some(e.to_string()));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Separates the current leaves along the sheet and lays the node arrays out for the
+    /// new degrees of freedom. Every degree of freedom takes its state from the one its
+    /// first (copy, corner) had before: the old copy of the same leaf whose real corners
+    /// include the new copy's (cuts only split components), or the lattice node for a
+    /// leaf that did not exist (refinement).
+    pub(crate) fn reseparate(
+        &mut self,
+        old: Option<(Separation, Vec<V3>, Vec<V3>)>,
+    ) -> Result<(), SimError> {
+        let Some(cut) = &self.cut else { return Ok(()) };
+        let sep = separate(&self.lattice, &cut.sheet);
+        let cap = sep.capacity;
+        let n = sep.dof_count();
+        let mut x = self.x.clone();
+        let mut v = self.v.clone();
+        x.resize(n, V3::zeros());
+        v.resize(n, V3::zeros());
+        let mut done = vec![false; n];
+        for c in &sep.copies {
+            for k in 0..4 {
+                let d = c.dofs[k];
+                if done[d] {
+                    continue;
+                }
+                done[d] = true;
+                let node = sep.dof_node(d).0 as usize;
+                let mut state = (self.x[node], self.v[node]);
+                if let Some((old_sep, xs, vs)) = &old {
+                    let prev = old_sep
+                        .copies_of(c.leaf)
+                        .iter()
+                        .find(|o| o.mask & c.mask == c.mask)
+                        .map(|o| o.dofs[k]);
+                    if let Some(od) = prev {
+                        state = if od < old_sep.capacity {
+                            (self.x[od], self.v[od])
+                        } else {
+                            (xs[od - old_sep.capacity], vs[od - old_sep.capacity])
+                        };
+                    }
+                }
+                x[d] = state.0;
+                v[d] = state.1;
+            }
+        }
+        self.x = x;
+        self.v = v;
+        self.f_extra.resize(n, V3::zeros());
+        self.f_scene.resize(n, V3::zeros());
+        let mut fixed = self.fixed_scene.clone();
+        fixed.resize(n, false);
+        for (k, node) in sep.virtual_nodes.iter().enumerate() {
+            fixed[cap + k] = self.fixed_scene[node.0 as usize];
+        }
+        self.fixed_scene = fixed;
+        self.prescribed.retain(|n, _| (n.0 as usize) < cap);
+        let cut = self.cut.as_mut().expect("checked above");
+        cut.separation = sep;
+        self.update_cut_hosts();
+        self.fem = None;
+        self.update_surfaces();
+        Ok(())
+    }
+
+    /// Which copy of its host leaf every surface vertex follows: the copy holding the
+    /// nearest corner that the vertex reaches without crossing the sheet (exact test).
+    fn update_cut_hosts(&mut self) {
+        let Some(cut) = &mut self.cut else { return };
+        let lat = &self.lattice;
+        cut.hosts = self
+            .surfaces
+            .iter()
+            .map(|s| {
+                (0..s.embedding.len())
+                    .map(|i| {
+                        let (t, w, nodes) = s.embedding.host(i);
+                        let copies = cut.separation.copies_of(t);
+                        let dofs = match copies.len() {
+                            0 => nodes.map(|n| n.0 as usize),
+                            1 => copies[0].dofs,
+                            _ => {
+                                let p = s.rest.vertices[i];
+                                let mut order: Vec<(f64, usize)> = (0..4)
+                                    .map(|k| ((lat.node_rest(nodes[k]) - p).norm_squared(), k))
+                                    .collect();
+                                order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                                let corner = order.iter().map(|o| o.1).find(|&k| {
+                                    cut.sheet.crossing(&p, &lat.node_rest(nodes[k])).is_none()
+                                });
+                                corner
+                                    .and_then(|k| copies.iter().find(|c| c.mask & (1 << k) != 0))
+                                    .unwrap_or_else(|| {
+                                        copies
+                                            .iter()
+                                            .max_by(|a, b| a.fraction.total_cmp(&b.fraction))
+                                            .expect("two or more copies")
+                                    })
+                                    .dofs
+                            }
+                        };
+                        (dofs, w)
+                    })
+                    .collect()
+            })
+            .collect();
+    }
+
+    /// The elements of the FEM system when a cut exists: (degrees of freedom, leaf,
+    /// volume fraction) of every copy.
+    pub(crate) fn cut_elements(&self) -> Option<Vec<([usize; 4], TetId, f64)>> {
+        let cut = self.cut.as_ref()?;
+        Some(
+            cut.separation
+                .copies
+                .iter()
+                .map(|c| (c.dofs, c.leaf, c.fraction))
+                .collect(),
+        )
+    }
+
+    /// Rest position of every degree of freedom (lattice slots, then virtual nodes).
+    pub(crate) fn dof_rest(&self) -> Vec<V3> {
+        let mut rest = vec![V3::zeros(); self.x.len().max(self.lattice.node_capacity())];
+        for n in self.lattice.nodes() {
+            rest[n.0 as usize] = self.lattice.node_rest(n);
+        }
+        if let Some(cut) = &self.cut {
+            let cap = cut.separation.capacity;
+            for (k, n) in cut.separation.virtual_nodes.iter().enumerate() {
+                rest[cap + k] = self.lattice.node_rest(*n);
+            }
+        }
+        rest
+    }
+
+    /// Whether every degree-of-freedom slot holds a live node.
+    pub(crate) fn dof_alive(&self) -> Vec<bool> {
+        let cap = self.lattice.node_capacity();
+        let mut alive: Vec<bool> = (0..cap)
+            .map(|i| self.lattice.node_alive(NodeId(i as u32)))
+            .collect();
+        alive.resize(self.x.len().max(cap), true);
+        alive
+    }
+
+    /// Interpolates the cut surfaces (returns false without a cut).
+    pub(crate) fn interpolate_cut_surfaces(&mut self) -> bool {
+        let Some(cut) = &self.cut else { return false };
+        for (s, hosts) in self.surfaces.iter_mut().zip(&cut.hosts) {
+            s.deformed.resize(hosts.len(), V3::zeros());
+            for (p, (dofs, w)) in s.deformed.iter_mut().zip(hosts) {
+                *p = (0..4).map(|k| w[k] * self.x[dofs[k]]).sum();
+            }
+        }
+        true
+    }
+
+    /// Re-separates after a lattice topology change (adaptivity) when a cut exists.
+    pub(crate) fn after_lattice_change_cut(
+        &mut self,
+        old: Option<(Separation, Vec<V3>, Vec<V3>)>,
+    ) -> Result<(), SimError> {
+        if self.cut.is_none() {
+            return Ok(());
+        }
+        self.refine_along_sheet()?;
+        self.reseparate(old)
+    }
+
+    /// Whether coarsening the diamond around `node` could merge a separated leaf (the
+    /// adaptivity keeps such diamonds): the node lies within a root cell of the sheet's
+    /// bounding box.
+    pub fn cut_pins_node(&self, node: NodeId) -> bool {
+        let Some(cut) = &self.cut else { return false };
+        self.node_near_sheet(node, &cut.sheet)
+    }
+
+    fn node_near_sheet(&self, node: NodeId, sheet: &Sheet) -> bool {
+        let p = self.lattice.node_rest(node);
+        let h = self.lattice.params().cell;
+        sheet.overlaps_box(&p.add_scalar(-h), &p.add_scalar(h))
+    }
+
+    /// The applied topology operations, epoch and digest.
+    pub fn topology(&self) -> &crate::cut::TopologyLog {
+        &self.topology
+    }
+
+    /// The separation of the lattice by the cuts (`None` before the first cut).
+    pub fn separation(&self) -> Option<&Separation> {
+        self.cut.as_ref().map(|c| &c.separation)
+    }
+
+    /// Per surface, why it could not be cut (`None`: cut and capped, or no cut).
+    pub fn surface_cut_errors(&self) -> Vec<Option<String>> {
+        self.cut
+            .as_ref()
+            .map(|c| c.surface_errors.clone())
+            .unwrap_or_else(|| vec![None; self.surfaces.len()])
+    }
+
+    /// Total rest volume of the elements (m³): with a cut, each copy counts with its
+    /// volume fraction.
+    pub fn element_rest_volume(&self) -> f64 {
+        match &self.cut {
+            Some(c) => c
+                .separation
+                .copies
+                .iter()
+                .map(|e| e.fraction * self.lattice.tet_rest_volume(e.leaf))
+                .sum(),
+            None => self
+                .lattice
+                .leaves()
+                .iter()
+                .map(|&t| self.lattice.tet_rest_volume(t))
+                .sum(),
+        }
+    }
+
+    /// Maps a deformed (world) point to rest coordinates through the element that
+    /// contains it, or, outside the body, the element it is least outside of (affine
+    /// extrapolation). Returns the rest point and whether the point is inside the body.
+    /// Not shared state: only the cutting site calls it, and its op carries the result.
+    pub fn rest_point_of(&self, q: &V3) -> Option<(V3, bool)> {
+        let mut best: Option<(f64, [usize; 4], [f64; 4])> = None;
+        let mut visit = |dofs: [usize; 4]| {
+            let p = dofs.map(|d| self.x[d]);
+            // Box pre-test: a point far outside this element's box cannot beat a
+            // containing element (worst barycentric < 0 either way).
+            if best.as_ref().is_some_and(|b| b.0 >= 0.0) {
+                let lo = p[0].inf(&p[1]).inf(&p[2]).inf(&p[3]);
+                let hi = p[0].sup(&p[1]).sup(&p[2]).sup(&p[3]);
+                if (0..3).any(|k| q[k] < lo[k] || q[k] > hi[k]) {
+                    return;
+                }
+            }
+            let m = nalgebra::Matrix3::from_columns(&[p[1] - p[0], p[2] - p[0], p[3] - p[0]]);
+            let Some(inv) = m.try_inverse() else { return };
+            let l = inv * (q - p[0]);
+            let w = [1.0 - l.x - l.y - l.z, l.x, l.y, l.z];
+            let worst = w.iter().copied().fold(f64::INFINITY, f64::min);
+            if best.as_ref().is_none_or(|b| worst > b.0) {
+                best = Some((worst, dofs, w));
+            }
+        };
+        match &self.cut {
+            Some(c) => c.separation.copies.iter().for_each(|e| visit(e.dofs)),
+            None => self
+                .lattice
+                .leaves()
+                .iter()
+                .for_each(|&t| visit(self.lattice.tet_nodes(t).map(|n| n.0 as usize))),
+        }
+        let (worst, dofs, w) = best?;
+        let node_of = |d: usize| match &self.cut {
+            Some(c) => c.separation.dof_node(d),
+            None => NodeId(d as u32),
+        };
+        let r = (0..4)
+            .map(|k| w[k] * self.lattice.node_rest(node_of(dofs[k])))
+            .sum();
+        Some((r, worst >= -1e-9))
+    }
+
+    /// Applies lattice events that the cut code itself caused (refinement along a sheet).
+    fn apply_lattice_events(&mut self, events: &[TopologyEvent]) -> Result<(), SimError> {
+        self.apply_lattice_events_only(events)
+    }
+}
