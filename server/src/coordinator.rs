@@ -46,6 +46,7 @@ use tracing::{debug, info, warn};
 use crate::admission::Admission;
 pub use crate::clock::WallClock;
 use crate::ratelimit::RateLimitConfig;
+use crate::recording::CoordinatorRecording;
 use crate::session::{Action, DatagramVerdict, Session, Target};
 pub use crate::stats::CoordinatorStats;
 use crate::stats::{Counters, inc};
@@ -69,6 +70,12 @@ pub enum ServerError {
         #[source]
         source: std::io::Error,
     },
+    #[error("cannot record the session into {dir}: {source}")]
+    Record {
+        dir: PathBuf,
+        #[source]
+        source: debrief::RecordError,
+    },
 }
 
 /// Configuration of a coordinator.
@@ -88,6 +95,8 @@ pub struct CoordinatorConfig {
     pub state_dir: Option<PathBuf>,
     /// Failed joins per source address.
     pub rate_limit: RateLimitConfig,
+    /// Record the session into `DIR/<session>.cosrec` ([`crate::recording`]); `None`: off.
+    pub record_dir: Option<PathBuf>,
 }
 
 impl CoordinatorConfig {
@@ -102,6 +111,7 @@ impl CoordinatorConfig {
             max_frame: proto::DEFAULT_MAX_FRAME,
             state_dir: None,
             rate_limit: RateLimitConfig::default(),
+            record_dir: None,
         }
     }
 
@@ -131,6 +141,8 @@ struct Peer {
 struct State {
     session: Session,
     peers: HashMap<SiteId, Peer>,
+    /// The session's recording, if `--record` (fed by the `// recording:` calls).
+    recording: Option<CoordinatorRecording>,
 }
 
 struct Shared {
@@ -151,6 +163,10 @@ impl Shared {
     /// Execute session actions. Called with the state locked.
     fn execute(&self, st: &mut State, actions: Vec<Action>) {
         for a in actions {
+            // recording: every control message the coordinator sends.
+            if let (Some(r), Action::Control { msg, .. }) = (st.recording.as_mut(), &a) {
+                r.on_control(msg);
+            }
             match a {
                 Action::Control { to, msg } => {
                     let frame = Bytes::from(proto::encode_frame(&msg));
@@ -226,11 +242,26 @@ impl Coordinator {
             source,
         })?;
         let heartbeat_us = config.session.heartbeat_interval_us.max(10_000);
+        let recording = match &config.record_dir {
+            Some(dir) => Some(
+                CoordinatorRecording::create(
+                    dir,
+                    &config.session.name,
+                    config.session.scene_hash.as_deref(),
+                )
+                .map_err(|source| ServerError::Record {
+                    dir: dir.clone(),
+                    source,
+                })?,
+            ),
+            None => None,
+        };
         let shared = Arc::new(Shared {
             clock: WallClock::new(),
             state: Mutex::new(State {
                 session: Session::new(config.session.clone()),
                 peers: HashMap::new(),
+                recording,
             }),
             counters: Counters::default(),
             max_frame: config.max_frame,
@@ -304,6 +335,10 @@ impl CoordinatorHandle {
         );
         self.tasks.abort_all();
         let _ = tokio::time::timeout(Duration::from_secs(1), self.endpoint.wait_idle()).await;
+        // recording: closed with the session.
+        if let Some(r) = self.shared.lock().recording.as_mut() {
+            r.finish();
+        }
         info!("coordinator stopped");
     }
 }
@@ -823,6 +858,10 @@ async fn datagram_loop(shared: &Shared, site: SiteId, conn: &Connection) -> Stri
         let st = &mut *st;
         match st.session.on_datagram(site, msg, now) {
             DatagramVerdict::Relay { msg, restamped } => {
+                // recording: tool poses and simulation clocks.
+                if let Some(r) = st.recording.as_mut() {
+                    r.on_datagram(&msg);
+                }
                 let bytes = if restamped {
                     Bytes::from(proto::encode(&msg))
                 } else {

@@ -5,6 +5,7 @@
 //! * [`coordinator`] — the async shell: [`Coordinator::bind`] → ([`CoordinatorHandle`], address);
 //! * [`state`] — the state directory: invitation key, revocations ([`state::mint`]);
 //! * [`ratelimit`] — failed joins per source address;
+//! * [`recording`] — the coordinator's session recording (`--record DIR`);
 //! * [`admin`] — `cosurg invite`: mint an invitation through a running coordinator;
 //! * [`tls`] — certificates, fingerprints, QUIC/TLS configs for both sides
 //!   ([`tls::client_config_pinned`], [`tls::client_config_ca`]);
@@ -16,6 +17,7 @@ pub mod cli;
 pub mod clock;
 pub mod coordinator;
 pub mod ratelimit;
+pub mod recording;
 pub mod session;
 pub mod state;
 mod stats;
