@@ -252,11 +252,22 @@ fn a_killed_site_leaves_a_readable_recording_and_the_coordinator_keeps_the_sessi
         a_track.len(),
         coord_a_end - a_track.times[0]
     );
-    // The instructor until the end of its session.
+    // The instructor's poses well past the kill (a site sends its tool while its script
+    // drives it: the grasp-and-lift ends 6 s after its start at 0.2 s), and its leave at
+    // the end of its session.
     let instructor_end = last_sample(&coord, "instructor").unwrap();
     assert!(
-        instructor_end >= SECONDS - 0.5,
-        "instructor until {instructor_end} s"
+        instructor_end >= 6.0,
+        "instructor poses until {instructor_end} s"
+    );
+    let instructor_leave = coord
+        .events()
+        .find(|e| e.site == "instructor" && e.kind == EventKind::Leave)
+        .expect("the instructor's leave");
+    assert!(
+        instructor_leave.time >= SECONDS - 0.5,
+        "instructor left at {} s",
+        instructor_leave.time
     );
     assert!(
         coord.events().any(|e| e.kind == EventKind::Claim),
