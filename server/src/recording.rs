@@ -192,17 +192,15 @@ impl CoordinatorRecording {
                 let name = self.name(r.site);
                 self.event(name, EventKind::Release, format!("region {}", r.region));
             }
-            Message::Teaching(t) => {
-                // Re-sent to every late joiner: record each trajectory once.
-                if self.trajectories.insert(t.id) {
-                    let detail = format!(
-                        "trajectory {} of tool {}: {} samples",
-                        t.id,
-                        t.tool,
-                        t.samples.len()
-                    );
-                    self.event(self.instructor(), EventKind::TeachingStart, detail);
-                }
+            // Re-sent to every late joiner: record each trajectory once.
+            Message::Teaching(t) if self.trajectories.insert(t.id) => {
+                let detail = format!(
+                    "trajectory {} of tool {}: {} samples",
+                    t.id,
+                    t.tool,
+                    t.samples.len()
+                );
+                self.event(self.instructor(), EventKind::TeachingStart, detail);
             }
             Message::Command(c) => {
                 let (kind, detail) = match c {

@@ -119,8 +119,8 @@ impl Player {
     }
 
     /// Lays out the timeline panel (play/pause, time slider, speed).
-    pub fn timeline(&mut self, ctx: &egui::Context) {
-        egui::TopBottomPanel::bottom("replay-timeline").show(ctx, |ui| {
+    pub fn timeline(&mut self, ui: &mut egui::Ui) {
+        egui::Panel::bottom("replay-timeline").show_inside(ui, |ui| {
             ui.horizontal(|ui| {
                 let label = if self.playing { "pause" } else { "play" };
                 if ui.button(label).clicked() {
@@ -228,7 +228,7 @@ pub fn run_replay_window(
                         false,
                         matches!(hands.mode, CameraMode::Orbit(_)),
                     );
-                    player.timeline(ui.ctx());
+                    player.timeline(ui);
                 },
             );
             for e in &input.events {
