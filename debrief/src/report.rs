@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::reader::{Recording, Track};
 use crate::score::{
-    Act, Measures, ScoreSettings, cut_intervals, dtw_between, find_acts, measure, speeds,
+    Act, Measures, ScoreSettings, dtw_between, event_acts, find_acts_with, measure, speeds,
 };
 
 /// Why a site could not be scored.
@@ -71,7 +71,7 @@ impl<'a> SiteTracks<'a> {
             .iter()
             .map(|t| {
                 let name = t.decl.as_ref().map_or("", |d| d.name.as_str());
-                find_acts(t, &cut_intervals(rec, site, name), s)
+                find_acts_with(t, &event_acts(rec, site, name), s)
             })
             .collect();
         Ok(SiteTracks {
