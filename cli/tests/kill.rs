@@ -37,7 +37,10 @@ fn wait_exit(child: &mut Child, limit: Duration) -> std::process::ExitStatus {
         if let Some(s) = child.try_wait().unwrap() {
             return s;
         }
-        assert!(Instant::now() < deadline, "process did not exit within {limit:?}");
+        assert!(
+            Instant::now() < deadline,
+            "process did not exit within {limit:?}"
+        );
         std::thread::sleep(Duration::from_millis(50));
     }
 }
@@ -134,7 +137,10 @@ fn a_killed_site_leaves_a_readable_recording_and_the_coordinator_keeps_the_sessi
     std::thread::spawn(move || for _ in lines {});
     let (addr, fingerprint) = (addr.unwrap(), fingerprint.unwrap());
     let coordinator_file = recording.unwrap();
-    assert_eq!(coordinator_file, dir.join("coordinator").join("kill.cosrec"));
+    assert_eq!(
+        coordinator_file,
+        dir.join("coordinator").join("kill.cosrec")
+    );
 
     let invite = Command::new(server_exe())
         .args(["invite", "--role", "trainee", "--site", "A"])
@@ -203,7 +209,8 @@ fn a_killed_site_leaves_a_readable_recording_and_the_coordinator_keeps_the_sessi
     let own_end = last_sample(&own, "A").unwrap();
     assert!(own_end >= 2.5, "A's own recording ends at {own_end} s");
     assert!(
-        !own.events().any(|e| e.site == "A" && e.kind == EventKind::Leave),
+        !own.events()
+            .any(|e| e.site == "A" && e.kind == EventKind::Leave),
         "a killed site cannot record its own leave"
     );
 
@@ -215,7 +222,10 @@ fn a_killed_site_leaves_a_readable_recording_and_the_coordinator_keeps_the_sessi
         .events()
         .any(|e| e.site == "A" && e.kind == EventKind::Leave)
     {
-        assert!(Instant::now() < deadline, "the coordinator never recorded A's leave");
+        assert!(
+            Instant::now() < deadline,
+            "the coordinator never recorded A's leave"
+        );
         std::thread::sleep(Duration::from_millis(100));
     }
     let term = Command::new("kill")
@@ -233,7 +243,10 @@ fn a_killed_site_leaves_a_readable_recording_and_the_coordinator_keeps_the_sessi
         .filter(|e| e.kind == EventKind::Join)
         .map(|e| e.site.as_str())
         .collect();
-    assert!(joins.contains(&"instructor") && joins.contains(&"A"), "{joins:?}");
+    assert!(
+        joins.contains(&"instructor") && joins.contains(&"A"),
+        "{joins:?}"
+    );
     // A's poses until the kill: at least as far as its own file, and not past its leave.
     let coord_a_end = last_sample(&coord, "A").expect("A's poses");
     assert!(

@@ -150,7 +150,11 @@ fn replay_screenshots_show_the_recording_and_change_with_time() {
         "the organ is in the picture: {liver} liver pixels"
     );
     let distinct: std::collections::HashSet<&[u8]> = early.chunks(4).collect();
-    assert!(distinct.len() > 100, "not a blank picture: {} colours", distinct.len());
+    assert!(
+        distinct.len() > 100,
+        "not a blank picture: {} colours",
+        distinct.len()
+    );
     let changed = early
         .chunks(4)
         .zip(late.chunks(4))

@@ -28,7 +28,8 @@ pub use format::{
     ToolSample, ToolState,
 };
 pub use reader::{
-    COORDINATOR_ROLE, EXTENSION, ReadError, Recording, Records, Session, SurfaceShape, Tail, Track, read_records,
+    COORDINATOR_ROLE, EXTENSION, ReadError, Recording, Records, Session, SurfaceShape, Tail, Track,
+    read_records,
 };
 pub use report::{ScoreError, ScoreReport, ScoredAct, SiteTracks, html_report, score_site};
 pub use score::{Act, ActKind, EventActs, Measures, ScoreSettings};

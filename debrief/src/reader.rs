@@ -267,10 +267,12 @@ impl Recording {
     /// Simulated time of the earliest and latest step record (s) (a coordinator's
     /// recording interleaves sites whose clocks differ by a few ms).
     pub fn time_span(&self) -> Option<(f64, f64)> {
-        self.steps().map(|s| s.time).fold(None, |span, t| match span {
-            None => Some((t, t)),
-            Some((a, b)) => Some((f64::min(a, t), f64::max(b, t))),
-        })
+        self.steps()
+            .map(|s| s.time)
+            .fold(None, |span, t| match span {
+                None => Some((t, t)),
+                Some((a, b)) => Some((f64::min(a, t), f64::max(b, t))),
+            })
     }
 
     /// The samples of tool `id`.

@@ -381,7 +381,10 @@ fn a_dead_sites_cut_off_recording_gives_way_to_the_coordinators() {
     );
     let s = Session::open(dir.path()).unwrap();
     let coord = s.recording_for("A").unwrap();
-    assert_eq!(coord.header.site, COORDINATOR_ROLE, "A's own file ends 2 s early");
+    assert_eq!(
+        coord.header.site, COORDINATOR_ROLE,
+        "A's own file ends 2 s early"
+    );
     // The coordinator's tools are named after the site recording's scene tools.
     let names: Vec<(&str, &str, &str)> = coord
         .tools()

@@ -232,7 +232,9 @@ impl CoordinatorRecording {
 
     /// The instructor's name (commands and teaching come from the instructor only).
     fn instructor(&self) -> String {
-        self.instructor.clone().unwrap_or_else(|| "instructor".into())
+        self.instructor
+            .clone()
+            .unwrap_or_else(|| "instructor".into())
     }
 
     /// A datagram the coordinator relays (tool poses, simulation clocks).
@@ -306,7 +308,9 @@ impl CoordinatorRecording {
                     keyframe_bytes = self.counts.keyframe_bytes,
                     "coordinator recording finished"
                 ),
-                Err(e) => warn!(path = %self.path.display(), error = %e, "coordinator recording not finished"),
+                Err(e) => {
+                    warn!(path = %self.path.display(), error = %e, "coordinator recording not finished")
+                }
             }
         }
     }

@@ -82,7 +82,9 @@ impl RecordedSession {
             if !rec.header.scene.contains(&scene.hash) {
                 tracing::warn!(
                     "recording {} was made with scene {:?}; drawing it with {} ({})",
-                    rec.path.as_ref().map_or("?".into(), |p| p.display().to_string()),
+                    rec.path
+                        .as_ref()
+                        .map_or("?".into(), |p| p.display().to_string()),
                     rec.header.scene,
                     scene.file,
                     scene.hash
@@ -114,7 +116,10 @@ impl RecordedSession {
                             .find(|s| format!("{:?}", s.kind).eq_ignore_ascii_case(&decl.kind))
                     });
                 let Some(spec) = spec else {
-                    tracing::warn!("tool {:?} of {site} is not in the scene; not drawn", decl.name);
+                    tracing::warn!(
+                        "tool {:?} of {site} is not in the scene; not drawn",
+                        decl.name
+                    );
                     continue;
                 };
                 widen(track.times[0], track.times[track.times.len() - 1]);
@@ -212,12 +217,9 @@ impl ReplaySource for RecordedSession {
                     });
                 }
                 let who = (k > 0).then(|| site.site.clone());
-                frame.tools.push(viewer::frame::tool_view(
-                    tool,
-                    force,
-                    s.grasped > 0,
-                    who,
-                ));
+                frame
+                    .tools
+                    .push(viewer::frame::tool_view(tool, force, s.grasped > 0, who));
             }
         }
         frame.hud = HudInfo {

@@ -46,7 +46,10 @@ fn records_joins_poses_claims_and_leaves_and_reads_back() {
         site: 2,
         previous: None,
     }));
-    rec.on_control(&Message::OwnershipRelease(OwnershipRelease { region: 7, site: 2 }));
+    rec.on_control(&Message::OwnershipRelease(OwnershipRelease {
+        region: 7,
+        site: 2,
+    }));
     rec.on_control(&Message::Command(Command::ResetScene {
         epoch: 1,
         sim_time_s: 1.6,
@@ -65,11 +68,20 @@ fn records_joins_poses_claims_and_leaves_and_reads_back() {
     assert_eq!(r.header.session, "lap chole/1");
     let tools = r.tools();
     assert_eq!(tools.len(), 2);
-    assert_eq!((tools[0].site.as_str(), tools[0].name.as_str()), ("instructor", "#0"));
-    assert_eq!((tools[1].site.as_str(), tools[1].name.as_str()), ("A", "#1"));
+    assert_eq!(
+        (tools[0].site.as_str(), tools[0].name.as_str()),
+        ("instructor", "#0")
+    );
+    assert_eq!(
+        (tools[1].site.as_str(), tools[1].name.as_str()),
+        ("A", "#1")
+    );
     let a = &r.site_tracks("A")[0];
     assert_eq!(a.len(), 100);
-    assert!(a.times.windows(2).all(|w| w[1] > w[0]), "track in time order");
+    assert!(
+        a.times.windows(2).all(|w| w[1] > w[0]),
+        "track in time order"
+    );
     let last = a.states.last().unwrap().position;
     assert!((last[0] + 0.099).abs() < 2e-6, "{last:?}");
     assert!((a.states[0].jaw - 0.3).abs() < 1e-6);
@@ -91,7 +103,10 @@ fn records_joins_poses_claims_and_leaves_and_reads_back() {
     );
     let leave = r.events().last().unwrap();
     assert_eq!(leave.detail, "connection lost");
-    assert!((leave.time - 99.0 * 0.016 - 0.003).abs() < 1e-9, "event at the newest sim time");
+    assert!(
+        (leave.time - 99.0 * 0.016 - 0.003).abs() < 1e-9,
+        "event at the newest sim time"
+    );
 }
 
 #[test]
