@@ -150,7 +150,14 @@ pub fn score_site(
 }
 
 fn opt(v: Option<f64>, scale: f64, digits: usize) -> String {
-    v.map_or("–".into(), |x| format!("{:.*}", digits, x * scale))
+    v.map_or("–".into(), |x| {
+        let text = format!("{:.*}", digits, x * scale);
+        // a rounding residue below the last digit prints as 0, not -0
+        match text.strip_prefix('-') {
+            Some(rest) if rest.bytes().all(|b| b == b'0' || b == b'.') => rest.to_string(),
+            _ => text,
+        }
+    })
 }
 
 /// The table as fixed-width text (for the terminal).
