@@ -1,22 +1,33 @@
 //! The window's pictures of a recorded session: [`RecordedSession`] turns recordings into
 //! [`viewer::ViewFrame`]s at any recorded time (the viewer's [`ReplaySource`]).
 //!
-//! The scene gives what a recording does not hold: surface topology and tissue colours,
-//! the laparoscope port and the tools' geometry (from their names). The organ surface is
-//! the first chosen site's recorded surface (the latest frame at or before the time:
-//! surfaces are recorded every 0.5 s by default, so the surface moves in steps); vessels
-//! are not recorded and are not drawn. Tools are every chosen site's own tools at their
-//! latest recorded sample (250 Hz by default; a coordinator's recording: every pose
-//! relayed), drawn in the first site's colour for the first site and the remote colour
-//! for the others (overlay), with their recorded contact plus grasp force as an arrow.
+//! The recording gives the organ surface (its declared rest shape and triangles, then its
+//! frames); the scene gives what a recording does not hold: tissue colours (looked up at
+//! the rest shape, as the live window does), the laparoscope port and the tools' geometry
+//! (by name, else kind, else scene index). No simulation is built. The surface is the
+//! first chosen site's recorded surface (the latest frame at or before the time: surfaces
+//! are recorded every 0.5 s by default, so the surface moves in steps; a coordinator's
+//! recording has none, and the organ is drawn at rest from another recording's
+//! declaration); vessels are not recorded and are not drawn. Tools are every chosen
+//! site's own tools at their latest recorded sample (250 Hz by default; a coordinator's
+//! recording: every pose relayed), the first site's in the local colour and the others'
+//! in the remote colour (overlay), with their recorded contact plus grasp force as an
+//! arrow.
+
+use std::sync::Arc;
 
 use anyhow::{Result, bail};
-use debrief::{Recording, SurfaceShape, ToolState, Track};
+use debrief::{Recording, SurfaceDecl, SurfaceShape, ToolState, Track};
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
 use sim_core::sim_scene::LoadedScene;
-use sim_core::{SimOptions, Simulation, Tool, ToolInput};
+use sim_core::{Tool, ToolInput};
+use viewer::frame::{port_of, tissue_at};
 use viewer::replay::ReplaySource;
-use viewer::{ForceArrow, FrameBuilder, HudInfo, Role, ViewFrame};
+use viewer::{ForceArrow, HudInfo, Role, SurfaceTopology, ViewFrame};
+
+/// Depth below the surface at which a vertex's tissue is looked up (m), as the live
+/// window does: a vertex exactly on an inclusion's boundary takes the tissue inside.
+const TISSUE_PROBE_DEPTH: f64 = 0.0015;
 
 /// One site's part of the picture.
 struct SiteFrames {
@@ -60,12 +71,17 @@ impl RecordedSession {
     /// The picture of `sites` (each from the recording that holds it best, see
     /// [`debrief::Session::recording_for`]) drawn with `scene`.
     pub fn new(scene: &LoadedScene, session: &debrief::Session, sites: &[String]) -> Result<Self> {
-        let sim = Simulation::new(scene.clone(), SimOptions::from_scene(&scene.scene))?;
-        let mut builder = FrameBuilder::new(&sim)?;
-        let mut base = builder.build(&sim, None, false, HudInfo::default());
-        // Vessels are not recorded: drawing them at rest under a deformed surface would
-        // show something that did not happen.
-        base.vessels.clear();
+        // The surfaces drawn: the first site's recording's, else any recording's (a
+        // coordinator's recording has none: the organ is then drawn at rest).
+        let first = sites
+            .first()
+            .and_then(|s| session.recording_for(s))
+            .filter(|r| !r.surfaces().is_empty())
+            .or_else(|| session.recordings.iter().find(|r| !r.surfaces().is_empty()));
+        let decls: Vec<SurfaceDecl> = first
+            .map(|r| r.surfaces().into_iter().cloned().collect())
+            .unwrap_or_default();
+        let base = base_frame(scene, &decls);
         let mut surfaces = Vec::new();
         let mut out_sites = Vec::new();
         let mut span: Option<(f64, f64)> = None;
@@ -91,7 +107,7 @@ impl RecordedSession {
                 );
             }
             if k == 0 {
-                surfaces = surfaces_of(rec, &sim, base.positions.len());
+                surfaces = surfaces_of(rec, &decls);
                 for (_, shapes) in &surfaces {
                     if let (Some(a), Some(b)) = (shapes.first(), shapes.last()) {
                         widen(a.time, b.time);
@@ -114,6 +130,13 @@ impl RecordedSession {
                             .tools
                             .iter()
                             .find(|s| format!("{:?}", s.kind).eq_ignore_ascii_case(&decl.kind))
+                    })
+                    .or_else(|| {
+                        // a coordinator's recording read alone: `#N`, the scene's tool N
+                        decl.name
+                            .strip_prefix('#')
+                            .and_then(|n| n.parse::<usize>().ok())
+                            .and_then(|n| scene.scene.tools.get(n))
                     });
                 let Some(spec) = spec else {
                     tracing::warn!(
@@ -143,28 +166,77 @@ impl RecordedSession {
     }
 }
 
-/// Frames of the recording's surfaces that match the scene's surfaces (same order and
-/// vertex counts), with their offset in the concatenated frame positions.
-fn surfaces_of(rec: &Recording, sim: &Simulation, total: usize) -> Vec<(usize, Vec<SurfaceShape>)> {
-    let decls = rec.surfaces();
-    let mut offset = 0;
-    let mut out = Vec::new();
-    for (decl, surface) in decls.iter().zip(sim.surfaces()) {
-        let n = surface.rest.vertices.len();
-        if decl.rest.len() != n {
-            tracing::warn!(
-                "recorded surface {:?} has {} vertices, the scene's {}: surface not replayed",
-                decl.name,
-                decl.rest.len(),
-                n
-            );
-            return Vec::new();
-        }
-        out.push((offset, rec.surface_shapes(decl.id)));
-        offset += n;
+/// The picture at rest of the recorded surfaces (their triangles and rest shapes), with
+/// the scene's tissue colours and camera; vessels are not recorded and not drawn.
+fn base_frame(scene: &LoadedScene, decls: &[SurfaceDecl]) -> ViewFrame {
+    let mut triangles = Vec::new();
+    let mut positions: Vec<Vector3<f64>> = Vec::new();
+    for d in decls {
+        let base = positions.len() as u32;
+        triangles.extend(d.triangles.iter().map(|t| t.map(|i| i + base)));
+        positions.extend(d.rest.iter().map(|p| Vector3::from(p.map(f64::from))));
     }
-    debug_assert!(offset <= total);
-    out
+    // Area-weighted vertex normals (triangles are outward-oriented).
+    let mut normals = vec![Vector3::zeros(); positions.len()];
+    for t in &triangles {
+        let [a, b, c] = t.map(|i| i as usize);
+        if a.max(b).max(c) >= positions.len() {
+            continue;
+        }
+        let n = (positions[b] - positions[a]).cross(&(positions[c] - positions[a]));
+        for i in [a, b, c] {
+            normals[i] += n;
+        }
+    }
+    let vertex_tissue = positions
+        .iter()
+        .zip(&normals)
+        .map(|(p, n)| {
+            tissue_at(
+                scene,
+                &(p - n.try_normalize(1e-30).unwrap_or_default() * TISSUE_PROBE_DEPTH),
+            )
+        })
+        .collect();
+    ViewFrame {
+        topology: Arc::new(SurfaceTopology {
+            triangles,
+            vertex_tissue,
+        }),
+        positions,
+        vessels: Vec::new(),
+        lattice: None,
+        tools: Vec::new(),
+        guide: Vec::new(),
+        forces: Vec::new(),
+        hud: HudInfo::default(),
+        port: port_of(scene),
+    }
+}
+
+/// Frames of `rec`'s surfaces when it declares the drawn surfaces `decls` (same count,
+/// names and vertex counts), with each one's first vertex in the frame.
+fn surfaces_of(rec: &Recording, decls: &[SurfaceDecl]) -> Vec<(usize, Vec<SurfaceShape>)> {
+    let own = rec.surfaces();
+    let same = own.len() == decls.len()
+        && own
+            .iter()
+            .zip(decls)
+            .all(|(a, b)| a.name == b.name && a.rest.len() == b.rest.len());
+    if !same {
+        if !own.is_empty() {
+            tracing::warn!("recorded surfaces differ from the drawn ones: surface not replayed");
+        }
+        return Vec::new();
+    }
+    let mut offset = 0;
+    own.iter()
+        .map(|d| {
+            let o = offset;
+            offset += d.rest.len();
+            (o, rec.surface_shapes(d.id))
+        })
+        .collect()
 }
 
 /// Index of the latest of `times` at or before `t` (the first if `t` is before all).
