@@ -222,7 +222,9 @@ pub fn run_session(run: &SessionRun) -> Result<(Vec<SiteReport>, Vec<Series>)> {
     // invitation per trainee or observer, bound to its site name.
     let invite_key = proto::InviteKey::from_bytes(rand::random());
     session.invite_key = Some(invite_key.clone());
-    let config = server::CoordinatorConfig::ephemeral(session)?;
+    let mut config = server::CoordinatorConfig::ephemeral(session)?;
+    // The coordinator's recording of the session: `<out>/coordinator/demo.cosrec`.
+    config.record_dir = Some(run.out.join("coordinator"));
     let (handle, addr) = runtime.block_on(async { server::Coordinator::bind(config) })?;
     let fingerprint = handle.fingerprint().to_string();
     std::fs::create_dir_all(&run.out)?;
@@ -433,7 +435,7 @@ pub fn demo(args: DemoArgs) -> Result<()> {
     } else {
         print_table(&summary);
         println!(
-            "\nwrote {}: per-site VTU/PVD series (<site>/vtu/series.pvd), surface recordings (<site>/surfaces.surf), session recordings (<site>/<site>.cosrec), divergence.png/svg, bandwidth.png/svg, summary.json",
+            "\nwrote {}: per-site VTU/PVD series (<site>/vtu/series.pvd), surface recordings (<site>/surfaces.surf), session recordings (<site>/<site>.cosrec, coordinator/demo.cosrec), divergence.png/svg, bandwidth.png/svg, summary.json",
             out.display()
         );
     }

@@ -109,6 +109,9 @@ pub struct JoinArgs {
     /// Simulated seconds between VTU frames (0: none).
     #[arg(long, default_value_t = 0.5)]
     pub vtu_interval: f64,
+    /// Do not write the session recording `<out>/<site>.cosrec`.
+    #[arg(long)]
+    pub no_record: bool,
     /// Start simulating once this many sites have joined.
     #[arg(long, default_value_t = 1)]
     pub expect_sites: usize,
@@ -261,6 +264,7 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
         slowdown: args.slowdown,
         out: args.out.clone(),
         vtu_interval: (args.vtu_interval > 0.0).then_some(args.vtu_interval),
+        record: !args.no_record,
         link: Some(link),
         expect_sites: args.expect_sites,
         realtime: !args.no_realtime,

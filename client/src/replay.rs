@@ -1,6 +1,8 @@
-//! `cosurg replay`: plays recordings back. Headless for now: `--export-vtu DIR` writes
-//! the recorded surfaces and tools as a ParaView VTU/PVD series per site and reports how
-//! much faster than real time that ran. (Playback in the window comes with the window.)
+//! `cosurg replay`: plays recordings back — in the window (play, pause, scrub on a
+//! timeline, speed; every chosen site's tools over the recorded surface, `--sites A,B`
+//! overlaid), as one picture without a screen (`--screenshot FILE.png --at SECONDS`),
+//! headless to measure how fast frames are made (`--headless`), or as a ParaView series
+//! (`--export-vtu DIR`).
 
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
@@ -11,6 +13,10 @@ use clap::Args;
 use debrief::{Recording, Session, StepRecord};
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use sim_core::sim_scene::vtk::{self, Cells, DataArray, Encoding, Pvd, UnstructuredGrid};
+use viewer::replay::ReplaySource;
+
+mod frames;
+pub use frames::RecordedSession;
 
 #[derive(Debug, Args)]
 pub struct ReplayArgs {
@@ -22,6 +28,27 @@ pub struct ReplayArgs {
     /// Simulated time between exported frames when a recording has no surface frames (s).
     #[arg(long, default_value_t = 0.05)]
     pub frame_interval: f64,
+    /// Sites to show, comma-separated: the first's surface, every one's tools overlaid
+    /// (default: every recording site but the coordinator, or the coordinator's sites).
+    #[arg(long, value_delimiter = ',')]
+    pub sites: Vec<String>,
+    /// Scene to draw with (`builtin:NAME` or a TOML file): surface topology, tool
+    /// geometry, camera. Default: the built-in cholecystectomy.
+    #[arg(long)]
+    pub scene: Option<String>,
+    /// Render the picture at `--at` off-screen into this PNG file (no window).
+    #[arg(long, value_name = "FILE.png", requires = "at")]
+    pub screenshot: Option<PathBuf>,
+    /// Recorded time of the screenshot, from the start of the recording (s).
+    #[arg(long, value_name = "SECONDS")]
+    pub at: Option<f64>,
+    /// Window or screenshot size.
+    #[arg(long, value_name = "WxH", default_value = "1280x720", value_parser = crate::run_window::parse_size)]
+    pub size: (u32, u32),
+    /// Make every frame the window would show at 60 frames per recorded second, without
+    /// drawing, and report how much faster than real time that ran.
+    #[arg(long)]
+    pub headless: bool,
 }
 
 /// What one export did.
@@ -34,29 +61,125 @@ pub struct ExportStats {
     pub wall_s: f64,
 }
 
+/// Frames per recorded second made by `--headless` (what the window draws at 1×).
+pub const HEADLESS_FPS: f64 = 60.0;
+
+/// The sites shown by default: every site with its own recording, else the sites whose
+/// tools a coordinator's recording holds.
+fn default_sites(session: &Session) -> Vec<String> {
+    let own: Vec<String> = session
+        .recordings
+        .iter()
+        .filter(|r| r.header.role != debrief::COORDINATOR_ROLE)
+        .map(|r| r.header.site.clone())
+        .collect();
+    if !own.is_empty() {
+        return own;
+    }
+    let mut sites: Vec<String> = session
+        .recordings
+        .iter()
+        .flat_map(|r| r.tools().into_iter().map(|t| t.site.clone()))
+        .collect();
+    sites.dedup();
+    sites
+}
+
 pub fn replay(args: ReplayArgs) -> Result<()> {
-    let Some(dir) = &args.export_vtu else {
-        bail!(
-            "replay in the window is not available yet; use --export-vtu DIR for the ParaView series"
-        );
-    };
     if args.frame_interval.is_nan() || args.frame_interval <= 0.0 {
         bail!(
             "--frame-interval must be > 0 s, got {}",
             args.frame_interval
         );
     }
+    if let Some(at) = args.at
+        && (at.is_nan() || at < 0.0)
+    {
+        bail!("--at must be a recorded time ≥ 0 s, got {at}");
+    }
     let session = Session::open(&args.recording)
         .with_context(|| format!("opening {}", args.recording.display()))?;
+    if let Some(dir) = &args.export_vtu {
+        return export_all(&session, dir, args.frame_interval);
+    }
+    let sites = if args.sites.is_empty() {
+        default_sites(&session)
+    } else {
+        args.sites.clone()
+    };
+    let scene = crate::scene_arg::load_scene(args.scene.as_deref())?;
+    let t0 = Instant::now();
+    let mut source = RecordedSession::new(&scene, &session, &sites)?;
+    let (a, b) = source.span();
+    let load_s = t0.elapsed().as_secs_f64();
+    tracing::info!(
+        "loaded {} in {load_s:.3} s: {:.2} s recorded",
+        sites.join(", "),
+        b - a
+    );
+    if let Some(path) = &args.screenshot {
+        let at = args.at.unwrap_or(0.0);
+        let frame = source.frame_at(a + at);
+        viewer::screenshot(&frame, args.size, path)
+            .with_context(|| format!("screenshot at {at:.3} s"))?;
+        println!(
+            "wrote {} ({}x{}, {} at {:.3} s of {:.3} s recorded)",
+            path.display(),
+            args.size.0,
+            args.size.1,
+            sites.join(" + "),
+            at.min(b - a),
+            b - a
+        );
+        return Ok(());
+    }
+    if args.headless {
+        let n = ((b - a) * HEADLESS_FPS).floor() as usize + 1;
+        let t0 = Instant::now();
+        let mut vertices = 0usize;
+        for k in 0..n {
+            let f = source.frame_at(a + k as f64 / HEADLESS_FPS);
+            vertices += f.positions.len() + f.tools.len();
+        }
+        let wall = t0.elapsed().as_secs_f64();
+        std::hint::black_box(vertices);
+        println!(
+            "replayed {:.2} s of {} headless: {n} frames in {wall:.3} s wall ({:.3} ms per frame), {:.1}× real time; with loading the recordings and the scene ({load_s:.3} s) {:.1}× real time",
+            b - a,
+            sites.join(" + "),
+            1e3 * wall / n as f64,
+            (b - a) / wall.max(1e-9),
+            (b - a) / (wall + load_s).max(1e-9)
+        );
+        return Ok(());
+    }
+    if !crate::run_window::display_available() {
+        bail!(
+            "no display for the replay window (DISPLAY/WAYLAND_DISPLAY unset); use --screenshot FILE.png --at SECONDS, --headless or --export-vtu DIR"
+        );
+    }
+    viewer::replay::run_replay_window(
+        &mut source,
+        viewer::WindowOptions {
+            title: format!("cosurg replay — {}", sites.join(" + ")),
+            size: args.size,
+            ..Default::default()
+        },
+    )?;
+    Ok(())
+}
+
+/// `--export-vtu`: every recording of the session, one folder per recording site.
+fn export_all(session: &Session, dir: &Path, interval: f64) -> Result<()> {
     let t0 = Instant::now();
     let mut recorded = 0.0f64;
     for rec in &session.recordings {
         let out = if session.recordings.len() == 1 {
-            dir.clone()
+            dir.to_path_buf()
         } else {
             dir.join(sanitize(&rec.header.site))
         };
-        let st = export_vtu(rec, &out, args.frame_interval)?;
+        let st = export_vtu(rec, &out, interval)?;
         println!(
             "site {}: {} frames over {:.2} s recorded → {}",
             st.site,

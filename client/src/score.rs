@@ -96,6 +96,11 @@ pub fn score(args: ScoreArgs) -> Result<()> {
                 .as_ref()
                 .map_or(String::new(), |r| format!(", reference {r}"))
         );
+        if rec.header.role == debrief::COORDINATOR_ROLE {
+            println!(
+                "from the coordinator's recording: tool poses only (forces, grasp state and damage are not relayed; their columns read 0)"
+            );
+        }
         print!("{}", text_table(&report));
         println!(
             "units: path/depth mm, forces N (Fc contact, Fg grasp), damage mm³·s (strain > {}), DTW mm per matched pair; LDLJ closer to 0 = smoother",

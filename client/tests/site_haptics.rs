@@ -35,6 +35,7 @@ fn site(scene: &LoadedScene, name: &str, role: Role, tool: &str, seconds: f64) -
         slowdown: 1.0,
         out: None,
         vtu_interval: None,
+        record: true,
         link: None,
         expect_sites: 1,
         realtime: true,

@@ -28,10 +28,11 @@ pub use format::{
     ToolSample, ToolState,
 };
 pub use reader::{
-    EXTENSION, ReadError, Recording, Records, Session, SurfaceShape, Tail, Track, read_records,
+    COORDINATOR_ROLE, EXTENSION, ReadError, Recording, Records, Session, SurfaceShape, Tail, Track,
+    read_records,
 };
 pub use report::{ScoreError, ScoreReport, ScoredAct, SiteTracks, html_report, score_site};
-pub use score::{Act, ActKind, Measures, ScoreSettings};
+pub use score::{Act, ActKind, EventActs, Measures, ScoreSettings};
 pub use writer::{
     RecordError, Recorder, RecorderSettings, SurfaceId, ToolId, encode_framed, file_header,
 };

@@ -170,6 +170,13 @@ pub struct SurfaceShape {
     pub vertices: Vec<[f64; 3]>,
 }
 
+/// Role (and site name) in the header of a coordinator's recording.
+pub const COORDINATOR_ROLE: &str = "coordinator";
+
+/// How much longer (s of simulated time) another recording must hold a site's tool
+/// samples than the site's own recording for [`Session::recording_for`] to prefer it.
+pub const STALE_OWN_S: f64 = 1.0;
+
 /// One site's recording, read up to its last complete record.
 #[derive(Clone, Debug)]
 pub struct Recording {
@@ -257,11 +264,15 @@ impl Recording {
         })
     }
 
-    /// Simulated time of the first and last step record (s).
+    /// Simulated time of the earliest and latest step record (s) (a coordinator's
+    /// recording interleaves sites whose clocks differ by a few ms).
     pub fn time_span(&self) -> Option<(f64, f64)> {
-        let mut it = self.steps().map(|s| s.time);
-        let first = it.next()?;
-        Some((first, it.last().unwrap_or(first)))
+        self.steps()
+            .map(|s| s.time)
+            .fold(None, |span, t| match span {
+                None => Some((t, t)),
+                Some((a, b)) => Some((f64::min(a, t), f64::max(b, t))),
+            })
     }
 
     /// The samples of tool `id`.
@@ -378,7 +389,47 @@ impl Session {
         if recordings.is_empty() {
             return Err(ReadError::EmptyDir(path.to_path_buf()));
         }
-        Ok(Session { recordings })
+        let mut session = Session { recordings };
+        session.name_coordinator_tools();
+        Ok(session)
+    }
+
+    /// Gives the tools of a coordinator's recording, which it knows only by scene index
+    /// (`#N`, empty kind), the name and kind of tool `N` in a site's recording of the
+    /// session (a site declares every scene tool, in scene order).
+    pub fn name_coordinator_tools(&mut self) {
+        let Some(names) = self
+            .recordings
+            .iter()
+            .find(|r| r.header.role != COORDINATOR_ROLE && !r.tools().is_empty())
+            .map(|r| {
+                r.tools()
+                    .iter()
+                    .map(|t| (t.id, (t.name.clone(), t.kind.clone())))
+                    .collect::<std::collections::BTreeMap<_, _>>()
+            })
+        else {
+            return;
+        };
+        for rec in self
+            .recordings
+            .iter_mut()
+            .filter(|r| r.header.role == COORDINATOR_ROLE)
+        {
+            for record in &mut rec.records {
+                if let Record::Tool(t) = record
+                    && t.kind.is_empty()
+                    && let Some((name, kind)) = t
+                        .name
+                        .strip_prefix('#')
+                        .and_then(|n| n.parse::<u16>().ok())
+                        .and_then(|n| names.get(&n))
+                {
+                    t.name = name.clone();
+                    t.kind = kind.clone();
+                }
+            }
+        }
     }
 
     /// Names of the recording sites.
@@ -389,21 +440,37 @@ impl Session {
             .collect()
     }
 
-    /// The recording that holds `site`'s tools best: the site's own recording, else the
-    /// one with most samples of its tools (e.g. the coordinator's, if the site died).
+    /// The recording that holds `site`'s tools best: the site's own recording, unless it
+    /// has no samples of them or ends more than [`STALE_OWN_S`] of simulated time before
+    /// another recording's samples of them do (a killed site's cut-off file, when the
+    /// coordinator's recording goes on to the kill); else the recording whose samples of
+    /// the site's tools end last (e.g. the coordinator's, if the site's file is missing).
     pub fn recording_for(&self, site: &str) -> Option<&Recording> {
-        if let Some(own) = self.recordings.iter().find(|r| r.header.site == site) {
-            return Some(own);
-        }
-        self.recordings
+        let end = |r: &Recording| {
+            r.site_tracks(site)
+                .iter()
+                .filter_map(|t| t.times.last().copied())
+                .reduce(f64::max)
+        };
+        let own = self
+            .recordings
             .iter()
-            .map(|r| {
-                let n: usize = r.site_tracks(site).iter().map(Track::len).sum();
-                (n, r)
-            })
-            .filter(|(n, _)| *n > 0)
-            .max_by_key(|(n, _)| *n)
-            .map(|(_, r)| r)
+            .find(|r| r.header.site == site)
+            .and_then(|r| end(r).map(|e| (e, r)));
+        let other = self
+            .recordings
+            .iter()
+            .filter(|r| r.header.site != site)
+            .filter_map(|r| end(r).map(|e| (e, r)))
+            .max_by(|a, b| a.0.total_cmp(&b.0));
+        match (own, other) {
+            (Some((own_end, _)), Some((other_end, r))) if other_end > own_end + STALE_OWN_S => {
+                Some(r)
+            }
+            (Some((_, r)), _) => Some(r),
+            (None, Some((_, r))) => Some(r),
+            (None, None) => self.recordings.iter().find(|r| r.header.site == site),
+        }
     }
 
     /// Every event of every recording, by time (duplicates seen by several sites kept).

@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::reader::{Recording, Track};
 use crate::score::{
-    Act, Measures, ScoreSettings, cut_intervals, dtw_between, find_acts, measure, speeds,
+    Act, Measures, ScoreSettings, dtw_between, event_acts, find_acts_with, measure, speeds,
 };
 
 /// Why a site could not be scored.
@@ -71,7 +71,7 @@ impl<'a> SiteTracks<'a> {
             .iter()
             .map(|t| {
                 let name = t.decl.as_ref().map_or("", |d| d.name.as_str());
-                find_acts(t, &cut_intervals(rec, site, name), s)
+                find_acts_with(t, &event_acts(rec, site, name), s)
             })
             .collect();
         Ok(SiteTracks {
@@ -150,7 +150,14 @@ pub fn score_site(
 }
 
 fn opt(v: Option<f64>, scale: f64, digits: usize) -> String {
-    v.map_or("–".into(), |x| format!("{:.*}", digits, x * scale))
+    v.map_or("–".into(), |x| {
+        let text = format!("{:.*}", digits, x * scale);
+        // a rounding residue below the last digit prints as 0, not -0
+        match text.strip_prefix('-') {
+            Some(rest) if rest.bytes().all(|b| b == b'0' || b == b'.') => rest.to_string(),
+            _ => text,
+        }
+    })
 }
 
 /// The table as fixed-width text (for the terminal).

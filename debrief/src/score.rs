@@ -349,6 +349,31 @@ fn runs(times: &[f64], on: impl Fn(usize) -> bool, gap: f64, min: f64) -> Vec<(u
 /// (contact force above the threshold while not grasping, not the approach to a grasp)
 /// and cuts (between `cut-start` and `cut-stop` events of the tool).
 pub fn find_acts(track: &Track, cuts: &[(f64, f64)], s: &ScoreSettings) -> Vec<Act> {
+    find_acts_with(
+        track,
+        &EventActs {
+            cuts: cuts.to_vec(),
+            grasps: Vec::new(),
+        },
+        s,
+    )
+}
+
+/// Act intervals (start, end) in s that a recording's events give for one tool.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct EventActs {
+    /// `cut-start` → `cut-stop`.
+    pub cuts: Vec<(f64, f64)>,
+    /// `grasp` → `grasp-release`: used only for a track without grasp state (a
+    /// coordinator's recording of tool poses), whose samples never show a grasp.
+    pub grasps: Vec<(f64, f64)>,
+}
+
+/// Like [`find_acts`], with the grasp and cut intervals of the tool's events: cuts
+/// always come from events; grasps from the samples' grasp state when the track has
+/// any, else from the events.
+pub fn find_acts_with(track: &Track, events: &EventActs, s: &ScoreSettings) -> Vec<Act> {
+    let cuts = &events.cuts;
     let (name, kind) = track
         .decl
         .as_ref()
@@ -370,7 +395,16 @@ pub fn find_acts(track: &Track, cuts: &[(f64, f64)], s: &ScoreSettings) -> Vec<A
     };
     let mut acts = vec![mk(ActKind::Session, 0, (0, t.len() - 1))];
     let st = &track.states;
-    let grasps = runs(t, |i| st[i].grasped > 0, s.merge_gap_s, s.min_act_s);
+    let grasps = if st.iter().any(|x| x.grasped > 0) || events.grasps.is_empty() {
+        runs(t, |i| st[i].grasped > 0, s.merge_gap_s, s.min_act_s)
+    } else {
+        events
+            .grasps
+            .iter()
+            .filter_map(|&(a, b)| sample_range(t, a, b))
+            .filter(|&(f, l)| t[l] - t[f] >= s.min_act_s)
+            .collect()
+    };
     let contact = runs(
         t,
         |i| st[i].grasped == 0 && norm(st[i].contact_force) > s.contact_threshold_n,
@@ -398,34 +432,55 @@ pub fn find_acts(track: &Track, cuts: &[(f64, f64)], s: &ScoreSettings) -> Vec<A
             .map(|(i, r)| mk(ActKind::Dissection, i, r)),
     );
     for (i, &(a, b)) in cuts.iter().enumerate() {
-        let first = t.partition_point(|&x| x < a);
-        let last = t.partition_point(|&x| x <= b);
-        if last > first + 1 {
-            acts.push(mk(ActKind::Cut, i, (first, last - 1)));
+        if let Some(r) = sample_range(t, a, b) {
+            acts.push(mk(ActKind::Cut, i, r));
         }
     }
     acts
 }
 
-/// Cut intervals of `tool` (or of every tool when the event names none) in a recording.
-pub fn cut_intervals(rec: &Recording, site: &str, tool: &str) -> Vec<(f64, f64)> {
-    let mut out = Vec::new();
-    let mut open = None;
+/// The (first, last) samples of `times` within `[a, b]`, if at least two.
+fn sample_range(times: &[f64], a: f64, b: f64) -> Option<(usize, usize)> {
+    let first = times.partition_point(|&x| x < a);
+    let last = times.partition_point(|&x| x <= b);
+    (last > first + 1).then(|| (first, last - 1))
+}
+
+/// The act intervals of `tool`'s events (or of events naming no tool) of `site` in a
+/// recording. An interval still open at the end of the recording (a site killed
+/// mid-cut) runs to the end of the track.
+pub fn event_acts(rec: &Recording, site: &str, tool: &str) -> EventActs {
+    let mut out = EventActs::default();
+    let (mut cut, mut grasp) = (None, None);
     for e in rec.events() {
         if e.site != site || e.tool.as_deref().is_some_and(|t| t != tool) {
             continue;
         }
         match e.kind {
-            EventKind::CutStart => open = Some(e.time),
+            EventKind::CutStart => cut = cut.or(Some(e.time)),
             EventKind::CutStop => {
-                if let Some(a) = open.take() {
-                    out.push((a, e.time));
+                if let Some(a) = cut.take() {
+                    out.cuts.push((a, e.time));
+                }
+            }
+            EventKind::Grasp => grasp = grasp.or(Some(e.time)),
+            EventKind::GraspRelease => {
+                if let Some(a) = grasp.take() {
+                    out.grasps.push((a, e.time));
                 }
             }
             _ => {}
         }
     }
+    out.cuts.extend(cut.map(|a| (a, f64::INFINITY)));
+    out.grasps.extend(grasp.map(|a| (a, f64::INFINITY)));
     out
+}
+
+/// Cut intervals of `tool` (or of every tool when the event names none) in a recording
+/// (see [`event_acts`]).
+pub fn cut_intervals(rec: &Recording, site: &str, tool: &str) -> Vec<(f64, f64)> {
+    event_acts(rec, site, tool).cuts
 }
 
 /// The measures of one act.

@@ -351,9 +351,9 @@ impl<W: Write> Recorder<W> {
     fn pending_for(&mut self, step: u64, time: f64) -> Result<&mut StepRecord, RecordError> {
         if self.pending.as_ref().is_some_and(|p| p.step != step) {
             self.write_pending()?;
-            if time - self.last_flush_time >= self.settings.flush_interval_s
-                || time < self.last_flush_time
-            {
+            // A jump back by more than the interval is a new time base (a reset):
+            // flush then too. Small steps back are a coordinator interleaving sites.
+            if (time - self.last_flush_time).abs() >= self.settings.flush_interval_s {
                 self.last_flush_time = time;
                 if let Some(out) = self.out.as_mut() {
                     out.flush()?;

@@ -331,3 +331,96 @@ proptest! {
         let _ = Recording::from_bytes(&bytes[..cut % (n + 1)]);
     }
 }
+
+/// A coordinator-style recording: tools known by scene index (`#N`, empty kind) driven
+/// by the named sites, samples of `sites` until `until[k]` s.
+fn coordinator_recording(path: &std::path::Path, sites: &[(&str, u16, f64)]) {
+    let mut h = header(COORDINATOR_ROLE);
+    h.role = COORDINATOR_ROLE.into();
+    h.sim_rate_hz = 0.0;
+    let mut rec = Recorder::create(path, h, RecorderSettings::default()).unwrap();
+    let ids: Vec<ToolId> = sites
+        .iter()
+        .map(|(s, n, _)| rec.declare_tool(s, &format!("#{n}"), "").unwrap())
+        .collect();
+    let mut seq = 0;
+    for k in 0..400 {
+        let t = k as f64 * 0.016;
+        for (i, (_, _, until)) in sites.iter().enumerate() {
+            if t <= *until {
+                seq += 1;
+                rec.tool_sample(seq, t + 0.001 * i as f64, ids[i], &state(t, 0))
+                    .unwrap();
+            }
+        }
+    }
+    rec.finish().unwrap();
+}
+
+#[test]
+fn a_dead_sites_cut_off_recording_gives_way_to_the_coordinators() {
+    let dir = tempfile::tempdir().unwrap();
+    // Site A's own file stops at 2 s (killed); the coordinator saw it until 4 s.
+    let mut rec = Recorder::create(
+        dir.path().join("A.cosrec"),
+        header("A"),
+        RecorderSettings::default(),
+    )
+    .unwrap();
+    rec.declare_tool("remote", "probe", "probe").unwrap();
+    let id = rec.declare_tool("A", "forceps", "forceps").unwrap();
+    for step in 0..500u64 {
+        let t = step as f64 * 0.004;
+        rec.tool_sample(step * 2, t, id, &state(t, 0)).unwrap();
+    }
+    rec.finish().unwrap();
+    std::fs::create_dir(dir.path().join("coordinator")).unwrap();
+    coordinator_recording(
+        &dir.path().join("coordinator").join("test.cosrec"),
+        &[("instructor", 0, 6.0), ("A", 1, 4.0), ("B", 1, 6.0)],
+    );
+    let s = Session::open(dir.path()).unwrap();
+    let coord = s.recording_for("A").unwrap();
+    assert_eq!(
+        coord.header.site, COORDINATOR_ROLE,
+        "A's own file ends 2 s early"
+    );
+    // The coordinator's tools are named after the site recording's scene tools.
+    let names: Vec<(&str, &str, &str)> = coord
+        .tools()
+        .iter()
+        .map(|t| (t.site.as_str(), t.name.as_str(), t.kind.as_str()))
+        .collect();
+    assert_eq!(
+        names,
+        [
+            ("instructor", "probe", "probe"),
+            ("A", "forceps", "forceps"),
+            ("B", "forceps", "forceps")
+        ]
+    );
+    // B has no file of its own: the coordinator's.
+    assert_eq!(s.recording_for("B").unwrap().header.site, COORDINATOR_ROLE);
+    // Interleaved sites: the span is the earliest to the latest sample (B's, at
+    // 375 × 0.016 s + its 2 ms offset).
+    let (a, b) = coord.time_span().unwrap();
+    assert!(a == 0.0 && (b - 6.002).abs() < 1e-9, "{a} {b}");
+
+    // When A's own file covers as long as the coordinator's, it wins.
+    let dir2 = tempfile::tempdir().unwrap();
+    let mut rec = Recorder::create(
+        dir2.path().join("A.cosrec"),
+        header("A"),
+        RecorderSettings::default(),
+    )
+    .unwrap();
+    let id = rec.declare_tool("A", "forceps", "forceps").unwrap();
+    for step in 0..1000u64 {
+        let t = step as f64 * 0.004;
+        rec.tool_sample(step * 2, t, id, &state(t, 0)).unwrap();
+    }
+    rec.finish().unwrap();
+    coordinator_recording(&dir2.path().join("c.cosrec"), &[("A", 0, 4.0)]);
+    let s = Session::open(dir2.path()).unwrap();
+    assert_eq!(s.recording_for("A").unwrap().header.site, "A");
+}

@@ -3,9 +3,9 @@
 //! ```text
 //! cosurg-server --listen 0.0.0.0:4433 --session lap-chole --token s3cret \
 //!     [--cert cert.pem --key key.pem] [--scene-hash HEX] [--state-dir DIR] \
-//!     [--max-sites N] [--status-interval S] [--seconds S]
+//!     [--max-sites N] [--status-interval S] [--seconds S] [--record DIR]
 //! cosurg-server --sessions sessions.toml [--admin-token SECRET] [--metrics 127.0.0.1:9464] \
-//!     [--log-json] …
+//!     [--log-json] [--record DIR] …
 //! cosurg-server invite --role trainee|observer [--site NAME] [--expires DURATION] \
 //!     [--session NAME] [--state-dir DIR]
 //! cosurg-server revoke INVITATION|NONCE [--state-dir DIR]
@@ -249,6 +249,11 @@ pub struct Args {
     /// Stop after this many seconds (default: run until Ctrl-C).
     #[arg(long)]
     pub seconds: Option<f64>,
+    /// Record the session (joins, leaves, claims, resets, teaching, every site's tool
+    /// poses, keyframe metadata) into DIR/<session>.cosrec, in the debrief format
+    /// (`cosurg score`, `cosurg replay`).
+    #[arg(long, value_name = "DIR")]
+    pub record: Option<PathBuf>,
 }
 
 /// Run the coordinator with the given arguments until Ctrl-C or `--seconds`.
@@ -336,6 +341,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let mut config = CoordinatorConfig::new(session, identity);
     config.listen = args.listen;
     config.state_dir = Some(dir.clone());
+    config.record_dir = args.record.clone();
     config.status_interval =
         (args.status_interval > 0.0).then(|| Duration::from_secs_f64(args.status_interval));
     config.more_sessions = more;
@@ -347,6 +353,12 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     println!("fingerprint: {}", handle.fingerprint());
     for name in &names {
         println!("session: {name}");
+        if let Some(d) = &args.record {
+            println!(
+                "recording: {}",
+                crate::recording::recording_path(d, name).display()
+            );
+        }
     }
     if let Some(m) = handle.metrics_addr() {
         println!("metrics: http://{m}/metrics");
@@ -357,9 +369,21 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
             None => std::future::pending::<()>().await,
         }
     };
+    #[cfg(unix)]
+    let terminate = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let terminate = std::future::pending::<()>();
     tokio::select! {
         _ = stop => {}
         r = tokio::signal::ctrl_c() => { r.context("waiting for Ctrl-C")?; }
+        _ = terminate => {}
     }
     let stats = handle.stats();
     handle.shutdown().await;

@@ -46,6 +46,7 @@ use tracing::{debug, info, warn};
 use crate::admission::Admission;
 pub use crate::clock::WallClock;
 use crate::ratelimit::RateLimitConfig;
+use crate::recording::CoordinatorRecording;
 use crate::session::{Action, DatagramVerdict, Session, Target};
 pub use crate::stats::CoordinatorStats;
 use crate::stats::{Counters, add, inc};
@@ -80,6 +81,12 @@ pub enum ServerError {
         #[source]
         source: std::io::Error,
     },
+    #[error("cannot record the session into {dir}: {source}")]
+    Record {
+        dir: PathBuf,
+        #[source]
+        source: debrief::RecordError,
+    },
 }
 
 /// Configuration of a coordinator.
@@ -109,6 +116,8 @@ pub struct CoordinatorConfig {
     pub max_sessions: usize,
     /// Serve Prometheus metrics over HTTP on this (local) address; `None`: off.
     pub metrics: Option<SocketAddr>,
+    /// Record the session into `DIR/<session>.cosrec` ([`crate::recording`]); `None`: off.
+    pub record_dir: Option<PathBuf>,
 }
 
 impl CoordinatorConfig {
@@ -127,6 +136,7 @@ impl CoordinatorConfig {
             admin_token: None,
             max_sessions: 256,
             metrics: None,
+            record_dir: None,
         }
     }
 
@@ -156,6 +166,8 @@ struct Peer {
 struct State {
     session: Session,
     peers: HashMap<SiteId, Peer>,
+    /// The session's recording, if `--record` (fed by the `// recording:` calls).
+    recording: Option<CoordinatorRecording>,
 }
 
 /// One hosted session: its state and the peers of its sites.
@@ -176,6 +188,10 @@ impl Shared {
     /// Execute session actions. Called with the state locked.
     fn execute(&self, st: &mut State, actions: Vec<Action>) {
         for a in actions {
+            // recording: every control message the coordinator sends.
+            if let (Some(r), Action::Control { msg, .. }) = (st.recording.as_mut(), &a) {
+                r.on_control(msg);
+            }
             match a {
                 Action::Control { to, msg } => {
                     let frame = Bytes::from(proto::encode_frame(&msg));
@@ -256,6 +272,13 @@ impl Coordinator {
             addr: config.listen,
             source,
         })?;
+        if let Some(dir) = &config.record_dir {
+            // An unusable recording folder fails the start, not the sessions one by one.
+            std::fs::create_dir_all(dir).map_err(|e| ServerError::Record {
+                dir: dir.clone(),
+                source: e.into(),
+            })?;
+        }
         let hub = Arc::new(Hub::new(&config));
         let refused = |r: proto::Refusal| ServerError::Session(r.text);
         let shared = hub.add_session(config.session.clone()).map_err(refused)?;
@@ -356,6 +379,12 @@ impl CoordinatorHandle {
         self.tasks.abort_all();
         self.hub.abort_all();
         let _ = tokio::time::timeout(Duration::from_secs(1), self.endpoint.wait_idle()).await;
+        // recording: closed with each session.
+        for shared in self.hub.all() {
+            if let Some(r) = shared.lock().recording.as_mut() {
+                r.finish();
+            }
+        }
         info!("coordinator stopped");
     }
 }
@@ -830,6 +859,10 @@ async fn datagram_loop(shared: &Shared, site: SiteId, conn: &Connection) -> Stri
         let st = &mut *st;
         match st.session.on_datagram(site, msg, now) {
             DatagramVerdict::Relay { msg, restamped } => {
+                // recording: tool poses and simulation clocks.
+                if let Some(r) = st.recording.as_mut() {
+                    r.on_datagram(&msg);
+                }
                 let bytes = if restamped {
                     Bytes::from(proto::encode(&msg))
                 } else {

@@ -7,6 +7,7 @@
 //! * [`coordinator`] — the async shell: [`Coordinator::bind`] → ([`CoordinatorHandle`], address);
 //! * [`state`] — the state directory: invitation key, revocations ([`state::mint`]);
 //! * [`ratelimit`] — failed joins per source address;
+//! * [`recording`] — the coordinator's session recording (`--record DIR`);
 //! * [`admin`] — `cosurg invite`: mint an invitation through a running coordinator;
 //! * [`tls`] — certificates, fingerprints, QUIC/TLS configs for both sides
 //!   ([`tls::client_config_pinned`], [`tls::client_config_ca`]);
@@ -19,6 +20,7 @@ pub mod clock;
 pub mod coordinator;
 pub mod metrics;
 pub mod ratelimit;
+pub mod recording;
 pub mod session;
 pub mod sessions;
 pub mod state;

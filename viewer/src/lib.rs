@@ -9,6 +9,8 @@
 //!   ([`ViewerCommand`]).
 //! * [`camera`]: the laparoscope and orbit cameras and the mouse-to-tool mapping.
 //! * [`render`]: three-d drawing of a frame; [`hud`]: the egui heads-up display.
+//! * [`replay`]: playback of a recorded session ([`replay::run_replay_window`]: play,
+//!   pause, scrub, speed).
 //! * [`window`]: the window's event loop ([`run_window`]) and off-screen screenshots
 //!   ([`screenshot`]).
 //!
@@ -18,6 +20,7 @@ pub mod camera;
 pub mod frame;
 pub mod hud;
 pub mod render;
+pub mod replay;
 pub mod window;
 
 pub use frame::{

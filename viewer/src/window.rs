@@ -64,7 +64,7 @@ impl Default for WindowOptions {
     }
 }
 
-fn event_loop() -> Result<EventLoop<()>, ViewerError> {
+pub(crate) fn event_loop() -> Result<EventLoop<()>, ViewerError> {
     let mut builder = EventLoopBuilder::new();
     {
         use winit::platform::x11::EventLoopBuilderExtX11;

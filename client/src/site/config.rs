@@ -37,6 +37,8 @@ pub struct SiteConfig {
     pub out: Option<PathBuf>,
     /// Simulated time between VTU frames (s); `None`: no VTU.
     pub vtu_interval: Option<f64>,
+    /// Write the session recording `<out>/<site>.cosrec` (when `out` is set).
+    pub record: bool,
     /// Coordinator link; `None`: a site on its own.
     pub link: Option<LinkConfig>,
     /// Start the simulation only when this many sites (including this one) have joined.
@@ -94,6 +96,12 @@ pub struct SiteReport {
     pub sim_rate_hz: f64,
     pub step_ms_p50: f64,
     pub step_ms_p99: f64,
+    /// Wall time of the session recording's work per step (ms), p50 and p99; `None`
+    /// when not recording.
+    #[serde(default)]
+    pub recording_ms_p50: Option<f64>,
+    #[serde(default)]
+    pub recording_ms_p99: Option<f64>,
     pub keyframes_sent: u64,
     pub keyframes_received: u64,
     pub keyframes_applied: u64,

@@ -96,7 +96,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
 
     // The session recording (`<out>/<site>.cosrec`); flushed as it goes, finished at the
     // end, and flushed on drop on an error path.
-    let mut session_rec = match &cfg.out {
+    let mut session_rec = match cfg.out.as_ref().filter(|_| cfg.record) {
         Some(dir) => Some(SessionRecording::create(
             dir,
             &cfg.name,
@@ -115,6 +115,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     reset_at.sort_by(f64::total_cmp);
     let mut reset_at = reset_at.into_iter().peekable();
     let mut step_ms: Vec<f64> = Vec::with_capacity(steps as usize);
+    let mut recording_ms: Vec<f64> = Vec::new();
     let mut next_vtu = 0.0;
     let mut next_progress = 0.0;
     let vtu_interval = cfg.vtu_interval.unwrap_or(f64::INFINITY);
@@ -259,7 +260,9 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         // 6. Recordings.
         recorder.record(&sim);
         if let Some(r) = session_rec.as_mut() {
+            let t0 = Instant::now();
             r.after_step(&session, &sim, &tools)?;
+            recording_ms.push(t0.elapsed().as_secs_f64() * 1e3);
         }
         if let Some(w) = &writer
             && t + 1e-9 >= next_vtu
@@ -340,6 +343,10 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     report.sim_rate_hz = k as f64 / wall;
     report.step_ms_p50 = percentile(&step_ms, 50.0);
     report.step_ms_p99 = percentile(&step_ms, 99.0);
+    if !recording_ms.is_empty() {
+        report.recording_ms_p50 = Some(percentile(&recording_ms, 50.0));
+        report.recording_ms_p99 = Some(percentile(&recording_ms, 99.0));
+    }
     // An act still running at the end (e.g. a device-driven instructor) is sent now.
     if let Some(m) = teaching.finish() {
         session.send_control(m);

@@ -243,3 +243,76 @@ fn track_of(times: &[f64], p: &[P3]) -> Track {
             .collect(),
     }
 }
+
+#[test]
+fn grasp_and_cut_acts_from_events_when_the_samples_have_no_grasp_state() {
+    use crate::format::{Event, SessionHeader};
+    use crate::writer::{Recorder, RecorderSettings};
+    let header = SessionHeader {
+        session: "s".into(),
+        site: "coordinator".into(),
+        role: "coordinator".into(),
+        scene: "x".into(),
+        sim_rate_hz: 0.0,
+        sample_every: 1,
+        started_unix_ms: 0,
+        damage_strain_threshold: None,
+        software: "test".into(),
+    };
+    let mut rec = Recorder::new(Vec::new(), header, RecorderSettings::default()).unwrap();
+    let id = rec.declare_tool("A", "forceps", "forceps").unwrap();
+    let ev = |time: f64, kind: EventKind, tool: Option<&str>| Event {
+        step: 0,
+        time,
+        site: "A".into(),
+        tool: tool.map(str::to_owned),
+        kind,
+        detail: String::new(),
+    };
+    for i in 0..1000u64 {
+        let t = i as f64 / RATE;
+        // poses only: no grasp state, no forces
+        let state = ToolState {
+            position: [t * 1e-2, 0.0, 0.0],
+            orientation: [1.0, 0.0, 0.0, 0.0],
+            ..ToolState::default()
+        };
+        rec.tool_sample(i, t, id, &state).unwrap();
+        match i {
+            100 => rec.event(ev(t, EventKind::Grasp, Some("forceps"))).unwrap(),
+            300 => rec
+                .event(ev(t, EventKind::GraspRelease, Some("forceps")))
+                .unwrap(),
+            // another tool's grasp is not this tool's
+            400 => rec.event(ev(t, EventKind::Grasp, Some("probe"))).unwrap(),
+            // a cut naming no tool, never stopped (the site was killed)
+            700 => rec.event(ev(t, EventKind::CutStart, None)).unwrap(),
+            _ => {}
+        }
+    }
+    let bytes = rec.finish().unwrap();
+    let recording = Recording::from_bytes(&bytes).unwrap();
+    let events = event_acts(&recording, "A", "forceps");
+    assert_eq!(events.grasps, [(100.0 / RATE, 300.0 / RATE)]);
+    assert_eq!(events.cuts, [(700.0 / RATE, f64::INFINITY)]);
+    let track = recording.site_tracks("A").remove(0);
+    let acts = find_acts_with(&track, &events, &ScoreSettings::default());
+    let spans: Vec<(ActKind, usize, usize)> =
+        acts.iter().map(|a| (a.kind, a.first, a.last)).collect();
+    assert_eq!(
+        spans,
+        [
+            (ActKind::Session, 0, 999),
+            (ActKind::Grasp, 100, 300),
+            (ActKind::Cut, 700, 999)
+        ]
+    );
+    // With grasp state in the samples, the samples decide (events ignored for grasps).
+    let mut stated = track.clone();
+    for s in &mut stated.states[500..600] {
+        s.grasped = 3;
+    }
+    let acts = find_acts_with(&stated, &events, &ScoreSettings::default());
+    let grasp = acts.iter().find(|a| a.kind == ActKind::Grasp).unwrap();
+    assert_eq!((grasp.first, grasp.last), (500, 599));
+}

@@ -42,6 +42,8 @@ pub(super) struct Hub {
     status_interval: Option<Duration>,
     /// Where sessions created at run time are persisted.
     state_dir: Option<PathBuf>,
+    /// Where every session's recording goes (`--record`); `None`: not recorded.
+    record_dir: Option<PathBuf>,
     tasks: Mutex<Vec<AbortHandle>>,
 }
 
@@ -62,6 +64,7 @@ impl Hub {
             template: config.session.clone(),
             status_interval: config.status_interval,
             state_dir: config.state_dir.clone(),
+            record_dir: config.record_dir.clone(),
             tasks: Mutex::new(Vec::new()),
         }
     }
@@ -108,12 +111,20 @@ impl Hub {
     pub(super) fn add_session(&self, config: SessionConfig) -> Result<Arc<Shared>, Refusal> {
         let name = config.name.clone();
         let heartbeat_us = config.heartbeat_interval_us.max(10_000);
+        let recording = self.record_dir.as_ref().and_then(|dir| {
+            CoordinatorRecording::create(dir, &name, config.scene_hash.as_deref())
+                .inspect_err(|e| {
+                    warn!(session = %name, dir = %dir.display(), "not recorded: {e}");
+                })
+                .ok()
+        });
         let shared = Arc::new(Shared {
             name: name.clone(),
             clock: self.clock,
             state: Mutex::new(State {
                 session: Session::new(config),
                 peers: HashMap::new(),
+                recording,
             }),
             counters: Counters::default(),
             max_frame: self.max_frame,

@@ -85,6 +85,10 @@ async fn read_keyframe_stream(shared: Arc<Shared>, site: SiteId, mut recv: RecvS
         }
     };
     inc(&shared.counters.keyframes_in);
+    // recording: keyframe metadata.
+    if let Some(r) = st.recording.as_mut() {
+        r.on_keyframe(&stored.keyframe, stored.frame.len());
+    }
     let now = Instant::now();
     let ids: Vec<SiteId> = st.peers.keys().copied().filter(|&id| id != site).collect();
     for id in ids {
