@@ -159,6 +159,7 @@ fn keyframe(region: RegionId, owner: SiteId) -> Message {
         owner,
         sim_time: 0.1,
         epoch: 0,
+        topology: 0,
         tree_bits: vec![0x0F; 64],
         nodes: QuantisedNodes::encode_default(&ids, &pos, &vel).unwrap(),
     })
