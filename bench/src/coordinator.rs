@@ -541,6 +541,7 @@ fn keyframe_of_size(bytes: usize) -> Result<RegionKeyframe> {
             owner: 0,
             sim_time: 0.0,
             epoch: 0,
+            topology: 0,
             tree_bits: vec![0xA5; bits],
             nodes: QuantisedNodes::encode_default(&ids, &pos, &vel)
                 .map_err(|e| anyhow::anyhow!("quantising nodes: {e:?}"))?,
