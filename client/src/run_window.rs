@@ -58,11 +58,49 @@ fn new_site(scene: &LoadedScene, options: &SimOptions) -> Result<(Simulation, In
     Ok((sim, interaction))
 }
 
+/// What the hands want of one tool: where its tip should go and whether its jaws are
+/// closed. Shared by `cosurg run` and `cosurg join` with a window.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct HandTarget {
+    /// Where the tip is being moved to (m); `None`: where it is.
+    pub target: Option<Vector3<f64>>,
+    /// Jaws closed.
+    pub jaw_closed: bool,
+}
+
+impl HandTarget {
+    /// The tool's input for the next step of `dt` seconds: towards the target at most
+    /// [`HAND_SPEED`], jaws at the hands' setting.
+    pub fn drive(&self, tool: &sim_core::Tool, dt: f64) -> ToolInput {
+        let here = tool.pose().translation.vector;
+        let mut pose = *tool.pose();
+        if let Some(target) = self.target {
+            let d = target - here;
+            let max = HAND_SPEED * dt;
+            let step = if d.norm() > max {
+                d * (max / d.norm())
+            } else {
+                d
+            };
+            pose = Isometry3::from_parts(Translation3::from(here + step), tool.pose().rotation);
+        }
+        ToolInput {
+            pose,
+            jaw: if self.jaw_closed { 0.0 } else { JAW_OPEN },
+        }
+    }
+
+    /// Whether the tool's tip is within 0.1 mm of the target (or there is none).
+    pub fn reached(&self, tool: &sim_core::Tool) -> bool {
+        self.target
+            .is_none_or(|t| (t - tool.pose().translation.vector).norm() < 1e-4)
+    }
+}
+
 /// The hands' state in `run`: which tool they hold and where they want it.
 struct LocalHands {
     active: usize,
-    target: Option<Vector3<f64>>,
-    jaw_closed: bool,
+    hold: HandTarget,
 }
 
 impl LocalHands {
@@ -73,28 +111,14 @@ impl LocalHands {
             .iter()
             .enumerate()
             .map(|(i, tool)| {
-                let mut input = ToolInput {
-                    pose: *tool.pose(),
-                    jaw: tool.jaw(),
-                };
                 if i == self.active {
-                    if let Some(target) = self.target {
-                        let here = tool.pose().translation.vector;
-                        let d = target - here;
-                        let max = HAND_SPEED * dt;
-                        let step = if d.norm() > max {
-                            d * (max / d.norm())
-                        } else {
-                            d
-                        };
-                        input.pose = Isometry3::from_parts(
-                            Translation3::from(here + step),
-                            tool.pose().rotation,
-                        );
+                    self.hold.drive(tool, dt)
+                } else {
+                    ToolInput {
+                        pose: *tool.pose(),
+                        jaw: tool.jaw(),
                     }
-                    input.jaw = if self.jaw_closed { 0.0 } else { JAW_OPEN };
                 }
-                input
             })
             .collect()
     }
@@ -125,8 +149,7 @@ impl LocalSite {
             interaction,
             hands: LocalHands {
                 active: 0,
-                target: None,
-                jaw_closed: false,
+                hold: HandTarget::default(),
             },
             teaching,
         })
@@ -146,25 +169,23 @@ impl LocalSite {
     pub fn apply(&mut self, cmd: ViewerCommand) -> Result<bool> {
         match cmd {
             ViewerCommand::Closed => return Ok(false),
-            ViewerCommand::Tool(ToolCommand::MoveTo(p)) => self.hands.target = Some(p),
-            ViewerCommand::Tool(ToolCommand::Jaw(closed)) => self.hands.jaw_closed = closed,
+            ViewerCommand::Tool(ToolCommand::MoveTo(p)) => self.hands.hold.target = Some(p),
+            ViewerCommand::Tool(ToolCommand::Jaw(closed)) => self.hands.hold.jaw_closed = closed,
             ViewerCommand::Tool(ToolCommand::NextTool) => {
                 let n = self.interaction.tools.tools.len().max(1);
                 self.hands.active = (self.hands.active + 1) % n;
-                self.hands.target = None;
-                self.hands.jaw_closed = false;
+                self.hands.hold = HandTarget::default();
             }
             ViewerCommand::Session(SessionCommand::Reset) => {
                 (self.sim, self.interaction) = new_site(&self.scene, &self.options)?;
-                self.hands.target = None;
-                self.hands.jaw_closed = false;
+                self.hands.hold = HandTarget::default();
                 tracing::info!("scene reset");
             }
             ViewerCommand::Session(SessionCommand::TeachingStart) => self.teaching = true,
             ViewerCommand::Session(SessionCommand::TeachingStop) => {
                 self.teaching = false;
                 // the hands take over where the replay left the tool
-                self.hands.target = None;
+                self.hands.hold.target = None;
             }
         }
         Ok(true)
@@ -212,7 +233,7 @@ impl LocalSite {
 }
 
 /// The guide path of a tool's script (sampled every 20 ms), empty without a script.
-fn guide_path(scene: &LoadedScene, tool: &str) -> Vec<Vector3<f64>> {
+pub fn guide_path(scene: &LoadedScene, tool: &str) -> Vec<Vector3<f64>> {
     let Some(script) = scene.scripts.get(tool) else {
         return Vec::new();
     };

@@ -136,9 +136,9 @@ pub struct HudInfo {
     pub lag: Option<f64>,
     /// 99th percentile of the recent step wall times (ms).
     pub step_p99_ms: Option<f64>,
-    /// Keyframes received per second.
+    /// Keyframes sent and received per second.
     pub keyframes_per_s: Option<f64>,
-    /// Bytes received per second.
+    /// Application bytes sent and received per second.
     pub bytes_per_s: Option<f64>,
     /// Divergence from the owners' state (m, largest node distance).
     pub divergence: Option<f64>,
@@ -148,6 +148,8 @@ pub struct HudInfo {
     pub teaching: bool,
     /// Name of the tool the user's hands drive, if any.
     pub active_tool: Option<String>,
+    /// A short message for the user (e.g. a command the coordinator refused).
+    pub notice: Option<String>,
 }
 
 /// Where the laparoscope sits and looks (from the scene, or a default).

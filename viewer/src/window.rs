@@ -20,7 +20,7 @@ use winit::platform::run_return::EventLoopExtRunReturn;
 
 use crate::camera::{self, CameraMode, Orbit, View};
 use crate::frame::{Role, ToolCommand, ViewFrame, ViewSlot, ViewerCommand};
-use crate::hud::hud;
+use crate::hud::{hud, tool_labels};
 use crate::render::{DrawOptions, Renderer};
 
 /// Errors of the window and of screenshots.
@@ -292,6 +292,8 @@ pub fn run_window(
             next_frame = Instant::now() + frame_period;
             *control_flow = ControlFlow::WaitUntil(next_frame);
             let mut input = inputs.generate(&gl);
+            let size_px = (input.viewport.width as f64, input.viewport.height as f64);
+            let dpr = input.device_pixel_ratio as f64;
             let frame = slot.latest();
             let mut session = Vec::new();
             gui.update(
@@ -306,6 +308,13 @@ pub fn run_window(
                         hands.active_tool,
                         hands.wireframe,
                         matches!(hands.mode, CameraMode::Orbit(_)),
+                    );
+                    tool_labels(
+                        ui.ctx(),
+                        &frame,
+                        &hands.view(&frame),
+                        size_px,
+                        dpr,
                     );
                 },
             );
@@ -422,6 +431,7 @@ pub fn render_picture(frame: &ViewFrame, size: (u32, u32)) -> Result<Picture, Vi
                 frame.lattice.is_some(),
                 false,
             );
+            tool_labels(ui.ctx(), frame, &hands.view(frame), (w as f64, h as f64), 1.0);
         });
         if pass == 1 {
             renderer.draw(
