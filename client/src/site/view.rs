@@ -410,6 +410,37 @@ mod tests {
     use sim_core::sim_scene::builtin;
 
     #[test]
+    fn hands_drive_the_tool_while_acting_then_rest() {
+        let scene = builtin::cholecystectomy();
+        let options = sim_core::SimOptions::from_scene(&scene.scene);
+        let sim = Simulation::new(scene, options).unwrap();
+        let tools = Tools::new(&sim, Some("forceps"), sim_core::sync::SyncStrategy::Keyframe)
+            .unwrap();
+        let mut hands = SiteHands::default();
+        let dt = 0.004;
+        assert!(hands.input(&tools, dt, 0.0).is_none(), "no command yet");
+        let tip = tools.interaction().tools.tools[0].pose().translation.vector;
+        let target = tip + V3::new(0.0, 0.0, 0.01);
+        hands.command(ToolCommand::MoveTo(target), 1.0);
+        let input = hands.input(&tools, dt, 1.0).expect("acting");
+        // at most 0.25 m/s: one 4 ms step moves 1 mm towards the target
+        let moved = input.pose.translation.vector - tip;
+        assert!((moved.norm() - 0.001).abs() < 1e-12, "{moved}");
+        assert!(moved.dot(&(target - tip)) > 0.0);
+        // far from the target it keeps acting long after the command…
+        assert!(hands.input(&tools, dt, 5.0).is_some());
+        // …and at the target it rests once the hands have been still for a while
+        let mut at = SiteHands::default();
+        at.command(ToolCommand::MoveTo(tip), 1.0);
+        assert!(at.input(&tools, dt, 1.2).is_some());
+        assert!(at.input(&tools, dt, 1.0 + HANDS_HOLD_S + 0.01).is_none());
+        // the jaw key alone acts too
+        let mut jaw = SiteHands::default();
+        jaw.command(ToolCommand::Jaw(true), 0.0);
+        assert_eq!(jaw.input(&tools, dt, 0.1).unwrap().jaw, 0.0);
+    }
+
+    #[test]
     fn a_moved_tool_keeps_its_shape() {
         let scene = builtin::cholecystectomy();
         let options = sim_core::SimOptions::from_scene(&scene.scene);
