@@ -244,41 +244,81 @@ pub fn guide_path(scene: &LoadedScene, tool: &str) -> Vec<Vector3<f64>> {
         .collect()
 }
 
-/// `cosurg run` with a window. `scripted`: the tools follow their scripts (else the
-/// hands drive the active tool).
+/// How `cosurg run` with a window runs and ends.
+#[derive(Clone, Debug, PartialEq)]
+pub struct WindowRun {
+    /// The tools follow their scripts (else the hands drive the active tool).
+    pub scripted: bool,
+    /// Window size (pixels).
+    pub size: (u32, u32),
+    /// Stop after this many simulated seconds (else when the window is closed).
+    pub seconds: Option<f64>,
+    /// Open the window (`false`: the same real-time loop without one, to compare).
+    pub window: bool,
+    /// Measure frames as rendered (`glFinish` after each; benchmarks).
+    pub finish_frames: bool,
+}
+
+/// What a `cosurg run` with a window measured.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct WindowRunStats {
+    pub window: bool,
+    pub size: (u32, u32),
+    pub sim_seconds: f64,
+    pub wall_seconds: f64,
+    pub steps: usize,
+    /// Wall time of `Simulation::step` with the tools' contact (ms).
+    pub step_ms_p50: f64,
+    pub step_ms_p99: f64,
+    /// Frames the window drew, per second of its life, and their wall time (ms).
+    pub frames: usize,
+    pub fps: f64,
+    pub frame_ms_p50: f64,
+    pub frame_ms_p99: f64,
+    /// Wall time of building and publishing one frame on the simulation thread (ms).
+    pub publish_ms_p50: f64,
+    pub publish_ms_p99: f64,
+}
+
+/// `cosurg run` with a window (or, to compare, the same real-time loop without one).
 pub fn run_with_window(
     scene: LoadedScene,
     options: SimOptions,
-    scripted: bool,
-    size: (u32, u32),
-) -> Result<()> {
+    run: &WindowRun,
+) -> Result<WindowRunStats> {
     let title = format!("cosurg run — {}", scene.file);
-    let mut site = LocalSite::new(scene, options, scripted)?;
+    let mut site = LocalSite::new(scene, options, run.scripted)?;
     let mut builder = FrameBuilder::new(&site.sim)?;
     let slot = ViewSlot::new(site.frame(&mut builder, false, None));
     let (tx, rx) = mpsc::channel();
-    let window_slot = slot.clone();
-    let render = std::thread::Builder::new()
-        .name("window".into())
-        .spawn(move || {
-            viewer::run_window(
-                window_slot,
-                tx,
-                WindowOptions {
-                    title,
-                    size,
-                    ..Default::default()
-                },
-            )
-        })
-        .context("starting the window thread")?;
+    let render = if run.window {
+        let window_slot = slot.clone();
+        let options = WindowOptions {
+            title,
+            size: run.size,
+            finish_frames: run.finish_frames,
+            ..Default::default()
+        };
+        Some(
+            std::thread::Builder::new()
+                .name("window".into())
+                .spawn(move || viewer::run_window(window_slot, tx, options))
+                .context("starting the window thread")?,
+        )
+    } else {
+        drop(tx);
+        None
+    };
 
     let mut step_ms: Vec<f64> = Vec::new();
+    let mut publish_ms: Vec<f64> = Vec::new();
     let mut recent: std::collections::VecDeque<f64> = Default::default();
     let mut last_publish = Instant::now();
+    let started = Instant::now();
     let mut wall_start = Instant::now();
     let mut sim_start = site.sim.time();
-    'outer: loop {
+    'outer: while run.seconds.is_none_or(|s| site.sim.time() + 0.5 * site.sim.options().dt < s)
+    {
         for cmd in rx.try_iter() {
             let reset = cmd == ViewerCommand::Session(SessionCommand::Reset);
             if !site.apply(cmd)? {
@@ -298,7 +338,7 @@ pub fn run_with_window(
         if recent.len() > STEP_WINDOW {
             recent.pop_front();
         }
-        if last_publish.elapsed().as_secs_f64() >= PUBLISH_PERIOD {
+        if render.is_some() && last_publish.elapsed().as_secs_f64() >= PUBLISH_PERIOD {
             last_publish = Instant::now();
             let window: Vec<f64> = recent.iter().copied().collect();
             slot.publish(site.frame(
@@ -306,6 +346,7 @@ pub fn run_with_window(
                 slot.wants_lattice(),
                 Some(percentile(&window, 99.0)),
             ));
+            publish_ms.push(last_publish.elapsed().as_secs_f64() * 1e3);
         }
         // real time: never run ahead of the wall clock
         let ahead = (site.sim.time() - sim_start) - wall_start.elapsed().as_secs_f64();
@@ -313,19 +354,29 @@ pub fn run_with_window(
             std::thread::sleep(Duration::from_secs_f64(ahead));
         }
     }
+    slot.close();
     drop(rx);
-    match render.join() {
-        Ok(r) => r?,
-        Err(_) => bail!("the window thread panicked"),
-    }
-    println!(
-        "simulated {:.3} s in {} steps: step p50 {:.3} ms, p99 {:.3} ms",
-        site.sim.time(),
-        step_ms.len(),
-        percentile(&step_ms, 50.0),
-        percentile(&step_ms, 99.0)
-    );
-    Ok(())
+    let frames = match render.map(|r| r.join()) {
+        None => viewer::WindowStats::default(),
+        Some(Ok(r)) => r?,
+        Some(Err(_)) => bail!("the window thread panicked"),
+    };
+    let p = |v: &[f64], q: f64| if v.is_empty() { 0.0 } else { percentile(v, q) };
+    Ok(WindowRunStats {
+        window: run.window,
+        size: run.size,
+        sim_seconds: site.sim.time(),
+        wall_seconds: started.elapsed().as_secs_f64(),
+        steps: step_ms.len(),
+        step_ms_p50: p(&step_ms, 50.0),
+        step_ms_p99: p(&step_ms, 99.0),
+        frames: frames.frame_ms.len(),
+        fps: if run.window { frames.fps() } else { 0.0 },
+        frame_ms_p50: p(&frames.frame_ms, 50.0),
+        frame_ms_p99: p(&frames.frame_ms, 99.0),
+        publish_ms_p50: p(&publish_ms, 50.0),
+        publish_ms_p99: p(&publish_ms, 99.0),
+    })
 }
 
 /// `cosurg run --screenshot`: simulate to `at` seconds (tools scripted if `scripted`,

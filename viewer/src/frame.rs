@@ -237,6 +237,7 @@ pub enum ViewerCommand {
 pub struct ViewSlot {
     latest: Arc<Mutex<Arc<ViewFrame>>>,
     wants_lattice: Arc<AtomicBool>,
+    closed: Arc<AtomicBool>,
 }
 
 impl ViewSlot {
@@ -245,6 +246,7 @@ impl ViewSlot {
         ViewSlot {
             latest: Arc::new(Mutex::new(Arc::new(first))),
             wants_lattice: Arc::new(AtomicBool::new(false)),
+            closed: Arc::new(AtomicBool::new(false)),
         }
     }
 
@@ -276,6 +278,16 @@ impl ViewSlot {
     /// Set by the window when the user toggles the wireframe.
     pub fn set_wants_lattice(&self, on: bool) {
         self.wants_lattice.store(on, Ordering::Relaxed);
+    }
+
+    /// Asks the window to close (the simulation has ended); it does at its next frame.
+    pub fn close(&self) {
+        self.closed.store(true, Ordering::Relaxed);
+    }
+
+    /// Whether [`Self::close`] was called.
+    pub fn is_closed(&self) -> bool {
+        self.closed.load(Ordering::Relaxed)
     }
 }
 

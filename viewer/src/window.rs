@@ -52,6 +52,9 @@ pub struct WindowOptions {
     /// Frame-rate cap (the render thread sleeps in between, leaving the cores to the
     /// simulation).
     pub max_fps: f64,
+    /// Wait for every frame to be rendered before the next (`glFinish`), so that frame
+    /// times measure the rendering (benchmarks).
+    pub finish_frames: bool,
 }
 
 impl Default for WindowOptions {
@@ -60,6 +63,7 @@ impl Default for WindowOptions {
             title: "cosurg".into(),
             size: (1280, 720),
             max_fps: 60.0,
+            finish_frames: false,
         }
     }
 }
@@ -235,12 +239,15 @@ impl Hands {
 }
 
 /// Opens a window and shows the slot's latest frame until the user closes it; sends the
-/// user's commands (and [`ViewerCommand::Closed`] at the end). Blocks the calling thread.
+/// user's commands (and [`ViewerCommand::Closed`] at the end), until the user closes it
+/// or the publisher calls [`ViewSlot::close`]. Blocks the calling thread.
 pub fn run_window(
     slot: ViewSlot,
     commands: Sender<ViewerCommand>,
     options: WindowOptions,
-) -> Result<(), ViewerError> {
+) -> Result<WindowStats, ViewerError> {
+    let opened = Instant::now();
+    let mut stats = WindowStats::default();
     let mut event_loop = event_loop()?;
     let window = winit::window::WindowBuilder::new()
         .with_title(&options.title)
@@ -282,14 +289,17 @@ pub fn run_window(
             }
         }
         WinitEvent::MainEventsCleared => {
-            if Instant::now() >= next_frame {
+            if slot.is_closed() {
+                *control_flow = ControlFlow::Exit;
+            } else if Instant::now() >= next_frame {
                 window.request_redraw();
             } else {
                 *control_flow = ControlFlow::WaitUntil(next_frame);
             }
         }
         WinitEvent::RedrawRequested(_) => {
-            next_frame = Instant::now() + frame_period;
+            let drawing = Instant::now();
+            next_frame = drawing + frame_period;
             *control_flow = ControlFlow::WaitUntil(next_frame);
             let mut input = inputs.generate(&gl);
             let size_px = (input.viewport.width as f64, input.viewport.height as f64);
@@ -358,11 +368,36 @@ pub fn run_window(
             if let Err(e) = gl.swap_buffers() {
                 tracing::warn!("swap buffers: {e}");
             }
+            if options.finish_frames {
+                // the frame's GPU work is done (llvmpipe renders on the CPU: this is
+                // what a frame costs)
+                // SAFETY: glFinish on the current context of this thread, no arguments
+                unsafe { three_d::context::HasContext::finish(&**context) };
+            }
+            stats.frame_ms.push(drawing.elapsed().as_secs_f64() * 1e3);
         }
         _ => {}
     });
     let _ = commands.send(ViewerCommand::Closed);
-    Ok(())
+    stats.seconds = opened.elapsed().as_secs_f64();
+    Ok(stats)
+}
+
+/// What a window did: frames drawn and their cost.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct WindowStats {
+    /// Wall time the window was open (s).
+    pub seconds: f64,
+    /// Wall time of every frame: HUD, 3D drawing and buffer swap (ms; with
+    /// [`WindowOptions::finish_frames`] until the frame is rendered).
+    pub frame_ms: Vec<f64>,
+}
+
+impl WindowStats {
+    /// Frames shown per second of the window's life.
+    pub fn fps(&self) -> f64 {
+        self.frame_ms.len() as f64 / self.seconds.max(1e-9)
+    }
 }
 
 /// An RGBA8 picture, rows from the top.
@@ -410,7 +445,11 @@ pub fn render_picture(frame: &ViewFrame, size: (u32, u32)) -> Result<Picture, Vi
         DepthTexture2D::new::<f32>(&context, w, h, Wrapping::ClampToEdge, Wrapping::ClampToEdge);
     let viewport = Viewport::new_at_origo(w, h);
     let renderer = Renderer::new(&context);
-    let hands = Hands::default();
+    // the hands hold the first of the site's own tools (remote tools are not theirs)
+    let hands = Hands {
+        active_tool: frame.tools.iter().position(|t| t.site.is_none()),
+        ..Hands::default()
+    };
     let target = RenderTarget::new(color.as_color_target(None), depth.as_depth_target());
     let mut gui = GUI::new(&context);
     // a single picture: no fade-in (at a frozen time it would leave the HUD half

@@ -147,19 +147,26 @@ pub struct FrameContext<'a> {
     pub guide: Vec<V3>,
 }
 
+/// The render thread and what it returns.
+type WindowThread = JoinHandle<Result<viewer::WindowStats, viewer::ViewerError>>;
+
 /// The window (or screenshot) of one site.
 pub struct SiteViewer {
     name: String,
     role: viewer::Role,
     builder: FrameBuilder,
     slot: ViewSlot,
-    window: Option<(Receiver<ViewerCommand>, JoinHandle<Result<(), viewer::ViewerError>>)>,
+    window: Option<(Receiver<ViewerCommand>, WindowThread)>,
     screenshot: Option<(PathBuf, (u32, u32))>,
     /// `Some` when the window's hands drive the local tool.
     pub hands: Option<SiteHands>,
     last_publish: Option<Instant>,
     recent_steps: VecDeque<f64>,
     rates: Rates,
+    /// Names of the sites seen (kept after they leave, for their tools' labels).
+    names: std::collections::BTreeMap<proto::SiteId, String>,
+    /// The newest lag behind the sites followed (s).
+    last_behind: Option<f64>,
     /// A message for the HUD (a refused command, a teaching request without a trajectory).
     pub notice: Option<String>,
 }
@@ -205,6 +212,8 @@ impl SiteViewer {
             last_publish: None,
             recent_steps: VecDeque::with_capacity(STEP_WINDOW + 1),
             rates: Rates::default(),
+            names: Default::default(),
+            last_behind: None,
             notice: None,
         };
         match view {
@@ -281,32 +290,48 @@ impl SiteViewer {
         }
     }
 
-    /// Whether a window wants a new frame now.
+    /// Whether it is time for [`Self::publish`] (about 60 times a second).
     pub fn publish_due(&self, now: Instant) -> bool {
-        self.window.is_some()
-            && self
-                .last_publish
-                .is_none_or(|l| now.duration_since(l).as_secs_f64() >= PUBLISH_PERIOD)
+        self.last_publish
+            .is_none_or(|l| now.duration_since(l).as_secs_f64() >= PUBLISH_PERIOD)
     }
 
-    /// Builds the frame of the site's current state and publishes it.
+    /// Follows the session's figures (rates, site names, lag) and, for a window, builds
+    /// the frame of the site's current state and publishes it.
     pub fn publish(&mut self, ctx: FrameContext<'_>, now: Instant) {
         self.last_publish = Some(now);
+        self.observe(&ctx, now);
+        if self.window.is_some() {
+            let lattice = self.slot.wants_lattice();
+            let frame = self.frame(ctx, lattice);
+            self.slot.publish(frame);
+        }
+    }
+
+    fn observe(&mut self, ctx: &FrameContext<'_>, now: Instant) {
         if let Some(s) = &ctx.link {
             self.rates.update(s, now);
         }
-        let lattice = self.slot.wants_lattice();
-        let frame = self.frame(ctx, lattice);
-        self.slot.publish(frame);
+        let sites = ctx.session.sites();
+        for id in sites.receivers() {
+            if let Some(n) = sites.name(id) {
+                self.names.insert(id, n.to_string());
+            }
+        }
+        if ctx.behind.is_some() {
+            self.last_behind = ctx.behind;
+        }
     }
 
     /// The frame of the site's current state.
     pub fn frame(&mut self, ctx: FrameContext<'_>, with_lattice: bool) -> ViewFrame {
         let snapshot = ctx.session.snapshot();
+        let names = &self.names;
         let site_name = |id: proto::SiteId| {
             ctx.session
                 .sites()
                 .name(id)
+                .or_else(|| names.get(&id).map(String::as_str))
                 .map_or_else(|| format!("site {id}"), String::from)
         };
         let mut region_owners: Vec<(u32, String)> = snapshot
@@ -326,7 +351,7 @@ impl SiteViewer {
             site: self.name.clone(),
             role: self.role,
             sim_time: ctx.sim.time(),
-            lag: ctx.behind,
+            lag: ctx.behind.or(self.last_behind),
             step_p99_ms: (!recent.is_empty()).then(|| percentile(&recent, 99.0)),
             keyframes_per_s: self.rates.keyframes_per_s,
             bytes_per_s: self.rates.bytes_per_s,
@@ -379,10 +404,18 @@ impl SiteViewer {
             None => None,
         };
         if let Some((rx, handle)) = self.window.take() {
-            // The window notices the closed channel at its next frame and exits.
+            // The window closes at its next frame.
+            self.slot.close();
             drop(rx);
             match handle.join() {
-                Ok(r) => r?,
+                Ok(r) => {
+                    let stats = r?;
+                    tracing::info!(
+                        frames = stats.frame_ms.len(),
+                        fps = stats.fps(),
+                        "window closed"
+                    );
+                }
                 Err(_) => bail!("the window thread panicked"),
             }
         }
