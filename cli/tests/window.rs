@@ -318,7 +318,14 @@ fn join_screenshot_shows_the_session_as_a_trainee_sees_it() {
     // the instructor lifts the gallbladder with the scene's script, headless
     let mut instructor = join(&server, "prof", "instructor");
     instructor
-        .args(["--tool", "forceps", "--script", "--seconds", "4", "--headless"])
+        .args([
+            "--tool",
+            "forceps",
+            "--script",
+            "--seconds",
+            "4",
+            "--headless",
+        ])
         .stdout(Stdio::piped())
         .stderr(Stdio::piped());
     let instructor = instructor.spawn().expect("spawn the instructor");
@@ -345,7 +352,10 @@ fn join_screenshot_shows_the_session_as_a_trainee_sees_it() {
     )
     .unwrap();
     assert_eq!(report["screenshot_file"], shot.display().to_string());
-    assert!(report["keyframes_applied"].as_u64().unwrap() > 0, "{report}");
+    assert!(
+        report["keyframes_applied"].as_u64().unwrap() > 0,
+        "{report}"
+    );
     let (w, h, rgba) = read_png(&shot);
     assert_eq!((w, h), (1280, 720));
     hud_is_readable_at_the_top_left(w, &rgba);
@@ -358,7 +368,10 @@ fn join_screenshot_shows_the_session_as_a_trainee_sees_it() {
     );
     // the instructor's forceps is drawn ghosted in the trainee's view
     let ghost = rgba.chunks(4).filter(|p| is_ghost(p)).count();
-    assert!(ghost > 200, "{ghost} ghost-blue pixels: no remote tool drawn");
+    assert!(
+        ghost > 200,
+        "{ghost} ghost-blue pixels: no remote tool drawn"
+    );
     // the lift arrived: the gallbladder is not where it rests (same camera, t = 0)
     let (_, _, rest) = screenshot(&x, dir.path(), "rest.png", &["--at", "0"]);
     let mask = |img: &[u8]| img.chunks(4).map(is_gallbladder).collect::<Vec<_>>();

@@ -333,7 +333,12 @@ fn view_of(args: &JoinArgs) -> Result<Option<SiteView>> {
         return Ok(None);
     }
     Ok(Some(SiteView::Window {
-        title: format!("cosurg — {} ({}) in {}", args.site, Role::from(args.role), args.session),
+        title: format!(
+            "cosurg — {} ({}) in {}",
+            args.site,
+            Role::from(args.role),
+            args.session
+        ),
         size: args.size,
     }))
 }

@@ -317,7 +317,9 @@ pub fn run_with_window(
     let started = Instant::now();
     let mut wall_start = Instant::now();
     let mut sim_start = site.sim.time();
-    'outer: while run.seconds.is_none_or(|s| site.sim.time() + 0.5 * site.sim.options().dt < s)
+    'outer: while run
+        .seconds
+        .is_none_or(|s| site.sim.time() + 0.5 * site.sim.options().dt < s)
     {
         for cmd in rx.try_iter() {
             let reset = cmd == ViewerCommand::Session(SessionCommand::Reset);

@@ -51,7 +51,10 @@ fn config(extra: &[&str]) -> SiteConfig {
 fn without_script_or_device_the_headless_tool_stays_still() {
     let cfg = config(&[]);
     assert!(cfg.script.is_none(), "no script unless asked");
-    assert!(cfg.view.is_none() && !cfg.hands, "headless: no window, no hands");
+    assert!(
+        cfg.view.is_none() && !cfg.hands,
+        "headless: no window, no hands"
+    );
     let report = run_site(cfg).unwrap();
     assert_eq!(
         report.max_tool_force_n, 0.0,
@@ -75,8 +78,22 @@ fn script_without_a_file_plays_the_scenes_script() {
 #[test]
 fn script_needs_a_tool() {
     let args = Cli::try_parse_from([
-        "join", "--server", "127.0.0.1:9", "--session", "s", "--role", "trainee", "--site",
-        "a", "--pin", "00", "--invite", "x", "--no-tool", "--script", "--headless",
+        "join",
+        "--server",
+        "127.0.0.1:9",
+        "--session",
+        "s",
+        "--role",
+        "trainee",
+        "--site",
+        "a",
+        "--pin",
+        "00",
+        "--invite",
+        "x",
+        "--no-tool",
+        "--script",
+        "--headless",
     ])
     .unwrap()
     .join;

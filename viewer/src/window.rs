@@ -319,13 +319,7 @@ pub fn run_window(
                         hands.wireframe,
                         matches!(hands.mode, CameraMode::Orbit(_)),
                     );
-                    tool_labels(
-                        ui.ctx(),
-                        &frame,
-                        &hands.view(&frame),
-                        size_px,
-                        dpr,
-                    );
+                    tool_labels(ui.ctx(), &frame, &hands.view(&frame), size_px, dpr);
                 },
             );
             for e in &input.events {
@@ -470,7 +464,13 @@ pub fn render_picture(frame: &ViewFrame, size: (u32, u32)) -> Result<Picture, Vi
                 frame.lattice.is_some(),
                 false,
             );
-            tool_labels(ui.ctx(), frame, &hands.view(frame), (w as f64, h as f64), 1.0);
+            tool_labels(
+                ui.ctx(),
+                frame,
+                &hands.view(frame),
+                (w as f64, h as f64),
+                1.0,
+            );
         });
         if pass == 1 {
             renderer.draw(

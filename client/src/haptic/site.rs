@@ -442,7 +442,11 @@ impl Teaching {
     /// The tip path (m) a window draws as the teaching guide: the trajectory being played
     /// (trainee) or the newest one sent (instructor).
     pub fn guide_path(&self) -> Vec<V3> {
-        let id = self.playing.as_ref().map(|p| p.id).or(self.commanded.map(|c| c.0));
+        let id = self
+            .playing
+            .as_ref()
+            .map(|p| p.id)
+            .or(self.commanded.map(|c| c.0));
         match id.and_then(|id| self.received.get(&id)) {
             Some(tr) => tr
                 .samples

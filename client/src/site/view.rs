@@ -19,8 +19,8 @@ use anyhow::{Context, Result, bail};
 use nalgebra::{Isometry3, Vector3};
 use sim_core::{Simulation, ToolInput};
 use viewer::{
-    FrameBuilder, HudInfo, RegionOwner, SessionCommand, ToolCommand, ToolView, ViewFrame,
-    ViewSlot, ViewerCommand, WindowOptions,
+    FrameBuilder, HudInfo, RegionOwner, SessionCommand, ToolCommand, ToolView, ViewFrame, ViewSlot,
+    ViewerCommand, WindowOptions,
 };
 
 use super::tools::Tools;
@@ -128,7 +128,8 @@ impl Rates {
         };
         let dt = now.duration_since(base.at).as_secs_f64();
         if dt >= RATE_WINDOW_S {
-            self.keyframes_per_s = Some(sample.keyframes.saturating_sub(base.keyframes) as f64 / dt);
+            self.keyframes_per_s =
+                Some(sample.keyframes.saturating_sub(base.keyframes) as f64 / dt);
             self.bytes_per_s = Some(sample.bytes.saturating_sub(base.bytes) as f64 / dt);
             self.base = Some(sample);
         }
@@ -447,8 +448,12 @@ mod tests {
         let scene = builtin::cholecystectomy();
         let options = sim_core::SimOptions::from_scene(&scene.scene);
         let sim = Simulation::new(scene, options).unwrap();
-        let tools = Tools::new(&sim, Some("forceps"), sim_core::sync::SyncStrategy::Keyframe)
-            .unwrap();
+        let tools = Tools::new(
+            &sim,
+            Some("forceps"),
+            sim_core::sync::SyncStrategy::Keyframe,
+        )
+        .unwrap();
         let mut hands = SiteHands::default();
         let dt = 0.004;
         assert!(hands.input(&tools, dt, 0.0).is_none(), "no command yet");

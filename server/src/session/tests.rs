@@ -478,7 +478,10 @@ fn teaching_start_and_stop_are_refused_from_anyone_but_the_instructor() {
     };
     let stop = Command::StopPlayback { trajectory: 1 };
     for (who, name) in [(a, "a"), (o, "gallery")] {
-        for (c, label) in [(start.clone(), "start-playback"), (stop.clone(), "stop-playback")] {
+        for (c, label) in [
+            (start.clone(), "start-playback"),
+            (stop.clone(), "stop-playback"),
+        ] {
             let acts = s.on_control(who, Message::Command(c), 0);
             assert_eq!(acts.len(), 2, "{name} {label}: {acts:?}");
             assert!(

@@ -119,7 +119,10 @@ fn projection_agrees_with_three_d() {
         let px = cam.pixel_at_position(f(p));
         // three-d's pixel y grows upwards; f32 projection: 0.05 px
         assert!((x - px.x as f64).abs() < 0.05, "{p}: {x} vs {px:?}");
-        assert!((y - (h as f64 - px.y as f64)).abs() < 0.05, "{p}: {y} vs {px:?}");
+        assert!(
+            (y - (h as f64 - px.y as f64)).abs() < 0.05,
+            "{p}: {y} vs {px:?}"
+        );
     }
     // behind the camera: no pixel
     let behind = v.eye - v.forward() * 0.1;
