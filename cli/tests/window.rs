@@ -384,3 +384,32 @@ fn join_screenshot_shows_the_session_as_a_trainee_sees_it() {
         100.0 * changed / area
     );
 }
+
+/// `cosurg demo --view`: every site of the session opens its own window (two sites here,
+/// to keep the test short), and each window draws frames while its site runs.
+#[test]
+fn demo_view_opens_one_window_per_site() {
+    let x = start_xvfb();
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("demo");
+    let child = Command::new(env!("CARGO_BIN_EXE_cosurg"))
+        .args(["demo", "--view", "--sites", "2", "--seconds", "2", "--json"])
+        .args(["--vtu-interval", "100"])
+        .arg("--out")
+        .arg(&out)
+        .args(["--", "--no-haptics"])
+        .env("DISPLAY", &x.display)
+        .env_remove("WAYLAND_DISPLAY")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("run cosurg demo --view");
+    wait_bounded(child, Duration::from_secs(180), "cosurg demo --view");
+    for site in ["instructor", "trainee-a"] {
+        let path = out.join(site).join("report.json");
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&path).expect("site report")).unwrap();
+        let frames = report["window_frames"].as_u64().unwrap_or(0);
+        assert!(frames > 5, "{site}'s window drew {frames} frames: {report}");
+    }
+}

@@ -112,6 +112,11 @@ pub struct SiteReport {
     /// The screenshot written at the end (`--screenshot`).
     #[serde(default)]
     pub screenshot_file: Option<PathBuf>,
+    /// The window (if one was open): frames drawn and frames per second of its life.
+    #[serde(default)]
+    pub window_frames: Option<u64>,
+    #[serde(default)]
+    pub window_fps: Option<f64>,
     /// Haptic loop: ticks per second and p99 period jitter (µs).
     pub haptic_rate_hz: Option<f64>,
     pub haptic_jitter_p99_us: Option<f64>,

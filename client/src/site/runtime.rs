@@ -407,15 +407,18 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     }
     let wall = start.elapsed().as_secs_f64();
     if let Some(v) = view.take() {
-        report.screenshot_file = v.finish(FrameContext {
-            sim: &sim,
-            tools: &tools,
-            session: &session,
-            link: link.as_ref().map(|l| l.stats()),
-            behind: None,
-            teaching: false,
-            guide: Vec::new(),
-        })?;
+        v.finish(
+            FrameContext {
+                sim: &sim,
+                tools: &tools,
+                session: &session,
+                link: link.as_ref().map(|l| l.stats()),
+                behind: None,
+                teaching: false,
+                guide: Vec::new(),
+            },
+            &mut report,
+        )?;
     }
     let stats = session.stats().clone();
     report.playout_lag_ms = if stats.behind_steps > 0 {

@@ -393,8 +393,9 @@ impl SiteViewer {
         frame
     }
 
-    /// End of the run: writes the screenshot (if asked) and closes the window.
-    pub fn finish(mut self, ctx: FrameContext<'_>) -> Result<Option<PathBuf>> {
+    /// End of the run: writes the screenshot (if asked) and closes the window; fills the
+    /// report's screenshot and window fields.
+    pub fn finish(mut self, ctx: FrameContext<'_>, report: &mut super::SiteReport) -> Result<()> {
         let shot = match self.screenshot.take() {
             Some((path, size)) => {
                 let frame = self.frame(ctx, false);
@@ -404,6 +405,7 @@ impl SiteViewer {
             }
             None => None,
         };
+        report.screenshot_file = shot;
         if let Some((rx, handle)) = self.window.take() {
             // The window closes at its next frame.
             self.slot.close();
@@ -416,11 +418,13 @@ impl SiteViewer {
                         fps = stats.fps(),
                         "window closed"
                     );
+                    report.window_frames = Some(stats.frame_ms.len() as u64);
+                    report.window_fps = Some(stats.fps());
                 }
                 Err(_) => bail!("the window thread panicked"),
             }
         }
-        Ok(shot)
+        Ok(())
     }
 }
 
