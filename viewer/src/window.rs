@@ -55,6 +55,11 @@ pub struct WindowOptions {
     /// Wait for every frame to be rendered before the next (`glFinish`), so that frame
     /// times measure the rendering (benchmarks).
     pub finish_frames: bool,
+    /// Nice value of the window thread (Linux; 0 = unchanged). Set before the OpenGL
+    /// context exists, so that a software renderer's worker threads (Mesa llvmpipe)
+    /// inherit it: on a machine with few cores the scheduler then prefers the simulation
+    /// and haptic threads to the window's.
+    pub nice: i32,
 }
 
 impl Default for WindowOptions {
@@ -64,6 +69,7 @@ impl Default for WindowOptions {
             size: (1280, 720),
             max_fps: 60.0,
             finish_frames: false,
+            nice: 10,
         }
     }
 }
@@ -82,6 +88,26 @@ fn event_loop() -> Result<EventLoop<()>, ViewerError> {
             .unwrap_or_else(|| "winit could not connect to a display".into());
         ViewerError::Window(msg)
     })
+}
+
+/// Lowers the calling thread's scheduling priority to `nice` (Linux: nice values are per
+/// thread and inherited by threads it creates). Fails soft: a warning.
+fn lower_thread_priority(nice: i32) {
+    if nice == 0 {
+        return;
+    }
+    #[cfg(target_os = "linux")]
+    {
+        unsafe extern "C" {
+            fn setpriority(which: i32, who: u32, prio: i32) -> i32;
+        }
+        const PRIO_PROCESS: i32 = 0;
+        // SAFETY: a plain libc call without pointers; who = 0 is the calling thread.
+        let r = unsafe { setpriority(PRIO_PROCESS, 0, nice) };
+        if r != 0 {
+            tracing::warn!(nice, "could not lower the window thread's priority");
+        }
+    }
 }
 
 /// What the user's hands do to the view and the local tool; fed with three-d events.
@@ -248,6 +274,7 @@ pub fn run_window(
 ) -> Result<WindowStats, ViewerError> {
     let opened = Instant::now();
     let mut stats = WindowStats::default();
+    lower_thread_priority(options.nice);
     let mut event_loop = event_loop()?;
     let window = winit::window::WindowBuilder::new()
         .with_title(&options.title)
