@@ -134,6 +134,8 @@ fn join_base(server: &Server, site: &str, role: &str) -> Command {
         .args(["--server", &server.addr, "--session", SESSION])
         .args(["--role", role, "--site", site, "--pin", &server.fingerprint])
         .args(["--dt", "0.004", "--no-haptics", "--vtu-interval", "0"])
+        // never a window, whatever the environment's DISPLAY
+        .arg("--headless")
         .env_remove("COSURG_TOKEN")
         .env_remove("COSURG_INVITE");
     c
@@ -283,6 +285,8 @@ fn spawn_lifter(server: &Server, dir: &Path, sites: usize) -> Child {
         SESSION_SECONDS,
         "--tool",
         "forceps",
+        // the scene's canned grasp-and-lift (without it the tool would stay still)
+        "--script",
         "--script-start",
         "0.2",
     ];
@@ -536,6 +540,7 @@ fn poor_network_keeps_divergence_bounded_and_settles() {
         SESSION_SECONDS,
         "--tool",
         "forceps",
+        "--script",
     ];
     a.extend(["--script-start", "0.2"]);
     a.extend(poor);

@@ -146,6 +146,7 @@ pub fn run(args: SyncArgs) -> Result<()> {
             dt: Some(0.004),
             extra: vec!["--playout-lag".into(), args.playout_lag.to_string()],
             reset_at: None,
+            view: false,
         };
         let (reports, series) = run_session(&run)?;
         let receivers: Vec<_> = reports

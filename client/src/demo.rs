@@ -61,6 +61,10 @@ pub struct DemoArgs {
     /// The instructor resets the scene for every site at this simulated time (s).
     #[arg(long, value_name = "SECONDS")]
     pub reset_at: Option<f64>,
+    /// One window per site (three synchronised views of the session); needs a display.
+    /// Without it every site runs headless.
+    #[arg(long)]
+    pub view: bool,
     /// Extra arguments passed to every site's `cosurg join` (after `--`).
     #[arg(last = true)]
     pub site_args: Vec<String>,
@@ -204,6 +208,8 @@ pub struct SessionRun {
     pub extra: Vec<String>,
     /// The instructor resets the scene at this simulated time (s).
     pub reset_at: Option<f64>,
+    /// Every site opens its window (else every site runs headless).
+    pub view: bool,
 }
 
 /// Runs a coordinator in-process and every site as a child process; returns the site
@@ -276,10 +282,14 @@ pub fn run_session(run: &SessionRun) -> Result<(Vec<SiteReport>, Vec<Series>)> {
             )?;
             cmd.env("COSURG_INVITE", issued.invitation);
         }
+        // The demo's tools play the scene's canned scripts.
         match site.tool {
-            Some(t) => cmd.args(["--tool", t]),
+            Some(t) => cmd.args(["--tool", t, "--script"]),
             None => cmd.arg("--no-tool"),
         };
+        if !run.view {
+            cmd.arg("--headless");
+        }
         if let Some(p) = &run.preset {
             cmd.args(["--preset", p]);
         }
@@ -369,7 +379,11 @@ pub fn demo(args: DemoArgs) -> Result<()> {
         dt: Some(args.dt),
         extra: args.site_args.clone(),
         reset_at: args.reset_at,
+        view: args.view,
     };
+    if args.view && !crate::run_window::display_available() {
+        bail!("--view needs a display (DISPLAY is not set)");
+    }
     if !args.json {
         eprintln!(
             "cosurg demo: coordinator + {} sites on 127.0.0.1 (QUIC/TLS), scene builtin:cholecystectomy {}, strategy {}, {} s simulated",

@@ -12,7 +12,7 @@ use sim_core::sim_scene::ToolScript;
 use crate::cli::SimKnobs;
 use crate::link::{LinkConfig, LinkImpairment, Trust};
 use crate::scene_arg::load_scene;
-use crate::site::{SiteConfig, SiteReport, run_site};
+use crate::site::{SiteConfig, SiteReport, SiteView, run_site};
 use sim_core::sync::SyncStrategy;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -71,15 +71,18 @@ pub struct JoinArgs {
     /// Drive no tool (a trainee who only watches and feels).
     #[arg(long, conflicts_with = "tool")]
     pub no_tool: bool,
-    /// Tool trajectory script (sim-scene script format) for the local tool.
-    #[arg(long)]
-    pub script: Option<PathBuf>,
+    /// A canned script drives the local tool: FILE (sim-scene script format), or without
+    /// FILE the scene's own script for that tool. Without `--script` (and without a
+    /// device) the window's mouse and keyboard drive it, and headless it stays still.
+    #[arg(long, value_name = "FILE")]
+    pub script: Option<Option<PathBuf>>,
     /// Simulated time at which the script starts (s).
     #[arg(long, default_value_t = 0.0)]
     pub script_start: f64,
-    /// Leave after this many simulated seconds.
-    #[arg(long, default_value_t = 10.0)]
-    pub seconds: f64,
+    /// Leave after this many simulated seconds (default: 10 headless; with a window, when
+    /// it is closed or after an hour).
+    #[arg(long)]
+    pub seconds: Option<f64>,
     /// Instructor: reset the scene for every site when the simulated time reaches
     /// SECONDS (may be repeated).
     #[arg(long, value_name = "SECONDS")]
@@ -139,6 +142,19 @@ pub struct JoinArgs {
     /// Announce this protocol version instead of ours (to test refusals).
     #[arg(long, hide = true)]
     pub protocol_version: Option<u16>,
+    /// No window, even when a display is available.
+    #[arg(long)]
+    pub headless: bool,
+    /// Join, simulate to `--at` seconds, render one picture (PNG) of this site and leave;
+    /// needs a display (Xvfb will do).
+    #[arg(long, value_name = "FILE.png", conflicts_with = "headless")]
+    pub screenshot: Option<PathBuf>,
+    /// Simulated time of the screenshot (s; default: `--seconds`, else 10).
+    #[arg(long, requires = "screenshot")]
+    pub at: Option<f64>,
+    /// Window or screenshot size in pixels.
+    #[arg(long, default_value = "1280x720", value_parser = crate::run_window::parse_size)]
+    pub size: (u32, u32),
     /// Print `PROGRESS <sim time> …` lines on stdout (used by `cosurg demo`).
     #[arg(long, hide = true)]
     pub progress_lines: bool,
@@ -159,8 +175,10 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
     let mut options = SimOptions::from_scene(&scene.scene);
     args.knobs.apply(&mut options);
     let mut script = match &args.script {
-        Some(p) => Some(ToolScript::load(p).with_context(|| format!("script {}", p.display()))?),
-        None => None,
+        Some(Some(p)) => {
+            Some(ToolScript::load(p).with_context(|| format!("script {}", p.display()))?)
+        }
+        _ => None,
     };
     let tool = match (&args.tool, RoleArg::Observer == args.role || args.no_tool) {
         (_, true) => None,
@@ -183,11 +201,28 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
                 .collect::<Vec<_>>()
         );
     }
-    // Without --script the tool follows the script its scene gives it, if any.
-    if script.is_none()
-        && let Some(t) = &tool
-    {
-        script = scene.scripts.get(t).cloned();
+    // `--script` without a file: the scene's script for the tool.
+    if matches!(args.script, Some(None)) {
+        let Some(t) = &tool else {
+            bail!("--script: this site drives no tool");
+        };
+        script = Some(
+            scene
+                .scripts
+                .get(t)
+                .cloned()
+                .with_context(|| format!("--script: the scene has no script for tool {t:?}"))?,
+        );
+    }
+    let view = view_of(args)?;
+    let seconds = match (&view, args.seconds) {
+        (Some(SiteView::Screenshot { .. }), _) => args.at.or(args.seconds).unwrap_or(10.0),
+        (_, Some(s)) => s,
+        (Some(SiteView::Window { .. }), None) => WINDOW_SECONDS,
+        (None, None) => 10.0,
+    };
+    if !(seconds.is_finite() && seconds >= 0.0) {
+        bail!("{seconds} s: the simulated time must be a non-negative number of seconds");
     }
     let trust = match (&args.pin, &args.ca) {
         (Some(p), _) => Trust::Pinned(p.clone()),
@@ -259,7 +294,7 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
         tool,
         script,
         script_start: args.script_start,
-        seconds: args.seconds,
+        seconds,
         strategy: args.strategy,
         slowdown: args.slowdown,
         out: args.out.clone(),
@@ -275,8 +310,41 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
         on_progress: None,
         reset_at,
         status: None,
+        hands: view.is_some(),
+        view,
         scene,
     })
+}
+
+/// Simulated seconds of a site with a window and no `--seconds`: until the window is
+/// closed, at most an hour.
+const WINDOW_SECONDS: f64 = 3600.0;
+
+/// The window, the screenshot or neither: a window when a display is available and
+/// `--headless` is not given.
+fn view_of(args: &JoinArgs) -> Result<Option<SiteView>> {
+    if let Some(path) = &args.screenshot {
+        return Ok(Some(SiteView::Screenshot {
+            path: path.clone(),
+            size: args.size,
+        }));
+    }
+    if args.headless {
+        return Ok(None);
+    }
+    if !crate::run_window::display_available() {
+        tracing::info!("no display (DISPLAY is not set): joining headless");
+        return Ok(None);
+    }
+    Ok(Some(SiteView::Window {
+        title: format!(
+            "cosurg — {} ({}) in {}",
+            args.site,
+            Role::from(args.role),
+            args.session
+        ),
+        size: args.size,
+    }))
 }
 
 pub fn join(args: JoinArgs) -> Result<()> {
@@ -285,6 +353,11 @@ pub fn join(args: JoinArgs) -> Result<()> {
         cfg.on_progress = Some(Box::new(|t, msg| println!("PROGRESS {t:.3} {msg}")));
     }
     let report = run_site(cfg)?;
+    if let Some(p) = &report.screenshot_file
+        && !args.json
+    {
+        println!("wrote {}", p.display());
+    }
     print_report(&report, args.json)
 }
 

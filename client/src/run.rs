@@ -52,6 +52,17 @@ pub struct RunArgs {
     /// Draw the lattice wireframe in the screenshot (coloured by refinement level).
     #[arg(long, requires = "screenshot")]
     pub lattice: bool,
+    /// Measure the window: run the real-time loop for `--seconds` with the window (or,
+    /// with `--no-window`, the same loop without it), waiting for every frame to be
+    /// rendered, then print step and frame statistics as JSON.
+    #[arg(long, conflicts_with_all = ["headless", "screenshot"])]
+    pub bench_window: bool,
+    /// With `--bench-window`: the same loop without a window, for comparison.
+    #[arg(long, requires = "bench_window")]
+    pub no_window: bool,
+    /// With `--bench-window`: also write the statistics to this file.
+    #[arg(long, requires = "bench_window")]
+    pub stats_json: Option<PathBuf>,
     #[command(flatten)]
     pub knobs: SimKnobs,
 }
@@ -79,9 +90,51 @@ pub fn run(args: RunArgs) -> Result<()> {
             path,
         );
     }
+    if args.bench_window {
+        if !args.no_window && !crate::run_window::display_available() {
+            anyhow::bail!("--bench-window needs a display (DISPLAY is not set); Xvfb will do");
+        }
+        let stats = crate::run_window::run_with_window(
+            scene,
+            options,
+            &crate::run_window::WindowRun {
+                scripted: args.script,
+                size: args.size,
+                seconds: Some(args.seconds),
+                window: !args.no_window,
+                finish_frames: true,
+            },
+        )?;
+        let json = serde_json::to_string_pretty(&stats)?;
+        if let Some(p) = &args.stats_json {
+            std::fs::write(p, &json)?;
+        }
+        println!("{json}");
+        return Ok(());
+    }
     if !args.headless {
         if crate::run_window::display_available() {
-            return crate::run_window::run_with_window(scene, options, args.script, args.size);
+            let stats = crate::run_window::run_with_window(
+                scene,
+                options,
+                &crate::run_window::WindowRun {
+                    scripted: args.script,
+                    size: args.size,
+                    seconds: None,
+                    window: true,
+                    finish_frames: false,
+                },
+            )?;
+            println!(
+                "simulated {:.3} s in {} steps: step p50 {:.3} ms, p99 {:.3} ms; {} frames, {:.1} fps",
+                stats.sim_seconds,
+                stats.steps,
+                stats.step_ms_p50,
+                stats.step_ms_p99,
+                stats.frames,
+                stats.fps
+            );
+            return Ok(());
         }
         eprintln!("no display (DISPLAY is not set): running headless");
     }

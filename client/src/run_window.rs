@@ -58,11 +58,49 @@ fn new_site(scene: &LoadedScene, options: &SimOptions) -> Result<(Simulation, In
     Ok((sim, interaction))
 }
 
+/// What the hands want of one tool: where its tip should go and whether its jaws are
+/// closed. Shared by `cosurg run` and `cosurg join` with a window.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct HandTarget {
+    /// Where the tip is being moved to (m); `None`: where it is.
+    pub target: Option<Vector3<f64>>,
+    /// Jaws closed.
+    pub jaw_closed: bool,
+}
+
+impl HandTarget {
+    /// The tool's input for the next step of `dt` seconds: towards the target at most
+    /// [`HAND_SPEED`], jaws at the hands' setting.
+    pub fn drive(&self, tool: &sim_core::Tool, dt: f64) -> ToolInput {
+        let here = tool.pose().translation.vector;
+        let mut pose = *tool.pose();
+        if let Some(target) = self.target {
+            let d = target - here;
+            let max = HAND_SPEED * dt;
+            let step = if d.norm() > max {
+                d * (max / d.norm())
+            } else {
+                d
+            };
+            pose = Isometry3::from_parts(Translation3::from(here + step), tool.pose().rotation);
+        }
+        ToolInput {
+            pose,
+            jaw: if self.jaw_closed { 0.0 } else { JAW_OPEN },
+        }
+    }
+
+    /// Whether the tool's tip is within 0.1 mm of the target (or there is none).
+    pub fn reached(&self, tool: &sim_core::Tool) -> bool {
+        self.target
+            .is_none_or(|t| (t - tool.pose().translation.vector).norm() < 1e-4)
+    }
+}
+
 /// The hands' state in `run`: which tool they hold and where they want it.
 struct LocalHands {
     active: usize,
-    target: Option<Vector3<f64>>,
-    jaw_closed: bool,
+    hold: HandTarget,
 }
 
 impl LocalHands {
@@ -73,28 +111,14 @@ impl LocalHands {
             .iter()
             .enumerate()
             .map(|(i, tool)| {
-                let mut input = ToolInput {
-                    pose: *tool.pose(),
-                    jaw: tool.jaw(),
-                };
                 if i == self.active {
-                    if let Some(target) = self.target {
-                        let here = tool.pose().translation.vector;
-                        let d = target - here;
-                        let max = HAND_SPEED * dt;
-                        let step = if d.norm() > max {
-                            d * (max / d.norm())
-                        } else {
-                            d
-                        };
-                        input.pose = Isometry3::from_parts(
-                            Translation3::from(here + step),
-                            tool.pose().rotation,
-                        );
+                    self.hold.drive(tool, dt)
+                } else {
+                    ToolInput {
+                        pose: *tool.pose(),
+                        jaw: tool.jaw(),
                     }
-                    input.jaw = if self.jaw_closed { 0.0 } else { JAW_OPEN };
                 }
-                input
             })
             .collect()
     }
@@ -125,8 +149,7 @@ impl LocalSite {
             interaction,
             hands: LocalHands {
                 active: 0,
-                target: None,
-                jaw_closed: false,
+                hold: HandTarget::default(),
             },
             teaching,
         })
@@ -146,25 +169,23 @@ impl LocalSite {
     pub fn apply(&mut self, cmd: ViewerCommand) -> Result<bool> {
         match cmd {
             ViewerCommand::Closed => return Ok(false),
-            ViewerCommand::Tool(ToolCommand::MoveTo(p)) => self.hands.target = Some(p),
-            ViewerCommand::Tool(ToolCommand::Jaw(closed)) => self.hands.jaw_closed = closed,
+            ViewerCommand::Tool(ToolCommand::MoveTo(p)) => self.hands.hold.target = Some(p),
+            ViewerCommand::Tool(ToolCommand::Jaw(closed)) => self.hands.hold.jaw_closed = closed,
             ViewerCommand::Tool(ToolCommand::NextTool) => {
                 let n = self.interaction.tools.tools.len().max(1);
                 self.hands.active = (self.hands.active + 1) % n;
-                self.hands.target = None;
-                self.hands.jaw_closed = false;
+                self.hands.hold = HandTarget::default();
             }
             ViewerCommand::Session(SessionCommand::Reset) => {
                 (self.sim, self.interaction) = new_site(&self.scene, &self.options)?;
-                self.hands.target = None;
-                self.hands.jaw_closed = false;
+                self.hands.hold = HandTarget::default();
                 tracing::info!("scene reset");
             }
             ViewerCommand::Session(SessionCommand::TeachingStart) => self.teaching = true,
             ViewerCommand::Session(SessionCommand::TeachingStop) => {
                 self.teaching = false;
                 // the hands take over where the replay left the tool
-                self.hands.target = None;
+                self.hands.hold.target = None;
             }
         }
         Ok(true)
@@ -212,7 +233,7 @@ impl LocalSite {
 }
 
 /// The guide path of a tool's script (sampled every 20 ms), empty without a script.
-fn guide_path(scene: &LoadedScene, tool: &str) -> Vec<Vector3<f64>> {
+pub fn guide_path(scene: &LoadedScene, tool: &str) -> Vec<Vector3<f64>> {
     let Some(script) = scene.scripts.get(tool) else {
         return Vec::new();
     };
@@ -223,41 +244,83 @@ fn guide_path(scene: &LoadedScene, tool: &str) -> Vec<Vector3<f64>> {
         .collect()
 }
 
-/// `cosurg run` with a window. `scripted`: the tools follow their scripts (else the
-/// hands drive the active tool).
+/// How `cosurg run` with a window runs and ends.
+#[derive(Clone, Debug, PartialEq)]
+pub struct WindowRun {
+    /// The tools follow their scripts (else the hands drive the active tool).
+    pub scripted: bool,
+    /// Window size (pixels).
+    pub size: (u32, u32),
+    /// Stop after this many simulated seconds (else when the window is closed).
+    pub seconds: Option<f64>,
+    /// Open the window (`false`: the same real-time loop without one, to compare).
+    pub window: bool,
+    /// Measure frames as rendered (`glFinish` after each; benchmarks).
+    pub finish_frames: bool,
+}
+
+/// What a `cosurg run` with a window measured.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct WindowRunStats {
+    pub window: bool,
+    pub size: (u32, u32),
+    pub sim_seconds: f64,
+    pub wall_seconds: f64,
+    pub steps: usize,
+    /// Wall time of `Simulation::step` with the tools' contact (ms).
+    pub step_ms_p50: f64,
+    pub step_ms_p99: f64,
+    /// Frames the window drew, per second of its life, and their wall time (ms).
+    pub frames: usize,
+    pub fps: f64,
+    pub frame_ms_p50: f64,
+    pub frame_ms_p99: f64,
+    /// Wall time of building and publishing one frame on the simulation thread (ms).
+    pub publish_ms_p50: f64,
+    pub publish_ms_p99: f64,
+}
+
+/// `cosurg run` with a window (or, to compare, the same real-time loop without one).
 pub fn run_with_window(
     scene: LoadedScene,
     options: SimOptions,
-    scripted: bool,
-    size: (u32, u32),
-) -> Result<()> {
+    run: &WindowRun,
+) -> Result<WindowRunStats> {
     let title = format!("cosurg run — {}", scene.file);
-    let mut site = LocalSite::new(scene, options, scripted)?;
+    let mut site = LocalSite::new(scene, options, run.scripted)?;
     let mut builder = FrameBuilder::new(&site.sim)?;
     let slot = ViewSlot::new(site.frame(&mut builder, false, None));
     let (tx, rx) = mpsc::channel();
-    let window_slot = slot.clone();
-    let render = std::thread::Builder::new()
-        .name("window".into())
-        .spawn(move || {
-            viewer::run_window(
-                window_slot,
-                tx,
-                WindowOptions {
-                    title,
-                    size,
-                    ..Default::default()
-                },
-            )
-        })
-        .context("starting the window thread")?;
+    let render = if run.window {
+        let window_slot = slot.clone();
+        let options = WindowOptions {
+            title,
+            size: run.size,
+            finish_frames: run.finish_frames,
+            ..Default::default()
+        };
+        Some(
+            std::thread::Builder::new()
+                .name("window".into())
+                .spawn(move || viewer::run_window(window_slot, tx, options))
+                .context("starting the window thread")?,
+        )
+    } else {
+        drop(tx);
+        None
+    };
 
     let mut step_ms: Vec<f64> = Vec::new();
+    let mut publish_ms: Vec<f64> = Vec::new();
     let mut recent: std::collections::VecDeque<f64> = Default::default();
     let mut last_publish = Instant::now();
+    let started = Instant::now();
     let mut wall_start = Instant::now();
     let mut sim_start = site.sim.time();
-    'outer: loop {
+    'outer: while run
+        .seconds
+        .is_none_or(|s| site.sim.time() + 0.5 * site.sim.options().dt < s)
+    {
         for cmd in rx.try_iter() {
             let reset = cmd == ViewerCommand::Session(SessionCommand::Reset);
             if !site.apply(cmd)? {
@@ -277,7 +340,7 @@ pub fn run_with_window(
         if recent.len() > STEP_WINDOW {
             recent.pop_front();
         }
-        if last_publish.elapsed().as_secs_f64() >= PUBLISH_PERIOD {
+        if render.is_some() && last_publish.elapsed().as_secs_f64() >= PUBLISH_PERIOD {
             last_publish = Instant::now();
             let window: Vec<f64> = recent.iter().copied().collect();
             slot.publish(site.frame(
@@ -285,6 +348,7 @@ pub fn run_with_window(
                 slot.wants_lattice(),
                 Some(percentile(&window, 99.0)),
             ));
+            publish_ms.push(last_publish.elapsed().as_secs_f64() * 1e3);
         }
         // real time: never run ahead of the wall clock
         let ahead = (site.sim.time() - sim_start) - wall_start.elapsed().as_secs_f64();
@@ -292,19 +356,29 @@ pub fn run_with_window(
             std::thread::sleep(Duration::from_secs_f64(ahead));
         }
     }
+    slot.close();
     drop(rx);
-    match render.join() {
-        Ok(r) => r?,
-        Err(_) => bail!("the window thread panicked"),
-    }
-    println!(
-        "simulated {:.3} s in {} steps: step p50 {:.3} ms, p99 {:.3} ms",
-        site.sim.time(),
-        step_ms.len(),
-        percentile(&step_ms, 50.0),
-        percentile(&step_ms, 99.0)
-    );
-    Ok(())
+    let frames = match render.map(|r| r.join()) {
+        None => viewer::WindowStats::default(),
+        Some(Ok(r)) => r?,
+        Some(Err(_)) => bail!("the window thread panicked"),
+    };
+    let p = |v: &[f64], q: f64| if v.is_empty() { 0.0 } else { percentile(v, q) };
+    Ok(WindowRunStats {
+        window: run.window,
+        size: run.size,
+        sim_seconds: site.sim.time(),
+        wall_seconds: started.elapsed().as_secs_f64(),
+        steps: step_ms.len(),
+        step_ms_p50: p(&step_ms, 50.0),
+        step_ms_p99: p(&step_ms, 99.0),
+        frames: frames.frame_ms.len(),
+        fps: if run.window { frames.fps() } else { 0.0 },
+        frame_ms_p50: p(&frames.frame_ms, 50.0),
+        frame_ms_p99: p(&frames.frame_ms, 99.0),
+        publish_ms_p50: p(&publish_ms, 50.0),
+        publish_ms_p99: p(&publish_ms, 99.0),
+    })
 }
 
 /// `cosurg run --screenshot`: simulate to `at` seconds (tools scripted if `scripted`,

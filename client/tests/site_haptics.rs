@@ -46,6 +46,8 @@ fn site(scene: &LoadedScene, name: &str, role: Role, tool: &str, seconds: f64) -
         on_progress: None,
         reset_at: Vec::new(),
         status: None,
+        view: None,
+        hands: false,
     }
 }
 

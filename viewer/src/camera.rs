@@ -55,6 +55,20 @@ impl View {
     pub fn metres_per_pixel(&self, depth: f64, height_px: f64) -> f64 {
         2.0 * depth * (self.fov_y / 2.0).tan() / height_px
     }
+    /// Pixel position `(x right, y down)` of a world point in a viewport of
+    /// `width_px` × `height_px` (square pixels), or `None` behind the camera.
+    pub fn project(&self, p: &V3, width_px: f64, height_px: f64) -> Option<(f64, f64)> {
+        let depth = self.depth_of(p);
+        if depth <= 1e-6 {
+            return None;
+        }
+        let s = self.metres_per_pixel(depth, height_px);
+        let d = p - self.eye;
+        Some((
+            0.5 * width_px + d.dot(&self.right()) / s,
+            0.5 * height_px - d.dot(&self.image_up()) / s,
+        ))
+    }
 }
 
 /// The laparoscope: sits at the port and looks at the port's target.

@@ -136,9 +136,9 @@ pub struct HudInfo {
     pub lag: Option<f64>,
     /// 99th percentile of the recent step wall times (ms).
     pub step_p99_ms: Option<f64>,
-    /// Keyframes received per second.
+    /// Keyframes sent and received per second.
     pub keyframes_per_s: Option<f64>,
-    /// Bytes received per second.
+    /// Application bytes sent and received per second.
     pub bytes_per_s: Option<f64>,
     /// Divergence from the owners' state (m, largest node distance).
     pub divergence: Option<f64>,
@@ -148,6 +148,8 @@ pub struct HudInfo {
     pub teaching: bool,
     /// Name of the tool the user's hands drive, if any.
     pub active_tool: Option<String>,
+    /// A short message for the user (e.g. a command the coordinator refused).
+    pub notice: Option<String>,
 }
 
 /// Where the laparoscope sits and looks (from the scene, or a default).
@@ -235,6 +237,7 @@ pub enum ViewerCommand {
 pub struct ViewSlot {
     latest: Arc<Mutex<Arc<ViewFrame>>>,
     wants_lattice: Arc<AtomicBool>,
+    closed: Arc<AtomicBool>,
 }
 
 impl ViewSlot {
@@ -243,6 +246,7 @@ impl ViewSlot {
         ViewSlot {
             latest: Arc::new(Mutex::new(Arc::new(first))),
             wants_lattice: Arc::new(AtomicBool::new(false)),
+            closed: Arc::new(AtomicBool::new(false)),
         }
     }
 
@@ -274,6 +278,16 @@ impl ViewSlot {
     /// Set by the window when the user toggles the wireframe.
     pub fn set_wants_lattice(&self, on: bool) {
         self.wants_lattice.store(on, Ordering::Relaxed);
+    }
+
+    /// Asks the window to close (the simulation has ended); it does at its next frame.
+    pub fn close(&self) {
+        self.closed.store(true, Ordering::Relaxed);
+    }
+
+    /// Whether [`Self::close`] was called.
+    pub fn is_closed(&self) -> bool {
+        self.closed.load(Ordering::Relaxed)
     }
 }
 

@@ -3,6 +3,7 @@
 
 use three_d::egui;
 
+use crate::camera::View;
 use crate::frame::{Role, SessionCommand, ViewFrame};
 use crate::render::{level_colour, tissue_colour};
 
@@ -67,6 +68,9 @@ pub fn hud(
                     if orbit { "orbit" } else { "laparoscope" }.to_string(),
                 );
             });
+            if let Some(n) = &h.notice {
+                ui.colored_label(egui::Color32::from_rgb(255, 200, 90), n);
+            }
             if !h.region_owners.is_empty() {
                 ui.separator();
                 ui.label("region owners");
@@ -125,4 +129,36 @@ pub fn hud(
             }
         });
     out
+}
+
+/// Colour of the remote tools' labels (as their ghosts).
+const LABEL_COLOUR: egui::Color32 = egui::Color32::from_rgb(190, 215, 255);
+
+/// Writes the name of the site that moves each remote tool beside its tip (below the HUD
+/// window). `size_px`: viewport in physical pixels; `dpr`: physical pixels per point.
+pub fn tool_labels(
+    ctx: &egui::Context,
+    frame: &ViewFrame,
+    view: &View,
+    size_px: (f64, f64),
+    dpr: f64,
+) {
+    let painter = ctx.layer_painter(egui::LayerId::new(
+        egui::Order::Background,
+        egui::Id::new("tool-labels"),
+    ));
+    for tool in &frame.tools {
+        let Some(site) = &tool.site else { continue };
+        let Some((x, y)) = view.project(&tool.shaft.a, size_px.0, size_px.1) else {
+            continue;
+        };
+        let at = egui::pos2((x / dpr) as f32 + 8.0, (y / dpr) as f32 - 4.0);
+        painter.text(
+            at,
+            egui::Align2::LEFT_BOTTOM,
+            format!("{site}: {}", tool.name),
+            egui::FontId::proportional(15.0),
+            LABEL_COLOUR,
+        );
+    }
 }

@@ -31,5 +31,5 @@ pub use frame::{
 /// The graphics stack, re-exported so that callers can build input events for tests.
 pub use three_d;
 pub use window::{
-    Hands, Picture, ViewerError, WindowOptions, render_picture, run_window, screenshot,
+    Hands, Picture, ViewerError, WindowOptions, WindowStats, render_picture, run_window, screenshot,
 };

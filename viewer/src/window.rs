@@ -20,7 +20,7 @@ use winit::platform::run_return::EventLoopExtRunReturn;
 
 use crate::camera::{self, CameraMode, Orbit, View};
 use crate::frame::{Role, ToolCommand, ViewFrame, ViewSlot, ViewerCommand};
-use crate::hud::hud;
+use crate::hud::{hud, tool_labels};
 use crate::render::{DrawOptions, Renderer};
 
 /// Errors of the window and of screenshots.
@@ -52,6 +52,14 @@ pub struct WindowOptions {
     /// Frame-rate cap (the render thread sleeps in between, leaving the cores to the
     /// simulation).
     pub max_fps: f64,
+    /// Wait for every frame to be rendered before the next (`glFinish`), so that frame
+    /// times measure the rendering (benchmarks).
+    pub finish_frames: bool,
+    /// Nice value of the window thread (Linux; 0 = unchanged). Set before the OpenGL
+    /// context exists, so that a software renderer's worker threads (Mesa llvmpipe)
+    /// inherit it: on a machine with few cores the scheduler then prefers the simulation
+    /// and haptic threads to the window's.
+    pub nice: i32,
 }
 
 impl Default for WindowOptions {
@@ -60,6 +68,8 @@ impl Default for WindowOptions {
             title: "cosurg".into(),
             size: (1280, 720),
             max_fps: 60.0,
+            finish_frames: false,
+            nice: 10,
         }
     }
 }
@@ -78,6 +88,26 @@ pub(crate) fn event_loop() -> Result<EventLoop<()>, ViewerError> {
             .unwrap_or_else(|| "winit could not connect to a display".into());
         ViewerError::Window(msg)
     })
+}
+
+/// Lowers the calling thread's scheduling priority to `nice` (Linux: nice values are per
+/// thread and inherited by threads it creates). Fails soft: a warning.
+fn lower_thread_priority(nice: i32) {
+    if nice == 0 {
+        return;
+    }
+    #[cfg(target_os = "linux")]
+    {
+        unsafe extern "C" {
+            fn setpriority(which: i32, who: u32, prio: i32) -> i32;
+        }
+        const PRIO_PROCESS: i32 = 0;
+        // SAFETY: a plain libc call without pointers; who = 0 is the calling thread.
+        let r = unsafe { setpriority(PRIO_PROCESS, 0, nice) };
+        if r != 0 {
+            tracing::warn!(nice, "could not lower the window thread's priority");
+        }
+    }
 }
 
 /// What the user's hands do to the view and the local tool; fed with three-d events.
@@ -235,12 +265,16 @@ impl Hands {
 }
 
 /// Opens a window and shows the slot's latest frame until the user closes it; sends the
-/// user's commands (and [`ViewerCommand::Closed`] at the end). Blocks the calling thread.
+/// user's commands (and [`ViewerCommand::Closed`] at the end), until the user closes it
+/// or the publisher calls [`ViewSlot::close`]. Blocks the calling thread.
 pub fn run_window(
     slot: ViewSlot,
     commands: Sender<ViewerCommand>,
     options: WindowOptions,
-) -> Result<(), ViewerError> {
+) -> Result<WindowStats, ViewerError> {
+    let opened = Instant::now();
+    let mut stats = WindowStats::default();
+    lower_thread_priority(options.nice);
     let mut event_loop = event_loop()?;
     let window = winit::window::WindowBuilder::new()
         .with_title(&options.title)
@@ -282,16 +316,21 @@ pub fn run_window(
             }
         }
         WinitEvent::MainEventsCleared => {
-            if Instant::now() >= next_frame {
+            if slot.is_closed() {
+                *control_flow = ControlFlow::Exit;
+            } else if Instant::now() >= next_frame {
                 window.request_redraw();
             } else {
                 *control_flow = ControlFlow::WaitUntil(next_frame);
             }
         }
         WinitEvent::RedrawRequested(_) => {
-            next_frame = Instant::now() + frame_period;
+            let drawing = Instant::now();
+            next_frame = drawing + frame_period;
             *control_flow = ControlFlow::WaitUntil(next_frame);
             let mut input = inputs.generate(&gl);
+            let size_px = (input.viewport.width as f64, input.viewport.height as f64);
+            let dpr = input.device_pixel_ratio as f64;
             let frame = slot.latest();
             let mut session = Vec::new();
             gui.update(
@@ -307,6 +346,7 @@ pub fn run_window(
                         hands.wireframe,
                         matches!(hands.mode, CameraMode::Orbit(_)),
                     );
+                    tool_labels(ui.ctx(), &frame, &hands.view(&frame), size_px, dpr);
                 },
             );
             for e in &input.events {
@@ -349,11 +389,36 @@ pub fn run_window(
             if let Err(e) = gl.swap_buffers() {
                 tracing::warn!("swap buffers: {e}");
             }
+            if options.finish_frames {
+                // the frame's GPU work is done (llvmpipe renders on the CPU: this is
+                // what a frame costs)
+                // SAFETY: glFinish on the current context of this thread, no arguments
+                unsafe { three_d::context::HasContext::finish(&**context) };
+            }
+            stats.frame_ms.push(drawing.elapsed().as_secs_f64() * 1e3);
         }
         _ => {}
     });
     let _ = commands.send(ViewerCommand::Closed);
-    Ok(())
+    stats.seconds = opened.elapsed().as_secs_f64();
+    Ok(stats)
+}
+
+/// What a window did: frames drawn and their cost.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct WindowStats {
+    /// Wall time the window was open (s).
+    pub seconds: f64,
+    /// Wall time of every frame: HUD, 3D drawing and buffer swap (ms; with
+    /// [`WindowOptions::finish_frames`] until the frame is rendered).
+    pub frame_ms: Vec<f64>,
+}
+
+impl WindowStats {
+    /// Frames shown per second of the window's life.
+    pub fn fps(&self) -> f64 {
+        self.frame_ms.len() as f64 / self.seconds.max(1e-9)
+    }
 }
 
 /// An RGBA8 picture, rows from the top.
@@ -401,7 +466,11 @@ pub fn render_picture(frame: &ViewFrame, size: (u32, u32)) -> Result<Picture, Vi
         DepthTexture2D::new::<f32>(&context, w, h, Wrapping::ClampToEdge, Wrapping::ClampToEdge);
     let viewport = Viewport::new_at_origo(w, h);
     let renderer = Renderer::new(&context);
-    let hands = Hands::default();
+    // the hands hold the first of the site's own tools (remote tools are not theirs)
+    let hands = Hands {
+        active_tool: frame.tools.iter().position(|t| t.site.is_none()),
+        ..Hands::default()
+    };
     let target = RenderTarget::new(color.as_color_target(None), depth.as_depth_target());
     let mut gui = GUI::new(&context);
     // a single picture: no fade-in (at a frozen time it would leave the HUD half
@@ -421,6 +490,13 @@ pub fn render_picture(frame: &ViewFrame, size: (u32, u32)) -> Result<Picture, Vi
                 hands.active_tool,
                 frame.lattice.is_some(),
                 false,
+            );
+            tool_labels(
+                ui.ctx(),
+                frame,
+                &hands.view(frame),
+                (w as f64, h as f64),
+                1.0,
             );
         });
         if pass == 1 {

@@ -401,6 +401,8 @@ pub struct Teaching {
     dist_sum: f64,
     dist_max: f64,
     dist_samples: u64,
+    /// Tip positions of the newest trajectory sent (instructor; m), for a window's guide.
+    last_path: Vec<V3>,
 }
 
 impl Teaching {
@@ -423,6 +425,35 @@ impl Teaching {
             dist_sum: 0.0,
             dist_max: 0.0,
             dist_samples: 0,
+            last_path: Vec::new(),
+        }
+    }
+
+    /// Instructor: the id of the newest trajectory sent to the session, if any.
+    pub fn last_sent(&self) -> Option<u32> {
+        (self.sent > 0).then(|| self.next_id - 1)
+    }
+
+    /// Trainee: whether an instructor's playback is commanded or a guide is playing.
+    pub fn guiding(&self) -> bool {
+        self.commanded.is_some() || self.playing.is_some()
+    }
+
+    /// The tip path (m) a window draws as the teaching guide: the trajectory being played
+    /// (trainee) or the newest one sent (instructor).
+    pub fn guide_path(&self) -> Vec<V3> {
+        let id = self
+            .playing
+            .as_ref()
+            .map(|p| p.id)
+            .or(self.commanded.map(|c| c.0));
+        match id.and_then(|id| self.received.get(&id)) {
+            Some(tr) => tr
+                .samples
+                .iter()
+                .map(|s| V3::from(s.position.map(f64::from)))
+                .collect(),
+            None => self.last_path.clone(),
         }
     }
 
@@ -475,6 +506,7 @@ impl Teaching {
         let id = self.next_id;
         self.next_id += 1;
         self.sent += 1;
+        self.last_path = keys.iter().map(|k| k.pose.position).collect();
         info!(
             id,
             samples = samples.len(),

@@ -9,6 +9,7 @@ use sim_core::sim_scene::{LoadedScene, ToolScript};
 use sim_core::sync::SyncStrategy;
 
 use super::status::StatusBoard;
+use super::view::SiteView;
 use crate::haptic::site::DeviceSpec;
 use crate::link::LinkConfig;
 use crate::session::PlayoutLag;
@@ -63,6 +64,10 @@ pub struct SiteConfig {
     pub reset_at: Vec<f64>,
     /// Where the site publishes its state every step (a window or HUD reads it).
     pub status: Option<StatusBoard>,
+    /// A window (or a screenshot at the end); `None`: headless.
+    pub view: Option<SiteView>,
+    /// The window's mouse and keyboard drive the local tool (no script, no device).
+    pub hands: bool,
 }
 
 /// What a site did, printed by `cosurg join` and collected by `cosurg demo`.
@@ -128,6 +133,14 @@ pub struct SiteReport {
     #[serde(default)]
     pub recording_bytes: Option<u64>,
     pub reconnects: u64,
+    /// The screenshot written at the end (`--screenshot`).
+    #[serde(default)]
+    pub screenshot_file: Option<PathBuf>,
+    /// The window (if one was open): frames drawn and frames per second of its life.
+    #[serde(default)]
+    pub window_frames: Option<u64>,
+    #[serde(default)]
+    pub window_fps: Option<f64>,
     /// Haptic loop: ticks per second and p99 period jitter (µs).
     pub haptic_rate_hz: Option<f64>,
     pub haptic_jitter_p99_us: Option<f64>,

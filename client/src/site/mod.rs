@@ -9,8 +9,10 @@ pub mod recording;
 mod runtime;
 pub mod status;
 pub mod tools;
+pub mod view;
 
 pub use crate::session::PlayoutLag;
 pub use config::{ProgressCallback, SiteConfig, SiteReport};
 pub use runtime::{RECORD_INTERVAL, run_site};
 pub use status::{SiteStatus, StatusBoard};
+pub use view::{SiteView, SiteViewer, ViewRequest};

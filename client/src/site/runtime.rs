@@ -12,6 +12,7 @@ use super::config::{SiteConfig, SiteReport};
 use super::recording::{Recorder, SessionRecording};
 use super::status::SiteStatus;
 use super::tools::Tools;
+use super::view::{FrameContext, SiteViewer, ViewRequest};
 use crate::cli::Refused;
 use crate::haptic::site::{HapticLoop, Teaching};
 use crate::link::{Link, LinkEvent};
@@ -21,6 +22,9 @@ use crate::stats::percentile;
 
 /// Simulated time between surface recordings (s).
 pub const RECORD_INTERVAL: f64 = 0.05;
+/// Simulated time after a teaching start request at which trainees start the replay (s):
+/// the command reaches them first.
+const TEACHING_START_MARGIN: f64 = 0.3;
 /// Time a site waits for its session to be complete before giving up.
 const JOIN_WAIT: Duration = Duration::from_secs(20);
 
@@ -108,13 +112,26 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         None => None,
     };
     let is_instructor = cfg.role == proto::Role::Instructor;
+    // The window (or screenshot); its hands drive the local tool when nothing else does.
+    let mut view = match cfg.view.take() {
+        Some(v) => Some(SiteViewer::start(
+            v,
+            &sim,
+            &cfg.name,
+            cfg.role,
+            cfg.hands && !follows_device && cfg.script.is_none(),
+        )?),
+        None => None,
+    };
+    // Instructor: the trajectory whose replay the window started.
+    let mut replaying: Option<u32> = None;
 
     let start = Instant::now();
     session.start(start, link.as_ref().and_then(|l| l.clock().rtt_us));
     let mut reset_at = cfg.reset_at.clone();
     reset_at.sort_by(f64::total_cmp);
     let mut reset_at = reset_at.into_iter().peekable();
-    let mut step_ms: Vec<f64> = Vec::with_capacity(steps as usize);
+    let mut step_ms: Vec<f64> = Vec::with_capacity(steps.min(1 << 20) as usize);
     let mut recording_ms: Vec<f64> = Vec::new();
     let mut next_vtu = 0.0;
     let mut next_progress = 0.0;
@@ -123,8 +140,53 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     // Run until the session's simulated time reaches `seconds` (a late joiner starts
     // from the session's time, not from zero).
     let mut k: u64 = 0;
-    while sim.time() + 0.5 * dt < cfg.seconds {
+    'run: while sim.time() + 0.5 * dt < cfg.seconds {
         k += 1;
+        // 0. The window's requests (instructor controls; closing it ends the run).
+        if let Some(v) = view.as_mut() {
+            let t = sim.time();
+            for req in v.requests(t) {
+                match req {
+                    ViewRequest::Closed => {
+                        info!(site = %cfg.name, t, "window closed: leaving the session");
+                        break 'run;
+                    }
+                    ViewRequest::Reset => {
+                        let rtt = link
+                            .as_ref()
+                            .and_then(|l| l.clock().rtt_us)
+                            .map(Duration::from_micros);
+                        v.notice = session.request_reset(t, rtt).err().map(|e| e.to_string());
+                    }
+                    ViewRequest::TeachingStart => match teaching.last_sent() {
+                        Some(id) => {
+                            session.send_control(proto::Message::Command(
+                                proto::Command::StartPlayback {
+                                    trajectory: id,
+                                    start_sim_time_s: t + TEACHING_START_MARGIN,
+                                },
+                            ));
+                            replaying = Some(id);
+                            v.notice = None;
+                        }
+                        None => {
+                            v.notice = Some(
+                                "nothing to replay yet: act with the tool first (each act is \
+                                 recorded and sent)"
+                                    .into(),
+                            )
+                        }
+                    },
+                    ViewRequest::TeachingStop => {
+                        if let Some(id) = replaying.take() {
+                            session.send_control(proto::Message::Command(
+                                proto::Command::StopPlayback { trajectory: id },
+                            ));
+                        }
+                    }
+                }
+            }
+        }
         // 1. Network input, without waiting, and what the session makes of it.
         if let Some(link) = &link {
             while let Some(ev) = link.try_recv() {
@@ -149,6 +211,9 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                 SessionEvent::SceneReset { epoch } => {
                     info!(site = %cfg.name, epoch, t = sim.time(), "scene reset");
                     tools.reset(&sim);
+                    if let Some(v) = view.as_mut() {
+                        v.reset(&sim)?;
+                    }
                     if let Some(r) = session_rec.as_mut() {
                         r.reset(epoch, &sim)?;
                     }
@@ -184,6 +249,9 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                 }
                 SessionEvent::CommandRefused { command, reason } => {
                     warn!(site = %cfg.name, %command, %reason, "command refused");
+                    if let Some(v) = view.as_mut() {
+                        v.notice = Some(format!("{command} refused: {reason}"));
+                    }
                 }
             }
         }
@@ -204,7 +272,9 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         let local = if follows_device {
             haptic.as_mut().and_then(|h| h.device_input())
         } else {
-            tools.local_input(cfg.script.as_ref(), t - cfg.script_start)
+            tools
+                .local_input(cfg.script.as_ref(), t - cfg.script_start)
+                .or_else(|| view.as_ref().and_then(|v| v.hands_input(&tools, dt, t)))
         };
         if is_instructor
             && tools.local_index().is_some()
@@ -244,7 +314,11 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         if cfg.slowdown > 1.0 {
             burn(cost.mul_f64(cfg.slowdown - 1.0));
         }
-        step_ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        step_ms.push(ms);
+        if let Some(v) = view.as_mut() {
+            v.step_time(ms);
+        }
         let t = sim.time();
 
         // 5. What we owe the others.
@@ -302,6 +376,32 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                 behind_s: pace.behind,
             });
         }
+        if let Some(v) = view.as_mut() {
+            let now = Instant::now();
+            if v.publish_due(now) {
+                let teaching_on = if is_instructor {
+                    replaying.is_some()
+                } else {
+                    teaching.guiding()
+                };
+                v.publish(
+                    FrameContext {
+                        sim: &sim,
+                        tools: &tools,
+                        session: &session,
+                        link: link.as_ref().map(|l| l.stats()),
+                        behind: pace.behind,
+                        teaching: teaching_on,
+                        guide: if teaching_on {
+                            teaching.guide_path()
+                        } else {
+                            Vec::new()
+                        },
+                    },
+                    now,
+                );
+            }
+        }
         if let Some(wake) = session.poll_timeout() {
             let now = Instant::now();
             if wake > now {
@@ -310,6 +410,20 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         }
     }
     let wall = start.elapsed().as_secs_f64();
+    if let Some(v) = view.take() {
+        v.finish(
+            FrameContext {
+                sim: &sim,
+                tools: &tools,
+                session: &session,
+                link: link.as_ref().map(|l| l.stats()),
+                behind: None,
+                teaching: false,
+                guide: Vec::new(),
+            },
+            &mut report,
+        )?;
+    }
     let stats = session.stats().clone();
     report.playout_lag_ms = if stats.behind_steps > 0 {
         stats.behind_sum / stats.behind_steps as f64 * 1e3

@@ -29,6 +29,8 @@ pub struct Tools {
     /// Each remote pose sampled at this step's simulation time (what is simulated and
     /// drawn).
     remote: Vec<Option<ToolInput>>,
+    /// The site whose poses each remote tool follows (the newest pose's sender).
+    remote_site: Vec<Option<proto::SiteId>>,
     /// Whether the local tool is being driven this step (its script is running).
     local_active: bool,
     /// Touch radius around contacts for region ownership (m).
@@ -53,6 +55,7 @@ impl Tools {
             .collect();
         Ok(Tools {
             remote: vec![None; interaction.tools.len()],
+            remote_site: vec![None; interaction.tools.len()],
             remote_track: vec![PoseTrack::default(); interaction.tools.len()],
             interaction,
             local,
@@ -161,6 +164,9 @@ impl Tools {
 
     /// A pose of a tool from another site (held until our simulation time reaches it).
     pub fn remote_pose(&mut self, p: &proto::ToolPose) {
+        if let Some(site) = self.remote_site.get_mut(p.tool as usize) {
+            *site = Some(p.site);
+        }
         if let Some(track) = self.remote_track.get_mut(p.tool as usize) {
             let q = p.orientation.map(f64::from);
             track.insert(
@@ -176,6 +182,11 @@ impl Tools {
                 ),
             );
         }
+    }
+
+    /// The site that last sent a pose of tool `i` (the one that moves it), if any.
+    pub fn remote_site(&self, i: usize) -> Option<proto::SiteId> {
+        self.remote_site.get(i).copied().flatten()
     }
 
     /// Whether the local tool was driven in the last step (its site then leads).

@@ -524,3 +524,79 @@ fn topology_ops_are_relayed_once_kept_for_late_joiners_and_cleared_by_a_reset() 
     );
     assert!(s.snapshot().topology.is_empty());
 }
+
+/// Teaching replay start/stop, like a scene reset, is the instructor's: a trainee's or an
+/// observer's request is refused with a reason, dropped, and relayed to nobody.
+#[test]
+fn teaching_start_and_stop_are_refused_from_anyone_but_the_instructor() {
+    let mut s = session();
+    let i = join(&mut s, "prof", Role::Instructor);
+    let a = join(&mut s, "a", Role::Trainee);
+    let o = join(&mut s, "gallery", Role::Observer);
+    let start = Command::StartPlayback {
+        trajectory: 1,
+        start_sim_time_s: 2.0,
+    };
+    let stop = Command::StopPlayback { trajectory: 1 };
+    for (who, name) in [(a, "a"), (o, "gallery")] {
+        for (c, label) in [
+            (start.clone(), "start-playback"),
+            (stop.clone(), "stop-playback"),
+        ] {
+            let acts = s.on_control(who, Message::Command(c), 0);
+            assert_eq!(acts.len(), 2, "{name} {label}: {acts:?}");
+            assert!(
+                matches!(
+                    acts[0],
+                    Action::Drop {
+                        reason: DropReason::NotInstructor,
+                        ..
+                    }
+                ),
+                "{name} {label}: {acts:?}"
+            );
+            assert!(
+                matches!(
+                    &acts[1],
+                    Action::Control {
+                        to: Target::One(to),
+                        msg: Message::CommandRefused(r),
+                    } if *to == who && r.command == label && r.reason.contains("instructor")
+                ),
+                "{name} {label}: {acts:?}"
+            );
+        }
+    }
+    // nothing was armed for late joiners by the refused start
+    let late = s
+        .join(
+            &Join {
+                protocol_version: PROTOCOL_VERSION,
+                scene_hash: "ab".into(),
+                role: Role::Trainee,
+                site_name: "late".into(),
+                session: "s".into(),
+                credential: credential(Role::Trainee, "t"),
+            },
+            0,
+        )
+        .unwrap();
+    assert!(!late.actions.iter().any(|x| matches!(
+        x,
+        Action::Control {
+            msg: Message::Command(Command::StartPlayback { .. }),
+            ..
+        }
+    )));
+    // the instructor's start and stop are relayed to everyone else
+    for c in [start, stop] {
+        let acts = s.on_control(i, Message::Command(c.clone()), 0);
+        assert_eq!(
+            acts,
+            vec![Action::Control {
+                to: Target::AllExcept(i),
+                msg: Message::Command(c)
+            }]
+        );
+    }
+}

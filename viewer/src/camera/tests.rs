@@ -103,3 +103,28 @@ fn the_wheel_moves_along_the_view_direction() {
     let px = cam.pixel_at_position(f(t));
     assert!((px.x - 400.0).abs() < 0.01 && (px.y - 300.0).abs() < 0.01);
 }
+
+#[test]
+fn projection_agrees_with_three_d() {
+    let v = laparoscope(&port());
+    let (w, h) = (1280u32, 720u32);
+    let cam = three_d_camera(&v, w, h);
+    let f = |p: V3| vec3(p.x as f32, p.y as f32, p.z as f32);
+    for p in [
+        V3::new(0.04, -0.09, -0.035),
+        V3::new(0.0, -0.05, 0.01),
+        port().target,
+    ] {
+        let (x, y) = v.project(&p, w as f64, h as f64).unwrap();
+        let px = cam.pixel_at_position(f(p));
+        // three-d's pixel y grows upwards; f32 projection: 0.05 px
+        assert!((x - px.x as f64).abs() < 0.05, "{p}: {x} vs {px:?}");
+        assert!(
+            (y - (h as f64 - px.y as f64)).abs() < 0.05,
+            "{p}: {y} vs {px:?}"
+        );
+    }
+    // behind the camera: no pixel
+    let behind = v.eye - v.forward() * 0.1;
+    assert!(v.project(&behind, w as f64, h as f64).is_none());
+}
