@@ -21,7 +21,7 @@
 //! | channel | messages |
 //! |---|---|
 //! | session-control bidi stream (opened by the site), frames | Join, Welcome, Refusal, KeyframeAck, Ownership*, Teaching, Command, Leave, Status, SiteJoined (and TreeDelta too big for a datagram) |
-//! | datagrams (≤ 1100 B) | ClockPing/Pong, SimTime, ToolPose, TreeDelta, Heartbeat |
+//! | datagrams (≤ 1100 B) | ClockPing/Pong, SimTime, ToolPose, ToolPoseHistory, TreeDelta, Heartbeat |
 //! | one uni stream per message, one frame | Keyframe, Snapshot |
 //! | control stream of an admin connection (not a site): one request, one answer | Admin → Invitation or Refusal |
 

@@ -248,6 +248,33 @@ pub struct ToolPose {
     pub angular_velocity: [f32; 3],
 }
 
+/// One sample of a tool's input: what a site needs to simulate another site's tool.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PoseSample {
+    /// Simulation time of the pose (s).
+    pub sim_time_s: f64,
+    /// Tool tip position (m).
+    pub position: [f32; 3],
+    /// Orientation quaternion `[w, x, y, z]`.
+    pub orientation: [f32; 4],
+    /// Jaw opening angle (rad).
+    pub jaw_rad: f32,
+}
+
+/// The newest input samples of one tool (datagram, relayed), oldest first. Each datagram
+/// repeats the samples of the previous few, so that a lost datagram costs nothing as long
+/// as the next one arrives (`SyncStrategy::Hybrid`'s input channel).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ToolPoseHistory {
+    pub site: SiteId,
+    pub tool: u8,
+    pub samples: Vec<PoseSample>,
+}
+
+/// Most samples a [`ToolPoseHistory`] may carry (keeps it well inside one datagram:
+/// 40 bytes per sample).
+pub const MAX_POSE_SAMPLES: usize = 16;
+
 /// Full state of one region (unidirectional stream, relayed; latest kept for late joiners).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RegionKeyframe {
@@ -520,6 +547,8 @@ pub enum Message {
     Invitation(InvitationIssued),
     /// The coordinator refused a command (to the sender only, control stream).
     CommandRefused(CommandRefusal),
+    /// A tool's newest input samples (datagram, relayed).
+    ToolPoseHistory(ToolPoseHistory),
 }
 
 /// Which transport a message normally travels on.
@@ -561,6 +590,7 @@ impl Message {
             Message::Admin(_) => "admin",
             Message::Invitation(_) => "invitation",
             Message::CommandRefused(_) => "command-refused",
+            Message::ToolPoseHistory(_) => "tool-pose-history",
         }
     }
 
@@ -571,6 +601,7 @@ impl Message {
             | Message::ClockPong(_)
             | Message::SimTime(_)
             | Message::ToolPose(_)
+            | Message::ToolPoseHistory(_)
             | Message::TreeDelta(_)
             | Message::Heartbeat(_) => Channel::Datagram,
             Message::Keyframe(_) | Message::Snapshot(_) => Channel::UniStream,

@@ -12,6 +12,13 @@
 //! * `L` is `--playout-lag auto` (smoothed one-way delay owner → coordinator → us, plus a
 //!   jitter margin of four mean deviations, plus one keyframe interval; capped at
 //!   [`MAX_AUTO_LAG`]) or a fixed value (`0`: no lag, the behaviour before playout lag).
+//! * Under hybrid sync the follower simulates the owner's tool from its input samples and
+//!   only needs those in time; keyframes merely correct it, and a late one is skipped. So
+//!   `auto` there follows the inputs' path alone: smoothed one-way delay of the time
+//!   stamps (they travel like the inputs, as datagrams) plus [`HYBRID_JITTER_DEVS`] mean
+//!   deviations plus one input-datagram interval (a lost datagram's samples come in the
+//!   next one), capped only at [`MAX_HYBRID_LAG`] (a safety stop, not a tuning). Keyframe
+//!   ages, which include stream retransmissions, do not raise it.
 //! * The lag is reached and kept by slewing the step rate within
 //!   [`MIN_RATE`]–[`MAX_RATE`] of real time, never by jumps.
 //! * A *leading* site (it owns a region, has claimed one, or its own tool is being driven)
@@ -35,6 +42,14 @@ pub const MAX_AUTO_LAG: f64 = 0.6;
 /// One keyframe interval during motion (s): the owner sends at most every 30 ms
 /// (`SyncConfig::min_interval_s`), and interpolation needs the next keyframe in hand.
 pub const KEYFRAME_INTERVAL: f64 = 0.04;
+/// Under hybrid: jitter margin of the automatic lag, in mean deviations of the delay (a
+/// sample later than the lag leaves the remote tool held at its newest pose for that
+/// step; the owner's keyframes correct what that changes).
+pub const HYBRID_JITTER_DEVS: f64 = 1.5;
+/// Under hybrid: the interval of the input datagrams (s, `session::POSE_HISTORY_INTERVAL`).
+const HYBRID_INPUT_INTERVAL: f64 = 0.008;
+/// Under hybrid: largest automatic playout lag (s).
+pub const MAX_HYBRID_LAG: f64 = 2.0;
 /// Slowest and fastest step rate while slewing towards the target lag (× real time).
 pub const MIN_RATE: f64 = 0.8;
 pub const MAX_RATE: f64 = 1.05;
@@ -110,9 +125,9 @@ impl DelayFilter {
         }
     }
 
-    /// Delay plus a jitter margin of four deviations (s).
-    fn with_margin(&self) -> Option<f64> {
-        self.mean.map(|m| m + 4.0 * self.dev)
+    /// Delay plus a jitter margin of `devs` deviations (s).
+    fn with_margin(&self, devs: f64) -> Option<f64> {
+        self.mean.map(|m| m + devs * self.dev)
     }
 }
 
@@ -149,9 +164,12 @@ pub struct PeerClocks {
     pub owners: BTreeMap<u32, u16>,
     /// Sites whose tool poses we receive, and when the last one was heard (wall s).
     tools: HashMap<u16, f64>,
-    /// One-way delay from the followed sites to us: stamp transits and keyframe ages.
+    /// One-way delay from the followed sites to us: stamp transits and (except under
+    /// hybrid) keyframe ages.
     delay: DelayFilter,
     lag: PlayoutLag,
+    /// Hybrid sync: the lag follows the input path only (see the module documentation).
+    inputs_only: bool,
 }
 
 impl PeerClocks {
@@ -162,7 +180,14 @@ impl PeerClocks {
             tools: HashMap::new(),
             delay: DelayFilter::default(),
             lag,
+            inputs_only: false,
         }
+    }
+
+    /// The lag model of `strategy`: under hybrid the inputs' path alone.
+    pub fn for_strategy(mut self, strategy: sim_core::sync::SyncStrategy) -> Self {
+        self.inputs_only = strategy == sim_core::sync::SyncStrategy::Hybrid;
+        self
     }
 
     /// A time stamp of `site`: simulation time `sim_time` (s) heard at `now` (wall s);
@@ -207,6 +232,9 @@ impl PeerClocks {
     /// (how long after its simulation time it arrived) is a delay sample that includes
     /// stream retransmissions and the sender's queue.
     pub fn keyframe_arrived(&mut self, owner: u16, sim_time: f64, now: f64) {
+        if self.inputs_only {
+            return;
+        }
         if let Some(est) = self.estimate_now(owner, now) {
             let age = est - sim_time;
             if (0.0..MAX_TRANSIT).contains(&age) {
@@ -276,8 +304,12 @@ impl PeerClocks {
     pub fn target_lag(&self) -> f64 {
         match self.lag {
             PlayoutLag::Fixed(l) => l.max(0.0),
+            PlayoutLag::Auto if self.inputs_only => {
+                let delay = self.delay.with_margin(HYBRID_JITTER_DEVS).unwrap_or(0.1);
+                (delay + HYBRID_INPUT_INTERVAL).min(MAX_HYBRID_LAG)
+            }
             PlayoutLag::Auto => {
-                let delay = self.delay.with_margin().unwrap_or(0.1);
+                let delay = self.delay.with_margin(4.0).unwrap_or(0.1);
                 (delay + KEYFRAME_INTERVAL).min(MAX_AUTO_LAG)
             }
         }
@@ -313,7 +345,7 @@ impl PeerClocks {
         // Never run ahead of an owner's frames. A leader may be ahead of a new leader by
         // up to the largest lag while the two slew level.
         let cap = if leading && self.lag.enabled() {
-            MAX_LEAD + MAX_AUTO_LAG
+            MAX_LEAD + MAX_AUTO_LAG.max(self.target_lag())
         } else {
             MAX_LEAD
         };
