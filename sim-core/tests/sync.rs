@@ -987,7 +987,10 @@ fn hybrid_correction_is_bounded_per_step_and_reaches_the_keyframe() {
     else {
         panic!("no correction started");
     };
-    assert!(max_m > 1e-3, "the load moved a's tip away from b's ({max_m} m)");
+    assert!(
+        max_m > 1e-3,
+        "the load moved a's tip away from b's ({max_m} m)"
+    );
     assert_eq!(steps, (max_m / 1e-4).ceil() as u32);
     let nodes = map.canonical_nodes(b.lattice(), TIP);
     for _ in 0..steps {
@@ -996,7 +999,10 @@ fn hybrid_correction_is_bounded_per_step_and_reaches_the_keyframe() {
         assert!(reported <= 1e-4 * (1.0 + 1e-12), "{reported} m in one step");
         for (i, n) in nodes.iter().enumerate() {
             let moved = (b.positions()[n.0 as usize] - before[i]).norm();
-            assert!(moved <= 1e-4 * (1.0 + 1e-9), "node {i} moved {moved} m in one step");
+            assert!(
+                moved <= 1e-4 * (1.0 + 1e-9),
+                "node {i} moved {moved} m in one step"
+            );
         }
     }
     assert_eq!(region.steps_left(), 0);
