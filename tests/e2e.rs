@@ -607,14 +607,14 @@ fn hybrid_follows_under(preset: &str) {
     );
     assert!(r_i.keyframes_sent > 0, "the owner sent keyframes");
     let path_ms = 2.0 * netem::ImpairmentConfig::preset(preset).unwrap().delay_ms;
-    let delay = r_t.playout_lag_ms;
+    let (delay, target) = (r_t.playout_lag_ms, r_t.playout_target_ms);
     let mut reports = vec![r_i, r_t];
     let series = fill_divergence(&mut reports).unwrap();
     let max = reports[1].divergence_max_mm.unwrap();
     let settled = settled_max(&series, 7.0);
     eprintln!(
         "hybrid under {preset}: divergence {max:.2} mm, settled {settled:.3} mm, display \
-         delay {delay:.0} ms (path {path_ms:.0} ms)"
+         delay {delay:.0} ms (path {path_ms:.0} ms, target lag at the end {target:.0} ms)"
     );
     assert!(
         max < HYBRID_MOTION_BOUND_MM,

@@ -48,11 +48,17 @@ pub const KEYFRAME_INTERVAL: f64 = 0.04;
 pub const HYBRID_JITTER_DEVS: f64 = 1.5;
 /// Under hybrid: the interval of the input datagrams (s, `session::POSE_HISTORY_INTERVAL`).
 const HYBRID_INPUT_INTERVAL: f64 = 0.008;
+/// Under hybrid: a follower this far (s) short of its target lag waits instead of slewing.
+const HYBRID_HOLD_BEYOND: f64 = 0.02;
 /// Under hybrid: largest automatic playout lag (s).
 pub const MAX_HYBRID_LAG: f64 = 2.0;
 /// Slowest and fastest step rate while slewing towards the target lag (× real time).
 pub const MIN_RATE: f64 = 0.8;
 pub const MAX_RATE: f64 = 1.05;
+/// Under hybrid: fastest step rate while catching up to a smaller target lag (× real
+/// time): a follower that built too large a lag (early delay estimates are high) gets back
+/// to it in seconds, not tens of seconds.
+pub const HYBRID_MAX_RATE: f64 = 1.25;
 /// Rate change per second of lag error (1/s): an error of 0.1 s slews at 0.8× or 1.02×.
 const GAIN: f64 = 2.0;
 /// A remote tool counts as active (its site is followed) this long after its last pose
@@ -109,6 +115,8 @@ impl std::fmt::Display for PlayoutLag {
 struct DelayFilter {
     mean: Option<f64>,
     dev: f64,
+    /// Deviation assumed with the first sample, as a fraction of it (RFC 6298: ½).
+    first_dev: f64,
 }
 
 impl DelayFilter {
@@ -116,7 +124,7 @@ impl DelayFilter {
         match self.mean {
             None => {
                 self.mean = Some(d);
-                self.dev = d / 2.0;
+                self.dev = d * self.first_dev;
             }
             Some(m) => {
                 self.dev = 0.75 * self.dev + 0.25 * (d - m).abs();
@@ -178,7 +186,11 @@ impl PeerClocks {
             peers: HashMap::new(),
             owners: BTreeMap::new(),
             tools: HashMap::new(),
-            delay: DelayFilter::default(),
+            delay: DelayFilter {
+                mean: None,
+                dev: 0.0,
+                first_dev: 0.5,
+            },
             lag,
             inputs_only: false,
         }
@@ -187,6 +199,12 @@ impl PeerClocks {
     /// The lag model of `strategy`: under hybrid the inputs' path alone.
     pub fn for_strategy(mut self, strategy: sim_core::sync::SyncStrategy) -> Self {
         self.inputs_only = strategy == sim_core::sync::SyncStrategy::Hybrid;
+        if self.inputs_only {
+            // The inputs' lag grows only as far as measured jitter asks: no assumed
+            // deviation, no round-trip seed (the handshake's round trip includes its
+            // retransmissions on a lossy path).
+            self.delay.first_dev = 0.0;
+        }
         self
     }
 
@@ -246,7 +264,7 @@ impl PeerClocks {
     /// A delay estimate (s) to start from before any sample (e.g. the round trip to the
     /// coordinator: two one-way hops).
     pub fn seed_delay(&mut self, d: f64) {
-        if self.delay.mean.is_none() && d.is_finite() && d >= 0.0 {
+        if !self.inputs_only && self.delay.mean.is_none() && d.is_finite() && d >= 0.0 {
             self.delay.sample(d);
         }
     }
@@ -336,9 +354,21 @@ impl PeerClocks {
             if self.lag.enabled() {
                 let target = if leading { 0.0 } else { self.target_lag() };
                 let error = behind - target;
-                pace.rate = (1.0 + GAIN * error).clamp(MIN_RATE, MAX_RATE);
+                let max_rate = if self.inputs_only {
+                    HYBRID_MAX_RATE
+                } else {
+                    MAX_RATE
+                };
+                pace.rate = (1.0 + GAIN * error).clamp(MIN_RATE, max_rate);
                 if !realtime && error < 0.0 {
                     pace.hold = (-error).min(0.02);
+                }
+                // Under hybrid a follower ahead of the inputs simulates the remote tool
+                // from stale samples, and the keyframes that would correct it arrive too
+                // old to use: rather than slewing there over seconds, it waits (the view
+                // pauses; nothing jumps).
+                if self.inputs_only && error < -HYBRID_HOLD_BEYOND {
+                    pace.hold = pace.hold.max((-error - HYBRID_HOLD_BEYOND).min(0.02));
                 }
             }
         }
@@ -495,5 +525,39 @@ mod tests {
         assert_eq!("250".parse::<PlayoutLag>(), Ok(PlayoutLag::Fixed(0.25)));
         assert!(!"0".parse::<PlayoutLag>().unwrap().enabled());
         assert!("-3".parse::<PlayoutLag>().is_err());
+    }
+
+    /// Hybrid: the auto lag follows the inputs' path alone (stamp transits: mean plus
+    /// 1.5 deviations plus one input interval), is not raised by keyframe ages or a
+    /// round-trip seed, and a follower short of it waits at once instead of slewing.
+    #[test]
+    fn hybrid_lag_follows_the_input_path_and_is_reached_by_waiting() {
+        let mut c =
+            PeerClocks::new(PlayoutLag::Auto).for_strategy(sim_core::sync::SyncStrategy::Hybrid);
+        c.seed_delay(1.5);
+        assert!(
+            (c.target_lag() - (0.1 + HYBRID_INPUT_INTERVAL)).abs() < 1e-12,
+            "no seed from a round trip: {}",
+            c.target_lag()
+        );
+        for i in 0..400 {
+            let wall = i as f64 * 0.05;
+            // Transit 0.4 s ± 0.03 s, alternating.
+            let transit = if i % 2 == 0 { 0.37 } else { 0.43 };
+            c.heard(1, wall, wall + transit, Some(transit));
+            // Keyframes 1.2 s old (retransmitted) are no delay sample under hybrid.
+            c.keyframe_arrived(1, wall - 1.2, wall + transit);
+        }
+        let want = 0.4 + HYBRID_JITTER_DEVS * 0.03 + HYBRID_INPUT_INTERVAL;
+        let lag = c.target_lag();
+        assert!((lag - want).abs() < 0.01, "lag {lag} want {want}");
+        c.owners.insert(3, 1);
+        // At the owner's time (about 20 s), a follower with no lag yet waits.
+        let now = 399.0 * 0.05 + 0.43;
+        let pace = c.pace(399.0 * 0.05 + 0.43, now, false, true);
+        assert!(pace.hold > 0.0, "waits to build the lag: {pace:?}");
+        // Far behind its target it catches up faster than the keyframe strategy may.
+        let pace = c.pace(399.0 * 0.05 - 2.0, now, false, true);
+        assert_eq!(pace.rate, HYBRID_MAX_RATE);
     }
 }
