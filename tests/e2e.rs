@@ -622,7 +622,7 @@ fn hybrid_follows_under(preset: &str) {
     );
     // Display delay is printed, not asserted: the goal (≤ path + 50 ms) is not met yet.
     // Measured here with debug binaries on a loaded 2-core machine: target lag 504 ms on
-    // poor's 400 ms path, 497 ms on burst's 200 ms path (the stamps' measured transit
+    // poor's 400 ms path, 497–854 ms on burst's 200 ms path (the stamps' measured transit
     // includes the sites' own queueing when their simulations do not keep real time, and
     // datagrams queued behind congestion control); the mean reached 578–1590 ms. The
     // release-build numbers are in `cosurg bench sync` (docs/RESULTS.md).
