@@ -35,7 +35,8 @@ pub struct SyncArgs {
     /// Simulated seconds per run (tools stop moving at about 6.5 s).
     #[arg(long, default_value_t = 9.0)]
     pub seconds: f64,
-    /// Presets to run (comma-separated; netem presets, `burst` and `outage` included).
+    /// Presets to run (comma-separated; netem presets, `burst` and `outage` included;
+    /// empty: only the unequal-machine rows).
     #[arg(
         long,
         value_delimiter = ',',
@@ -58,6 +59,9 @@ pub struct SyncArgs {
     /// up, so that its simulation is no longer the owner's (0: no such rows).
     #[arg(long, default_value_t = 5)]
     pub reduced_cg: usize,
+    /// Presets of the unequal-fidelity rows (comma-separated).
+    #[arg(long, value_delimiter = ',', default_value = "lan,good")]
+    pub unequal_presets: Vec<String>,
     /// Impairment seeds per row (the row reports median and worst over them).
     #[arg(long, default_value_t = 5)]
     pub seeds: u64,
@@ -191,7 +195,7 @@ fn cases(args: &SyncArgs) -> Vec<(SyncStrategy, SyncCase)> {
     };
     let mut cases = Vec::new();
     for s in &args.strategies {
-        for p in &args.presets {
+        for p in args.presets.iter().filter(|p| !p.is_empty()) {
             cases.push(case(s, p, 1.0, None));
         }
     }
@@ -204,7 +208,7 @@ fn cases(args: &SyncArgs) -> Vec<(SyncStrategy, SyncCase)> {
             cases.push(case(s, "metro", args.slowdown, None));
         }
         if args.reduced_cg > 0 {
-            for p in ["lan", "good"] {
+            for p in &args.unequal_presets {
                 cases.push(case(s, p, 1.0, Some(args.reduced_cg)));
             }
         }
@@ -214,8 +218,10 @@ fn cases(args: &SyncArgs) -> Vec<(SyncStrategy, SyncCase)> {
 
 pub fn run(args: SyncArgs) -> Result<()> {
     anyhow::ensure!(args.seeds >= 1, "--seeds must be at least 1");
-    for p in &args.presets {
-        netem::ImpairmentConfig::preset(p)?;
+    for p in args.presets.iter().chain(&args.unequal_presets) {
+        if !p.is_empty() {
+            netem::ImpairmentConfig::preset(p)?;
+        }
     }
     let out = out_dir(&args.out, "bench-sync");
     let scene = sim_core::sim_scene::builtin::cholecystectomy();
