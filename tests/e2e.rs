@@ -571,6 +571,87 @@ fn poor_network_keeps_divergence_bounded_and_settles() {
     assert_receiver_follows(r_i, r_t, true, "under the poor preset");
 }
 
+/// Hybrid sync bounds, from the goals of issue 15 (worst over 5 seeds in `cosurg bench
+/// sync`, release build): 5 mm max divergence under `poor` and `burst`, display delay at
+/// most 50 ms above the owner → coordinator → follower path's one-way delay (twice the
+/// preset's), 0.05 mm after the tools stop. Here, with debug binaries on a CI machine that
+/// may be loaded, each is loosened by a stated margin: divergence ×2 and the settled
+/// bound ×4 (a late step on a loaded machine shifts the last correction). The delay goal
+/// is reported, not asserted (see below).
+const HYBRID_MOTION_BOUND_MM: f64 = 10.0;
+const HYBRID_SETTLED_BOUND_MM: f64 = 0.2;
+
+/// An instructor lifting and a trainee watching, both under hybrid sync with `preset` on
+/// their own links (seed 5); checks the hybrid bounds above.
+fn hybrid_follows_under(preset: &str) {
+    let _serial = serial();
+    let server = start_server();
+    let dir = session_dir();
+    let common = [
+        "--expect-sites",
+        "2",
+        "--seconds",
+        SESSION_SECONDS,
+        "--strategy",
+        "hybrid",
+        "--preset",
+        preset,
+        "--seed",
+        "5",
+    ];
+    let mut a = common.to_vec();
+    a.extend(["--tool", "forceps", "--script-start", "0.2"]);
+    let instructor = spawn_site(&server, dir.path(), "instructor", "instructor", &a);
+    let mut b = common.to_vec();
+    b.push("--no-tool");
+    let trainee = spawn_site(&server, dir.path(), "trainee", "trainee", &b);
+    let r_i = wait_report(
+        instructor,
+        Duration::from_secs(120),
+        dir.path().join("instructor.log"),
+    );
+    let r_t = wait_report(
+        trainee,
+        Duration::from_secs(120),
+        dir.path().join("trainee.log"),
+    );
+    assert!(r_i.keyframes_sent > 0, "the owner sent keyframes");
+    let path_ms = 2.0 * netem::ImpairmentConfig::preset(preset).unwrap().delay_ms;
+    let (delay, target) = (r_t.playout_lag_ms, r_t.playout_target_ms);
+    let mut reports = vec![r_i, r_t];
+    let series = fill_divergence(&mut reports).unwrap();
+    let max = reports[1].divergence_max_mm.unwrap();
+    let settled = settled_max(&series, 7.0);
+    eprintln!(
+        "hybrid under {preset}: divergence {max:.2} mm, settled {settled:.3} mm, display \
+         delay {delay:.0} ms (path {path_ms:.0} ms, target lag at the end {target:.0} ms)"
+    );
+    assert!(
+        max < HYBRID_MOTION_BOUND_MM,
+        "divergence {max} mm under {preset}"
+    );
+    // Display delay is printed, not asserted: the goal (≤ path + 50 ms) is not met yet.
+    // Measured here with debug binaries on a loaded 2-core machine: target lag 504 ms on
+    // poor's 400 ms path, 497–854 ms on burst's 200 ms path (the stamps' measured transit
+    // includes the sites' own queueing when their simulations do not keep real time, and
+    // datagrams queued behind congestion control); the mean reached 578–1590 ms. The
+    // release-build numbers are in `cosurg bench sync` (docs/RESULTS.md).
+    assert!(
+        settled < HYBRID_SETTLED_BOUND_MM,
+        "settled divergence {settled} mm under {preset}"
+    );
+}
+
+#[test]
+fn hybrid_follows_under_the_poor_preset() {
+    hybrid_follows_under("poor");
+}
+
+#[test]
+fn hybrid_follows_under_burst_loss() {
+    hybrid_follows_under("burst");
+}
+
 /// 100 % loss on a trainee's link for 2 s in the middle of the lift, then recovery: the
 /// trainee reconnects (or rides out the outage) and ends where the owner ends.
 #[test]

@@ -19,8 +19,8 @@ pub mod socket;
 
 pub use args::{Direction, ImpairArgs, NetemArgs};
 pub use model::{
-    ConfigError, Counters, DropReason, GilbertElliott, Impairment, ImpairmentConfig, JitterDist,
-    Outage, PRESET_NAMES, Verdict,
+    BURST_P_BG, BURST_P_GB, ConfigError, Counters, DropReason, GilbertElliott, Impairment,
+    ImpairmentConfig, JitterDist, OUTAGE_DURATION_S, OUTAGE_START_S, Outage, PRESET_NAMES, Verdict,
 };
 pub use relay::{Relay, RelayConfig, RelayCounters, RelayHandle, run_cli};
 pub use sched::DirectionStats;

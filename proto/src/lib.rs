@@ -21,7 +21,7 @@
 //! | channel | messages |
 //! |---|---|
 //! | session-control bidi stream (opened by the site), frames | Join, Welcome, Refusal, KeyframeAck, Ownership*, Teaching, Command, Leave, Status, SiteJoined (and TreeDelta too big for a datagram) |
-//! | datagrams (≤ 1100 B) | ClockPing/Pong, SimTime, ToolPose, TreeDelta, Heartbeat |
+//! | datagrams (≤ 1100 B) | ClockPing/Pong, SimTime, ToolPose, ToolPoseHistory, TreeDelta, Heartbeat |
 //! | one uni stream per message, one frame | Keyframe, Snapshot |
 //! | control stream of an admin connection (not a site): one request, one answer | Admin → Invitation, SessionCreated or Refusal |
 
@@ -42,7 +42,8 @@ pub mod streams;
 /// one shared token; refusals for invitations and rate limiting; admin requests.
 /// Version 3: topology operations (`Message::Topology`, cuts), the snapshot's `topology`
 /// and the keyframe's `topology` epoch; sessions created at run time
-/// (`AdminAction::CreateSession` → `Message::SessionCreated`).
+/// (`AdminAction::CreateSession` → `Message::SessionCreated`); tool input histories
+/// (`Message::ToolPoseHistory`, the hybrid strategy's datagrams).
 pub const PROTOCOL_VERSION: u16 = 3;
 
 /// A keyframe stream is reset in favour of a newer keyframe of the same region only after

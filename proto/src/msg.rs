@@ -248,6 +248,33 @@ pub struct ToolPose {
     pub angular_velocity: [f32; 3],
 }
 
+/// One sample of a tool's input: what a site needs to simulate another site's tool.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PoseSample {
+    /// Simulation time of the pose (s).
+    pub sim_time_s: f64,
+    /// Tool tip position (m).
+    pub position: [f32; 3],
+    /// Orientation quaternion `[w, x, y, z]`.
+    pub orientation: [f32; 4],
+    /// Jaw opening angle (rad).
+    pub jaw_rad: f32,
+}
+
+/// The newest input samples of one tool (datagram, relayed), oldest first. Each datagram
+/// repeats the samples of the previous few, so that a lost datagram costs nothing as long
+/// as the next one arrives (`SyncStrategy::Hybrid`'s input channel).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ToolPoseHistory {
+    pub site: SiteId,
+    pub tool: u8,
+    pub samples: Vec<PoseSample>,
+}
+
+/// Most samples a [`ToolPoseHistory`] may carry (keeps it well inside one datagram:
+/// 40 bytes per sample).
+pub const MAX_POSE_SAMPLES: usize = 16;
+
 /// Full state of one region (unidirectional stream, relayed; latest kept for late joiners).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RegionKeyframe {
@@ -564,6 +591,8 @@ pub enum Message {
     SessionCreated(SessionInfo),
     /// A topology operation (a cut), relayed to every other site (control stream).
     Topology(TopologyOp),
+    /// A tool's newest input samples (datagram, relayed).
+    ToolPoseHistory(ToolPoseHistory),
 }
 
 /// Which transport a message normally travels on.
@@ -607,6 +636,7 @@ impl Message {
             Message::CommandRefused(_) => "command-refused",
             Message::SessionCreated(_) => "session-created",
             Message::Topology(_) => "topology",
+            Message::ToolPoseHistory(_) => "tool-pose-history",
         }
     }
 
@@ -617,6 +647,7 @@ impl Message {
             | Message::ClockPong(_)
             | Message::SimTime(_)
             | Message::ToolPose(_)
+            | Message::ToolPoseHistory(_)
             | Message::TreeDelta(_)
             | Message::Heartbeat(_) => Channel::Datagram,
             Message::Keyframe(_) | Message::Snapshot(_) => Channel::UniStream,

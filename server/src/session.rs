@@ -398,6 +398,11 @@ impl Session {
                 p.site = site;
                 Message::ToolPose(p)
             }
+            Message::ToolPoseHistory(mut p) => {
+                restamped |= p.site != site;
+                p.site = site;
+                Message::ToolPoseHistory(p)
+            }
             Message::TreeDelta(mut d) => {
                 if d.epoch != self.epoch {
                     return Err(DropReason::StaleEpoch);
@@ -436,12 +441,13 @@ impl Session {
                 }
                 DatagramVerdict::Consumed
             }
-            m @ (Message::SimTime(_) | Message::ToolPose(_) | Message::TreeDelta(_)) => {
-                match self.check_state_msg(site, m, now_us) {
-                    Ok((msg, restamped)) => DatagramVerdict::Relay { msg, restamped },
-                    Err(r) => DatagramVerdict::Drop(r),
-                }
-            }
+            m @ (Message::SimTime(_)
+            | Message::ToolPose(_)
+            | Message::ToolPoseHistory(_)
+            | Message::TreeDelta(_)) => match self.check_state_msg(site, m, now_us) {
+                Ok((msg, restamped)) => DatagramVerdict::Relay { msg, restamped },
+                Err(r) => DatagramVerdict::Drop(r),
+            },
             _ => DatagramVerdict::Drop(DropReason::NotAllowed),
         }
     }
@@ -607,7 +613,10 @@ impl Session {
                     msg: Message::Topology(op),
                 }]
             }
-            m @ (Message::SimTime(_) | Message::ToolPose(_) | Message::TreeDelta(_)) => {
+            m @ (Message::SimTime(_)
+            | Message::ToolPose(_)
+            | Message::ToolPoseHistory(_)
+            | Message::TreeDelta(_)) => {
                 let kind = m.kind();
                 match self.check_state_msg(site, m, now_us) {
                     Ok((msg, _)) => vec![Action::Control {

@@ -56,6 +56,12 @@ pub const SIM_TIME_INTERVAL: f64 = 0.05;
 /// draw the remote tool then, and ~60 Hz leaves a lossy path's congestion window to the
 /// keyframe streams.
 pub const POSE_INTERVAL: f64 = 0.016;
+/// Under hybrid: simulated time between tool-input datagrams (s), and how many of the
+/// newest per-step samples each carries: every sample travels in
+/// `POSE_HISTORY_SAMPLES × dt / POSE_HISTORY_INTERVAL` datagrams (3 at the bench's 4 ms
+/// step), so up to two consecutive losses cost nothing.
+pub const POSE_HISTORY_INTERVAL: f64 = 0.008;
+pub const POSE_HISTORY_SAMPLES: usize = 6;
 /// Least and largest simulated time between a reset request and the reset (s).
 pub const RESET_MARGIN: f64 = 0.02;
 pub const MAX_RESET_MARGIN: f64 = 1.0;
@@ -180,6 +186,8 @@ pub struct SiteSession {
     start: Instant,
     next_stamp: f64,
     next_pose: f64,
+    /// Under hybrid: the local tool's newest samples (oldest first).
+    pose_history: VecDeque<proto::ToolPose>,
     /// Next step due (wall).
     next_due: Instant,
     /// When the driver should run the next step (wall).
@@ -221,7 +229,7 @@ impl SiteSession {
                 history: config.baseline_history,
                 ..BaselineConfig::default()
             }),
-            clocks: PeerClocks::new(cfg.playout_lag),
+            clocks: PeerClocks::new(cfg.playout_lag).for_strategy(cfg.strategy),
             cfg,
             sites: SiteTable::default(),
             epoch: 0,
@@ -230,6 +238,7 @@ impl SiteSession {
             start: now,
             next_stamp: 0.0,
             next_pose: 0.0,
+            pose_history: VecDeque::new(),
             next_due: now,
             wake: None,
             welcomed_at: None,
@@ -357,6 +366,26 @@ impl SiteSession {
             Message::ToolPose(p) if self.sites.is_other(p.site) => {
                 self.clocks.tool_heard(p.site, wall);
                 self.events.push_back(SessionEvent::RemotePose(p));
+            }
+            Message::ToolPoseHistory(h) if self.sites.is_other(h.site) => {
+                self.clocks.tool_heard(h.site, wall);
+                let skip = h.samples.len().saturating_sub(proto::MAX_POSE_SAMPLES);
+                for s in h.samples.into_iter().skip(skip) {
+                    if !s.sim_time_s.is_finite() {
+                        continue;
+                    }
+                    self.events
+                        .push_back(SessionEvent::RemotePose(proto::ToolPose {
+                            site: h.site,
+                            tool: h.tool,
+                            sim_time_s: s.sim_time_s,
+                            position: s.position,
+                            orientation: s.orientation,
+                            jaw_rad: s.jaw_rad,
+                            velocity: [0.0; 3],
+                            angular_velocity: [0.0; 3],
+                        }));
+                }
             }
             Message::Keyframe(kf) if self.sites.is_other(kf.owner) => {
                 if kf.topology > sim.topology().epoch() {
@@ -643,19 +672,55 @@ impl SiteSession {
         }
     }
 
-    /// Whether the local tool's pose is due at `t` (every step under input-only, where
-    /// poses are the state itself; else every [`POSE_INTERVAL`]).
+    /// Whether the local tool's pose is due at `t` (every step under input-only and
+    /// hybrid, where poses drive the others' simulations; else every [`POSE_INTERVAL`]).
     pub fn pose_due(&self, t: f64) -> bool {
         self.cfg.linked
             && self.cfg.role != Role::Observer
             && self.sites.me().is_some()
-            && (self.cfg.strategy == SyncStrategy::InputOnly || t >= self.next_pose)
+            && (self.cfg.strategy.simulates_remote_tools() || t >= self.next_pose)
     }
 
-    /// The local tool's pose (made by the site's tools with our id) goes out.
+    /// The local tool's pose (made by the site's tools with our id) goes out. Under
+    /// hybrid it joins the tool's newest samples, sent every [`POSE_HISTORY_INTERVAL`]
+    /// as one [`proto::ToolPoseHistory`] of the last [`POSE_HISTORY_SAMPLES`].
     pub fn send_pose(&mut self, pose: proto::ToolPose) {
-        self.next_pose = pose.sim_time_s + POSE_INTERVAL;
-        self.datagram(Message::ToolPose(pose));
+        if self.cfg.strategy != SyncStrategy::Hybrid {
+            self.next_pose = pose.sim_time_s + POSE_INTERVAL;
+            self.datagram(Message::ToolPose(pose));
+            return;
+        }
+        if self
+            .pose_history
+            .back()
+            .is_some_and(|p| p.tool != pose.tool)
+        {
+            self.pose_history.clear();
+        }
+        self.pose_history.push_back(pose);
+        while self.pose_history.len() > POSE_HISTORY_SAMPLES {
+            self.pose_history.pop_front();
+        }
+        // Half a step of slack: sample times are multiples of dt in floating point.
+        if pose.sim_time_s + 0.5 * self.cfg.options.dt < self.next_pose {
+            return;
+        }
+        self.next_pose = pose.sim_time_s + POSE_HISTORY_INTERVAL;
+        let samples = self
+            .pose_history
+            .iter()
+            .map(|p| proto::PoseSample {
+                sim_time_s: p.sim_time_s,
+                position: p.position,
+                orientation: p.orientation,
+                jaw_rad: p.jaw_rad,
+            })
+            .collect();
+        self.datagram(Message::ToolPoseHistory(proto::ToolPoseHistory {
+            site: pose.site,
+            tool: pose.tool,
+            samples,
+        }));
     }
 
     /// A control message of the site's own (teaching trajectories).
@@ -781,6 +846,7 @@ impl SiteSession {
         *sim = fresh;
         self.epoch = epoch;
         self.sync = SiteSync::new(self.cfg.strategy, self.map.clone(), sync_config());
+        self.pose_history.clear();
         self.inbox.reset(epoch);
         self.baselines.clear();
         self.claims.clear(t);

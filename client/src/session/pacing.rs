@@ -12,6 +12,13 @@
 //! * `L` is `--playout-lag auto` (smoothed one-way delay owner → coordinator → us, plus a
 //!   jitter margin of four mean deviations, plus one keyframe interval; capped at
 //!   [`MAX_AUTO_LAG`]) or a fixed value (`0`: no lag, the behaviour before playout lag).
+//! * Under hybrid sync the follower simulates the owner's tool from its input samples and
+//!   only needs those in time; keyframes merely correct it, and a late one is skipped. So
+//!   `auto` there follows the inputs' path alone: smoothed one-way delay of the time
+//!   stamps (they travel like the inputs, as datagrams) plus [`HYBRID_JITTER_DEVS`] mean
+//!   deviations plus one input-datagram interval (a lost datagram's samples come in the
+//!   next one), capped only at [`MAX_HYBRID_LAG`] (a safety stop, not a tuning). Keyframe
+//!   ages, which include stream retransmissions, do not raise it.
 //! * The lag is reached and kept by slewing the step rate within
 //!   [`MIN_RATE`]–[`MAX_RATE`] of real time, never by jumps.
 //! * A *leading* site (it owns a region, has claimed one, or its own tool is being driven)
@@ -35,9 +42,23 @@ pub const MAX_AUTO_LAG: f64 = 0.6;
 /// One keyframe interval during motion (s): the owner sends at most every 30 ms
 /// (`SyncConfig::min_interval_s`), and interpolation needs the next keyframe in hand.
 pub const KEYFRAME_INTERVAL: f64 = 0.04;
+/// Under hybrid: jitter margin of the automatic lag, in mean deviations of the delay (a
+/// sample later than the lag leaves the remote tool held at its newest pose for that
+/// step; the owner's keyframes correct what that changes).
+pub const HYBRID_JITTER_DEVS: f64 = 1.5;
+/// Under hybrid: the interval of the input datagrams (s, `session::POSE_HISTORY_INTERVAL`).
+const HYBRID_INPUT_INTERVAL: f64 = 0.008;
+/// Under hybrid: a follower this far (s) short of its target lag waits instead of slewing.
+const HYBRID_HOLD_BEYOND: f64 = 0.02;
+/// Under hybrid: largest automatic playout lag (s).
+pub const MAX_HYBRID_LAG: f64 = 2.0;
 /// Slowest and fastest step rate while slewing towards the target lag (× real time).
 pub const MIN_RATE: f64 = 0.8;
 pub const MAX_RATE: f64 = 1.05;
+/// Under hybrid: fastest step rate while catching up to a smaller target lag (× real
+/// time): a follower that built too large a lag (early delay estimates are high) gets back
+/// to it in seconds, not tens of seconds.
+pub const HYBRID_MAX_RATE: f64 = 1.25;
 /// Rate change per second of lag error (1/s): an error of 0.1 s slews at 0.8× or 1.02×.
 const GAIN: f64 = 2.0;
 /// A remote tool counts as active (its site is followed) this long after its last pose
@@ -94,6 +115,8 @@ impl std::fmt::Display for PlayoutLag {
 struct DelayFilter {
     mean: Option<f64>,
     dev: f64,
+    /// Deviation assumed with the first sample, as a fraction of it (RFC 6298: ½).
+    first_dev: f64,
 }
 
 impl DelayFilter {
@@ -101,7 +124,7 @@ impl DelayFilter {
         match self.mean {
             None => {
                 self.mean = Some(d);
-                self.dev = d / 2.0;
+                self.dev = d * self.first_dev;
             }
             Some(m) => {
                 self.dev = 0.75 * self.dev + 0.25 * (d - m).abs();
@@ -110,9 +133,9 @@ impl DelayFilter {
         }
     }
 
-    /// Delay plus a jitter margin of four deviations (s).
-    fn with_margin(&self) -> Option<f64> {
-        self.mean.map(|m| m + 4.0 * self.dev)
+    /// Delay plus a jitter margin of `devs` deviations (s).
+    fn with_margin(&self, devs: f64) -> Option<f64> {
+        self.mean.map(|m| m + devs * self.dev)
     }
 }
 
@@ -149,9 +172,12 @@ pub struct PeerClocks {
     pub owners: BTreeMap<u32, u16>,
     /// Sites whose tool poses we receive, and when the last one was heard (wall s).
     tools: HashMap<u16, f64>,
-    /// One-way delay from the followed sites to us: stamp transits and keyframe ages.
+    /// One-way delay from the followed sites to us: stamp transits and (except under
+    /// hybrid) keyframe ages.
     delay: DelayFilter,
     lag: PlayoutLag,
+    /// Hybrid sync: the lag follows the input path only (see the module documentation).
+    inputs_only: bool,
 }
 
 impl PeerClocks {
@@ -160,9 +186,26 @@ impl PeerClocks {
             peers: HashMap::new(),
             owners: BTreeMap::new(),
             tools: HashMap::new(),
-            delay: DelayFilter::default(),
+            delay: DelayFilter {
+                mean: None,
+                dev: 0.0,
+                first_dev: 0.5,
+            },
             lag,
+            inputs_only: false,
         }
+    }
+
+    /// The lag model of `strategy`: under hybrid the inputs' path alone.
+    pub fn for_strategy(mut self, strategy: sim_core::sync::SyncStrategy) -> Self {
+        self.inputs_only = strategy == sim_core::sync::SyncStrategy::Hybrid;
+        if self.inputs_only {
+            // The inputs' lag grows only as far as measured jitter asks: no assumed
+            // deviation, no round-trip seed (the handshake's round trip includes its
+            // retransmissions on a lossy path).
+            self.delay.first_dev = 0.0;
+        }
+        self
     }
 
     /// A time stamp of `site`: simulation time `sim_time` (s) heard at `now` (wall s);
@@ -207,6 +250,9 @@ impl PeerClocks {
     /// (how long after its simulation time it arrived) is a delay sample that includes
     /// stream retransmissions and the sender's queue.
     pub fn keyframe_arrived(&mut self, owner: u16, sim_time: f64, now: f64) {
+        if self.inputs_only {
+            return;
+        }
         if let Some(est) = self.estimate_now(owner, now) {
             let age = est - sim_time;
             if (0.0..MAX_TRANSIT).contains(&age) {
@@ -218,7 +264,7 @@ impl PeerClocks {
     /// A delay estimate (s) to start from before any sample (e.g. the round trip to the
     /// coordinator: two one-way hops).
     pub fn seed_delay(&mut self, d: f64) {
-        if self.delay.mean.is_none() && d.is_finite() && d >= 0.0 {
+        if !self.inputs_only && self.delay.mean.is_none() && d.is_finite() && d >= 0.0 {
             self.delay.sample(d);
         }
     }
@@ -276,8 +322,12 @@ impl PeerClocks {
     pub fn target_lag(&self) -> f64 {
         match self.lag {
             PlayoutLag::Fixed(l) => l.max(0.0),
+            PlayoutLag::Auto if self.inputs_only => {
+                let delay = self.delay.with_margin(HYBRID_JITTER_DEVS).unwrap_or(0.1);
+                (delay + HYBRID_INPUT_INTERVAL).min(MAX_HYBRID_LAG)
+            }
             PlayoutLag::Auto => {
-                let delay = self.delay.with_margin().unwrap_or(0.1);
+                let delay = self.delay.with_margin(4.0).unwrap_or(0.1);
                 (delay + KEYFRAME_INTERVAL).min(MAX_AUTO_LAG)
             }
         }
@@ -304,16 +354,28 @@ impl PeerClocks {
             if self.lag.enabled() {
                 let target = if leading { 0.0 } else { self.target_lag() };
                 let error = behind - target;
-                pace.rate = (1.0 + GAIN * error).clamp(MIN_RATE, MAX_RATE);
+                let max_rate = if self.inputs_only {
+                    HYBRID_MAX_RATE
+                } else {
+                    MAX_RATE
+                };
+                pace.rate = (1.0 + GAIN * error).clamp(MIN_RATE, max_rate);
                 if !realtime && error < 0.0 {
                     pace.hold = (-error).min(0.02);
+                }
+                // Under hybrid a follower ahead of the inputs simulates the remote tool
+                // from stale samples, and the keyframes that would correct it arrive too
+                // old to use: rather than slewing there over seconds, it waits (the view
+                // pauses; nothing jumps).
+                if self.inputs_only && error < -HYBRID_HOLD_BEYOND {
+                    pace.hold = pace.hold.max((-error - HYBRID_HOLD_BEYOND).min(0.02));
                 }
             }
         }
         // Never run ahead of an owner's frames. A leader may be ahead of a new leader by
         // up to the largest lag while the two slew level.
         let cap = if leading && self.lag.enabled() {
-            MAX_LEAD + MAX_AUTO_LAG
+            MAX_LEAD + MAX_AUTO_LAG.max(self.target_lag())
         } else {
             MAX_LEAD
         };
@@ -463,5 +525,39 @@ mod tests {
         assert_eq!("250".parse::<PlayoutLag>(), Ok(PlayoutLag::Fixed(0.25)));
         assert!(!"0".parse::<PlayoutLag>().unwrap().enabled());
         assert!("-3".parse::<PlayoutLag>().is_err());
+    }
+
+    /// Hybrid: the auto lag follows the inputs' path alone (stamp transits: mean plus
+    /// 1.5 deviations plus one input interval), is not raised by keyframe ages or a
+    /// round-trip seed, and a follower short of it waits at once instead of slewing.
+    #[test]
+    fn hybrid_lag_follows_the_input_path_and_is_reached_by_waiting() {
+        let mut c =
+            PeerClocks::new(PlayoutLag::Auto).for_strategy(sim_core::sync::SyncStrategy::Hybrid);
+        c.seed_delay(1.5);
+        assert!(
+            (c.target_lag() - (0.1 + HYBRID_INPUT_INTERVAL)).abs() < 1e-12,
+            "no seed from a round trip: {}",
+            c.target_lag()
+        );
+        for i in 0..400 {
+            let wall = i as f64 * 0.05;
+            // Transit 0.4 s ± 0.03 s, alternating.
+            let transit = if i % 2 == 0 { 0.37 } else { 0.43 };
+            c.heard(1, wall, wall + transit, Some(transit));
+            // Keyframes 1.2 s old (retransmitted) are no delay sample under hybrid.
+            c.keyframe_arrived(1, wall - 1.2, wall + transit);
+        }
+        let want = 0.4 + HYBRID_JITTER_DEVS * 0.03 + HYBRID_INPUT_INTERVAL;
+        let lag = c.target_lag();
+        assert!((lag - want).abs() < 0.01, "lag {lag} want {want}");
+        c.owners.insert(3, 1);
+        // At the owner's time (about 20 s), a follower with no lag yet waits.
+        let now = 399.0 * 0.05 + 0.43;
+        let pace = c.pace(399.0 * 0.05 + 0.43, now, false, true);
+        assert!(pace.hold > 0.0, "waits to build the lag: {pace:?}");
+        // Far behind its target it catches up faster than the keyframe strategy may.
+        let pace = c.pace(399.0 * 0.05 - 2.0, now, false, true);
+        assert_eq!(pace.rate, HYBRID_MAX_RATE);
     }
 }

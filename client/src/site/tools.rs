@@ -59,7 +59,7 @@ impl Tools {
             remote_track: vec![PoseTrack::default(); interaction.tools.len()],
             interaction,
             local,
-            remote_contact: strategy == SyncStrategy::InputOnly,
+            remote_contact: strategy.simulates_remote_tools(),
             local_active: false,
             touch_radius: 2.0 * sim.lattice().params().cell,
         })

@@ -48,6 +48,10 @@ pub enum SyncStrategy {
     FullState { every_steps: u32 },
     /// Only tool poses are shared; every site simulates everything (nothing here).
     InputOnly,
+    /// Every site simulates everything from every site's tool input (as
+    /// [`InputOnly`](SyncStrategy::InputOnly)), and the owners' periodic keyframes correct
+    /// the followers by blended corrections ([`CorrectedRegion`](super::CorrectedRegion)).
+    Hybrid,
 }
 
 impl SyncStrategy {
@@ -57,7 +61,14 @@ impl SyncStrategy {
             SyncStrategy::Keyframe => "keyframe",
             SyncStrategy::FullState { .. } => "full-state",
             SyncStrategy::InputOnly => "input-only",
+            SyncStrategy::Hybrid => "hybrid",
         }
+    }
+
+    /// Whether every site simulates every tool from the tool inputs it receives (the
+    /// remote tools touch the local organ).
+    pub fn simulates_remote_tools(&self) -> bool {
+        matches!(self, SyncStrategy::InputOnly | SyncStrategy::Hybrid)
     }
 }
 
@@ -74,16 +85,17 @@ impl std::fmt::Display for SyncStrategy {
 
 impl std::str::FromStr for SyncStrategy {
     type Err = String;
-    /// `keyframe`, `input-only`, `full-state` (every step) or `full-state:K`.
+    /// `hybrid`, `keyframe`, `input-only`, `full-state` (every step) or `full-state:K`.
     fn from_str(s: &str) -> Result<Self, String> {
         match s {
+            "hybrid" => Ok(SyncStrategy::Hybrid),
             "keyframe" => Ok(SyncStrategy::Keyframe),
             "input-only" => Ok(SyncStrategy::InputOnly),
             "full-state" => Ok(SyncStrategy::FullState { every_steps: 1 }),
             _ => match s.strip_prefix("full-state:").map(str::parse::<u32>) {
                 Some(Ok(k)) if k > 0 => Ok(SyncStrategy::FullState { every_steps: k }),
                 _ => Err(format!(
-                    "unknown sync strategy {s:?} (keyframe, full-state[:K], input-only)"
+                    "unknown sync strategy {s:?} (hybrid, keyframe, full-state[:K], input-only)"
                 )),
             },
         }

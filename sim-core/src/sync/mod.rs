@@ -82,6 +82,7 @@
 //! Units: SI (m, s, m/s, m/s²). Times are simulation times (s).
 
 mod config;
+mod correction;
 mod frame;
 mod motion;
 mod receiver;
@@ -100,6 +101,7 @@ use crate::engine::Simulation;
 use crate::error::SimError;
 
 pub use config::{SyncConfig, SyncStrategy};
+pub use correction::{CorrectedRegion, Correction, HybridConfig};
 pub use frame::{
     RegionKeyframe, RegionTreeDelta, SyncFrame, apply_full_state, encode_full_state,
     encode_keyframe, encode_split_set, encode_tree_xor,
@@ -172,14 +174,18 @@ pub enum SyncError {
     Sim(#[from] SimError),
 }
 
-/// Everything a site keeps for [`SyncStrategy::Keyframe`] and [`SyncStrategy::FullState`]:
-/// the region map, the owner policy, and the remote regions.
+/// Everything a site keeps for [`SyncStrategy::Keyframe`], [`SyncStrategy::FullState`] and
+/// [`SyncStrategy::Hybrid`]: the region map, the owner policy, and the remote regions
+/// (driven by keyframes, or under hybrid simulated and corrected).
 #[derive(Clone, Debug)]
 pub struct SiteSync {
     pub strategy: SyncStrategy,
     pub map: RegionMap,
     pub policy: SendPolicy,
     remote: BTreeMap<RegionId, RemoteRegion>,
+    /// Under [`SyncStrategy::Hybrid`]: regions other sites own, simulated here and corrected.
+    corrected: BTreeMap<RegionId, CorrectedRegion>,
+    hybrid: HybridConfig,
     config: SyncConfig,
     full_state_next_id: KeyframeId,
     full_state_last: Option<KeyframeId>,
@@ -194,11 +200,35 @@ pub struct SiteSync {
 
 impl SiteSync {
     pub fn new(strategy: SyncStrategy, map: RegionMap, config: SyncConfig) -> Self {
+        Self::with_hybrid(strategy, map, config, HybridConfig::default())
+    }
+
+    /// As [`SiteSync::new`], with the hybrid strategy's knobs. Under hybrid the owner sends
+    /// each owned region every [`HybridConfig::keyframe_interval_s`] (and on a change of its
+    /// tree state), not on dead-reckoning drift: the followers do not extrapolate, they
+    /// simulate.
+    pub fn with_hybrid(
+        strategy: SyncStrategy,
+        map: RegionMap,
+        config: SyncConfig,
+        hybrid: HybridConfig,
+    ) -> Self {
+        let policy_config = if strategy == SyncStrategy::Hybrid {
+            SyncConfig {
+                drift_threshold_m: f64::INFINITY,
+                heartbeat_s: hybrid.keyframe_interval_s,
+                ..config
+            }
+        } else {
+            config
+        };
         SiteSync {
             strategy,
             map,
-            policy: SendPolicy::new(config),
+            policy: SendPolicy::new(policy_config),
             remote: BTreeMap::new(),
+            corrected: BTreeMap::new(),
+            hybrid,
             config,
             full_state_next_id: 1,
             full_state_last: None,
@@ -217,8 +247,17 @@ impl SiteSync {
         self.remote.keys().copied()
     }
 
-    /// Before every step: drives remote regions (drops those back to local simulation).
+    /// Under hybrid: the corrected state of a region another site owns.
+    pub fn corrected(&self, region: RegionId) -> Option<&CorrectedRegion> {
+        self.corrected.get(&region)
+    }
+
+    /// Before every step: drives remote regions (drops those back to local simulation);
+    /// under hybrid adds each correction's share for this step.
     pub fn before_step(&mut self, sim: &mut Simulation) {
+        for c in self.corrected.values_mut() {
+            c.drive(sim);
+        }
         let map = &self.map;
         self.remote
             .retain(|_, r| r.drive(sim, map) != DriveStatus::Local);
@@ -232,7 +271,7 @@ impl SiteSync {
         acked_base: impl Fn(RegionId) -> Option<KeyframeId>,
     ) -> Vec<SyncFrame> {
         match self.strategy {
-            SyncStrategy::Keyframe => {
+            SyncStrategy::Keyframe | SyncStrategy::Hybrid => {
                 let frames = self.policy.poll(sim, &self.map, sim.time(), acked_base);
                 for f in &frames {
                     if let SyncFrame::Keyframe(kf) = f {
@@ -274,6 +313,13 @@ impl SiteSync {
         if let Some(k) = self.remote.remove(&region).and_then(|r| r.last_keyframe()) {
             self.note_id(region, k);
         }
+        if let Some(k) = self
+            .corrected
+            .remove(&region)
+            .and_then(|r| r.last_keyframe())
+        {
+            self.note_id(region, k);
+        }
         let next = self.newest_id.get(&region).map_or(1, |k| k + 1);
         self.policy.acquire(region, next);
     }
@@ -287,7 +333,8 @@ impl SiteSync {
     pub fn release(&mut self, sim: &Simulation, region: RegionId) -> Option<SyncFrame> {
         let kf = self.policy.release(sim, &self.map, region)?;
         self.note_id(region, kf.keyframe_id);
-        (self.strategy == SyncStrategy::Keyframe).then_some(SyncFrame::Keyframe(kf))
+        matches!(self.strategy, SyncStrategy::Keyframe | SyncStrategy::Hybrid)
+            .then_some(SyncFrame::Keyframe(kf))
     }
 
     /// Another site released `region` (after sending its final keyframe).
@@ -323,6 +370,27 @@ impl SiteSync {
                 self.full_state_last = Some(kf.keyframe_id);
                 Ok(None)
             }
+            SyncFrame::Keyframe(kf) if self.strategy == SyncStrategy::Hybrid => {
+                if self.policy.is_owned(kf.region) {
+                    return Ok(None);
+                }
+                let hybrid = self.hybrid;
+                let c = self
+                    .corrected
+                    .entry(kf.region)
+                    .or_insert_with(|| CorrectedRegion::new(kf.region, hybrid));
+                let used = matches!(
+                    c.apply_keyframe(sim, &self.map, kf)?,
+                    Correction::Started { .. }
+                );
+                if used {
+                    self.note_id(kf.region, kf.keyframe_id);
+                }
+                Ok(used.then_some(kf.keyframe_id))
+            }
+            // Hybrid followers simulate their own tree state; the next keyframe carries
+            // the owner's.
+            SyncFrame::TreeDelta(_) if self.strategy == SyncStrategy::Hybrid => Ok(None),
             SyncFrame::Keyframe(kf) => {
                 if self.policy.is_owned(kf.region)
                     || (self.released.contains(&kf.region) && !self.remote.contains_key(&kf.region))

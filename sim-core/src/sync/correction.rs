@@ -1,0 +1,187 @@
+//! The follower of [`SyncStrategy::Hybrid`](super::SyncStrategy::Hybrid): its own
+//! simulation, driven by every site's tool input, corrected towards the owner's keyframes
+//! by a blended correction ([`CorrectedRegion`]).
+//!
+//! A keyframe of a region this site does not own gives the owner's node states at its
+//! simulated time `t_k`. When this site's clock reaches `t_f ≥ t_k`, the target of each
+//! node is the keyframe's state advanced to `t_f` at its velocity (`x_k + v_k (t_f − t_k)`;
+//! `t_f − t_k` is about one step when the playout lag holds), and the correction is the
+//! difference to the local state. It is not applied at once (a jump of the view and of the
+//! haptic force) but spread over the next steps: every step adds the same share of the
+//! position and velocity difference, with the number of steps chosen so that no node moves
+//! more than [`HybridConfig::max_step_m`] per step from the correction (and at least
+//! [`HybridConfig::min_steps`]). The simulation keeps running in between, so where the
+//! sites agree (equal simulations, inputs in time) the correction is about zero and costs
+//! nothing; where they do not, the owner's state wins within a few steps.
+//!
+//! Keyframes older than [`HybridConfig::max_age_s`] at the time the local clock reaches
+//! them are not used: advancing a stale state by its velocity is worse than the local
+//! simulation (a newer keyframe follows within a heartbeat).
+//!
+//! Units: SI (m, m/s, s).
+
+use sim_lattice::NodeId;
+
+use super::frame::match_tree_and_nodes;
+use super::{Grid, KeyframeId, RegionId, RegionKeyframe, RegionMap, SyncError, V3};
+use crate::engine::Simulation;
+
+/// Knobs of the hybrid follower's correction and of the owner's keyframe schedule.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HybridConfig {
+    /// Largest displacement (m) a correction adds to a node in one step: the bound on how
+    /// far the view (and the haptic proxy's contact) moves per step because of sync.
+    pub max_step_m: f64,
+    /// A correction is spread over at least this many steps.
+    pub min_steps: u32,
+    /// Keyframes this much older (s of sim time) than the local clock are not applied.
+    pub max_age_s: f64,
+    /// The owner sends each owned region this often while owning (s of sim time).
+    pub keyframe_interval_s: f64,
+}
+
+impl Default for HybridConfig {
+    fn default() -> Self {
+        HybridConfig {
+            // 0.25 mm per 4 ms step: 6 cm/s, a gentle hand speed; a 3 cm correction (a
+            // missed grasp) then takes about 0.5 s.
+            max_step_m: 2.5e-4,
+            min_steps: 5,
+            max_age_s: 0.15,
+            keyframe_interval_s: 0.1,
+        }
+    }
+}
+
+/// What [`CorrectedRegion::apply_keyframe`] did with a keyframe.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Correction {
+    /// A correction was started, spread over `steps` steps; `max_m`: its largest node
+    /// displacement (m).
+    Started { steps: u32, max_m: f64 },
+    /// Not newer than the last keyframe used; ignored.
+    Stale,
+    /// Older than [`HybridConfig::max_age_s`]; ignored.
+    TooOld,
+}
+
+/// A region another site owns, as a hybrid follower sees it: simulated locally, corrected
+/// towards its owner's keyframes.
+#[derive(Clone, Debug)]
+pub struct CorrectedRegion {
+    region: RegionId,
+    config: HybridConfig,
+    last_keyframe: Option<KeyframeId>,
+    /// Per node: id, grid coordinate (checked before use: the tree may change), and the
+    /// position and velocity added per step.
+    pending: Vec<(NodeId, Grid, V3, V3)>,
+    steps_left: u32,
+    corrections: u64,
+}
+
+impl CorrectedRegion {
+    pub fn new(region: RegionId, config: HybridConfig) -> Self {
+        CorrectedRegion {
+            region,
+            config,
+            last_keyframe: None,
+            pending: Vec::new(),
+            steps_left: 0,
+            corrections: 0,
+        }
+    }
+
+    pub fn region(&self) -> RegionId {
+        self.region
+    }
+
+    /// Newest keyframe used (or skipped as too old).
+    pub fn last_keyframe(&self) -> Option<KeyframeId> {
+        self.last_keyframe
+    }
+
+    /// Steps the current correction still runs.
+    pub fn steps_left(&self) -> u32 {
+        self.steps_left
+    }
+
+    /// Corrections started so far.
+    pub fn corrections(&self) -> u64 {
+        self.corrections
+    }
+
+    /// Matches the region's tree state to the keyframe's and starts a correction towards
+    /// its node states advanced to the local time (replacing any correction under way:
+    /// the new one is measured from the current, partly corrected, state).
+    pub fn apply_keyframe(
+        &mut self,
+        sim: &mut Simulation,
+        map: &RegionMap,
+        kf: &RegionKeyframe,
+    ) -> Result<Correction, SyncError> {
+        if kf.region != self.region {
+            return Err(SyncError::WrongRegion {
+                region: self.region,
+                got: kf.region,
+            });
+        }
+        if self.last_keyframe.is_some_and(|k| kf.keyframe_id <= k) {
+            return Ok(Correction::Stale);
+        }
+        let age = sim.time() - kf.sim_time;
+        if age > self.config.max_age_s {
+            self.last_keyframe = Some(kf.keyframe_id);
+            return Ok(Correction::TooOld);
+        }
+        let nodes = match_tree_and_nodes(sim, map, kf)?;
+        let ahead = age.max(0.0);
+        let mut diffs = Vec::with_capacity(nodes.len());
+        let mut max_m: f64 = 0.0;
+        for (i, &n) in nodes.iter().enumerate() {
+            if sim.is_fixed(n) {
+                continue;
+            }
+            let v_k = V3::from(kf.velocities[i]);
+            let target = V3::from(kf.positions[i]) + v_k * ahead;
+            let dx = target - sim.positions()[n.0 as usize];
+            let dv = v_k - sim.velocities()[n.0 as usize];
+            max_m = max_m.max(dx.norm());
+            diffs.push((n, sim.lattice().node_grid(n), dx, dv));
+        }
+        let steps = ((max_m / self.config.max_step_m).ceil() as u32).max(self.config.min_steps);
+        let share = 1.0 / f64::from(steps);
+        self.pending = diffs
+            .into_iter()
+            .map(|(n, g, dx, dv)| (n, g, dx * share, dv * share))
+            .collect();
+        self.steps_left = steps;
+        self.last_keyframe = Some(kf.keyframe_id);
+        self.corrections += 1;
+        Ok(Correction::Started { steps, max_m })
+    }
+
+    /// Before a step: adds this step's share of the correction under way. Returns the
+    /// largest displacement added (m; ≤ [`HybridConfig::max_step_m`] by construction).
+    pub fn drive(&mut self, sim: &mut Simulation) -> f64 {
+        if self.steps_left == 0 {
+            return 0.0;
+        }
+        self.steps_left -= 1;
+        let mut moved: f64 = 0.0;
+        let live = sim.positions().len();
+        for &(n, g, dx, dv) in &self.pending {
+            let i = n.0 as usize;
+            if i >= live || !sim.lattice().node_alive(n) || sim.lattice().node_grid(n) != g {
+                continue;
+            }
+            let (x, v) = (sim.positions()[i], sim.velocities()[i]);
+            sim.set_node_state(n, x + dx, v + dv);
+            moved = moved.max(dx.norm());
+        }
+        if self.steps_left == 0 {
+            self.pending.clear();
+        }
+        // The step that follows updates the embedded surfaces.
+        moved
+    }
+}
