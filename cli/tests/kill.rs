@@ -61,7 +61,14 @@ fn join(
         .args([credential.0, credential.1])
         .args(["--dt", "0.004", "--no-haptics", "--vtu-interval", "0"])
         .args(["--expect-sites", "2", "--seconds", &SECONDS.to_string()])
-        .args(["--tool", tool, "--script-start", "0.2"])
+        .args([
+            "--tool",
+            tool,
+            "--script",
+            "--headless",
+            "--script-start",
+            "0.2",
+        ])
         .arg("--out")
         .arg(dir.join(site))
         .env_remove("COSURG_TOKEN")
