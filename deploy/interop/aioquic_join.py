@@ -19,7 +19,7 @@ first frame:
                          -> closed with application error 0 (NORMAL).
 
 Wire format (see ``proto/src/codec.rs``): a stream frame is a 4-byte big-endian length and
-the message; a message is the wire tag byte (the protocol version, 2) followed by the postcard
+the message; a message is the wire tag byte (the protocol version, 3) followed by the postcard
 encoding of ``proto::Message`` (enum variant index as varint, integers as LEB128 varints,
 strings as varint length + UTF-8). ``--print-join-hex`` prints an encoded Join frame without
 touching the network (the Rust test compares it with ``proto::encode_frame``).
@@ -37,8 +37,8 @@ import struct
 import sys
 import time
 
-WIRE_TAG = 2
-PROTOCOL_VERSION = 2
+WIRE_TAG = 3
+PROTOCOL_VERSION = 3
 ALPN = "cosurg/1"
 
 # proto::Message variant indices (append-only within a protocol version).
@@ -47,7 +47,8 @@ MSG = {
     "ToolPose": 6, "Keyframe": 7, "TreeDelta": 8, "KeyframeAck": 9, "OwnershipRequest": 10,
     "OwnershipGrant": 11, "OwnershipRelease": 12, "OwnershipDeny": 13, "Snapshot": 14,
     "Teaching": 15, "Command": 16, "Leave": 17, "Heartbeat": 18, "Status": 19,
-    "SiteJoined": 20, "Admin": 21, "Invitation": 22,
+    "SiteJoined": 20, "Admin": 21, "Invitation": 22, "CommandRefused": 23,
+    "SessionCreated": 24, "Topology": 25, "ToolPoseHistory": 26,
 }
 MSG_NAME = {v: k for k, v in MSG.items()}
 ROLES = ["instructor", "trainee", "observer"]
