@@ -9,58 +9,14 @@
 //! the test FAILS: it never passes without rendering.
 
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
-use std::time::Duration;
+use std::process::Command;
 
 use cosurg::record::record_scripted;
 use debrief::RecorderSettings;
-
-/// An Xvfb server, killed on drop (as in `window.rs`).
-struct Xvfb {
-    child: Child,
-    display: String,
-}
-
-impl Drop for Xvfb {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
+use test_support::xvfb::Xvfb;
 
 fn start_xvfb() -> Xvfb {
-    // `-displayfd 1`: Xvfb picks a free display and writes its number once it is ready.
-    let mut child = Command::new("Xvfb")
-        .args(["-displayfd", "1", "-screen", "0", "1280x720x24"])
-        .args(["-nolisten", "tcp"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap_or_else(|e| {
-            panic!(
-                "cannot start Xvfb ({e}): install it (Debian: apt-get install xvfb \
-                 libgl1-mesa-dri) or run .ci/run"
-            )
-        });
-    let stdout = child.stdout.take().expect("piped stdout");
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut line = String::new();
-        let _ = std::io::BufRead::read_line(&mut std::io::BufReader::new(stdout), &mut line);
-        let _ = tx.send(line);
-    });
-    let mut x = Xvfb {
-        child,
-        display: String::new(),
-    };
-    match rx.recv_timeout(Duration::from_secs(20)) {
-        Ok(line) if line.trim().parse::<u32>().is_ok() => {
-            x.display = format!(":{}", line.trim());
-            x
-        }
-        Ok(line) => panic!("Xvfb did not report a display (it wrote {line:?})"),
-        Err(_) => panic!("Xvfb did not become ready within 20 s"),
-    }
+    Xvfb::start()
 }
 
 fn replay(x: &Xvfb, args: &[&str]) -> String {

@@ -13,18 +13,7 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-/// An Xvfb server, killed on drop.
-struct Xvfb {
-    child: Child,
-    display: String,
-}
-
-impl Drop for Xvfb {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
+use test_support::xvfb::Xvfb;
 
 /// The window tests run one at a time: each renders with software OpenGL, and together
 /// they starved each other's windows on a 2-core machine.
@@ -34,51 +23,7 @@ fn serial() -> std::sync::MutexGuard<'static, ()> {
 }
 
 fn start_xvfb() -> Xvfb {
-    // `-displayfd 1`: Xvfb picks a free display number itself (several test binaries may
-    // run at once) and writes it on stdout once it accepts connections, so there is no
-    // socket or lock file to probe.
-    let mut child = match Command::new("Xvfb")
-        .args([
-            "-displayfd",
-            "1",
-            "-screen",
-            "0",
-            "1280x720x24",
-            "-nolisten",
-            "tcp",
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-    {
-        Ok(c) => c,
-        Err(e) => panic!(
-            "cannot start Xvfb ({e}): the window test needs a virtual X display; \
-             install it (Debian: apt-get install xvfb libgl1-mesa-dri) or run .ci/run"
-        ),
-    };
-    let stdout = child.stdout.take().expect("piped stdout");
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut line = String::new();
-        let _ = std::io::BufRead::read_line(&mut std::io::BufReader::new(stdout), &mut line);
-        let _ = tx.send(line);
-    });
-    let mut x = Xvfb {
-        child,
-        display: String::new(),
-    };
-    match rx.recv_timeout(Duration::from_secs(20)) {
-        Ok(line) if line.trim().parse::<u32>().is_ok() => {
-            x.display = format!(":{}", line.trim());
-            x
-        }
-        Ok(line) => panic!(
-            "Xvfb did not report a display (it wrote {line:?}; exit status {:?})",
-            x.child.try_wait()
-        ),
-        Err(_) => panic!("Xvfb did not become ready within 20 s"),
-    }
+    Xvfb::start()
 }
 
 fn screenshot(x: &Xvfb, dir: &Path, name: &str, extra: &[&str]) -> (u32, u32, Vec<u8>) {

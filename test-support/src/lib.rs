@@ -2,7 +2,9 @@
 //!
 //! * [`link`] — a bare site client: connect, join, frames, datagrams, streams;
 //! * [`exe`] — locating a sibling executable that another package builds (`cosurg-server`
-//!   for the tests of the `cosurg` binary).
+//!   for the tests of the `cosurg` binary);
+//! * [`xvfb`] — a virtual X display for the window tests.
 
 pub mod exe;
 pub mod link;
+pub mod xvfb;

@@ -9,7 +9,7 @@
 
 use std::time::{Duration, Instant};
 
-use three_d::{Context, Event, GUI, Key, WindowedContext, egui};
+use three_d::{Context, Event, GUI, Key, egui};
 use winit::event::{Event as WinitEvent, WindowEvent};
 use winit::event_loop::ControlFlow;
 use winit::platform::run_return::EventLoopExtRunReturn;
@@ -18,7 +18,7 @@ use crate::camera::CameraMode;
 use crate::frame::ViewFrame;
 use crate::hud::hud;
 use crate::render::{DrawOptions, Renderer};
-use crate::window::{Hands, ViewerError, WindowOptions, event_loop};
+use crate::window::{Hands, ViewerError, WindowOptions, event_loop, open_window};
 
 /// Speeds offered by the timeline (× real time).
 pub const SPEEDS: [f64; 8] = [0.125, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0];
@@ -157,25 +157,7 @@ pub fn run_replay_window(
     options: WindowOptions,
 ) -> Result<(), ViewerError> {
     let mut event_loop = event_loop()?;
-    let window = winit::window::WindowBuilder::new()
-        .with_title(&options.title)
-        .with_inner_size(winit::dpi::LogicalSize::new(
-            options.size.0 as f64,
-            options.size.1 as f64,
-        ))
-        .build(&event_loop)
-        .map_err(|e| ViewerError::Window(e.to_string()))?;
-    let gl = WindowedContext::from_winit_window(&window, three_d::SurfaceSettings::default())
-        .or_else(|_| {
-            WindowedContext::from_winit_window(
-                &window,
-                three_d::SurfaceSettings {
-                    multisamples: 0,
-                    ..Default::default()
-                },
-            )
-        })
-        .map_err(|e| ViewerError::Window(e.to_string()))?;
+    let (window, gl) = open_window(&event_loop, &options)?;
     let context: Context = (*gl).clone();
     let renderer = Renderer::new(&context);
     let mut gui = GUI::new(&context);

@@ -74,6 +74,34 @@ impl Default for WindowOptions {
     }
 }
 
+/// A window of `options.title` and `options.size` with a GL context on it: multisampled
+/// if the driver offers it, else without multisampling (some software drivers refuse it).
+pub(crate) fn open_window(
+    event_loop: &EventLoop<()>,
+    options: &WindowOptions,
+) -> Result<(winit::window::Window, WindowedContext), ViewerError> {
+    let window = winit::window::WindowBuilder::new()
+        .with_title(&options.title)
+        .with_inner_size(winit::dpi::LogicalSize::new(
+            options.size.0 as f64,
+            options.size.1 as f64,
+        ))
+        .build(event_loop)
+        .map_err(|e| ViewerError::Window(e.to_string()))?;
+    let gl = WindowedContext::from_winit_window(&window, three_d::SurfaceSettings::default())
+        .or_else(|_| {
+            WindowedContext::from_winit_window(
+                &window,
+                three_d::SurfaceSettings {
+                    multisamples: 0,
+                    ..Default::default()
+                },
+            )
+        })
+        .map_err(|e| ViewerError::Window(e.to_string()))?;
+    Ok((window, gl))
+}
+
 pub(crate) fn event_loop() -> Result<EventLoop<()>, ViewerError> {
     let mut builder = EventLoopBuilder::new();
     {
@@ -276,25 +304,7 @@ pub fn run_window(
     let mut stats = WindowStats::default();
     lower_thread_priority(options.nice);
     let mut event_loop = event_loop()?;
-    let window = winit::window::WindowBuilder::new()
-        .with_title(&options.title)
-        .with_inner_size(winit::dpi::LogicalSize::new(
-            options.size.0 as f64,
-            options.size.1 as f64,
-        ))
-        .build(&event_loop)
-        .map_err(|e| ViewerError::Window(e.to_string()))?;
-    let gl = WindowedContext::from_winit_window(&window, three_d::SurfaceSettings::default())
-        .or_else(|_| {
-            WindowedContext::from_winit_window(
-                &window,
-                three_d::SurfaceSettings {
-                    multisamples: 0,
-                    ..Default::default()
-                },
-            )
-        })
-        .map_err(|e| ViewerError::Window(e.to_string()))?;
+    let (window, gl) = open_window(&event_loop, &options)?;
     let context: Context = (*gl).clone();
     let renderer = Renderer::new(&context);
     let mut gui = GUI::new(&context);
