@@ -572,7 +572,14 @@ async fn run_load(server_exe: &Path, load: Load, args: &CoordinatorArgs) -> Resu
     // A few client endpoints (UDP sockets), as several machines would have.
     let endpoints: Vec<Endpoint> = (0..load.sessions.clamp(1, 8))
         .map(|_| {
-            let mut e = Endpoint::client("127.0.0.1:0".parse().expect("addr"))?;
+            // Each socket stands for several remote machines: give it the coordinator's
+            // receive buffer, so the load generator does not drop what the coordinator sent.
+            let socket = std::net::UdpSocket::bind("127.0.0.1:0")?;
+            socket2::SockRef::from(&socket)
+                .set_recv_buffer_size(server::coordinator::RECV_BUFFER_BYTES)?;
+            let runtime = quinn::default_runtime()
+                .ok_or_else(|| std::io::Error::other("no async runtime found"))?;
+            let mut e = Endpoint::new(quinn::EndpointConfig::default(), None, socket, runtime)?;
             e.set_default_client_config(client_cfg.clone());
             Ok(e)
         })
@@ -631,15 +638,20 @@ async fn run_load(server_exe: &Path, load: Load, args: &CoordinatorArgs) -> Resu
     let stop_at = shared.window.1;
     let drain = 0.5;
     let mut tasks = tokio::task::JoinSet::new();
+    let mut site_index = 0usize;
     for links in sessions {
-        for (k, link) in links.into_iter().enumerate() {
+        for link in links {
             let shared = shared.clone();
+            site_index += 1;
             let params = SendParams {
                 pose_hz: args.pose_hz,
                 stamp_hz: args.stamp_hz,
                 keyframe_hz: args.keyframe_hz / load.sites_per_session as f64,
-                // Spread the sites' phases over one pose period.
-                phase: (k as f64 * 0.37).fract() / args.pose_hz,
+                // Real sites' clocks are independent: spread every site's phase over one
+                // pose period (golden-ratio sequence). Phases shared by all sessions would
+                // make every session's k-th site send at the same instant, a burst no
+                // deployment produces.
+                phase: (site_index as f64 * 0.618_033_988_75).fract(),
             };
             tasks.spawn(site(link, shared, params, stop_at, stop_at + drain));
         }
@@ -770,6 +782,7 @@ struct SendParams {
     pose_hz: f64,
     stamp_hz: f64,
     keyframe_hz: f64,
+    /// Where in each of its periods this site sends, as a fraction of the period (0..1).
     phase: f64,
 }
 
@@ -890,8 +903,14 @@ async fn send_mix(
     heartbeat: Duration,
 ) {
     let period = 1.0 / p.pose_hz;
-    let mut next = p.phase;
-    let (mut next_stamp, mut next_kf, mut next_hb) = (p.phase, p.phase, 0.0);
+    // Each stream of messages starts at the site's phase within its own period, so that
+    // neither poses nor stamps nor keyframes of different sites line up.
+    let mut next = p.phase * period;
+    let (mut next_stamp, mut next_kf, mut next_hb) = (
+        p.phase / p.stamp_hz.max(f64::MIN_POSITIVE),
+        p.phase / p.keyframe_hz.max(f64::MIN_POSITIVE),
+        0.0,
+    );
     let region = u32::from(site);
     let mut keyframe_id = 0u64;
     let mut seq = 0u64;

@@ -20,6 +20,7 @@
 //! | `cosurg_session_refusals_total` | counter | `session` |
 //! | `cosurg_session_keyframes_total` (keyframes received) | counter | `session` |
 //! | `cosurg_session_dropped_messages_total` | counter | `session` |
+//! | `cosurg_session_over_budget_total` (datagrams over a site's relay budget; also dropped) | counter | `session` |
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -198,6 +199,14 @@ impl<S: Source> Collector for SampleCollector<S> {
             "Well-formed messages dropped by policy (observer, not owner, stale, ...).",
             false,
             |s| s.stats.dropped_messages,
+        )?;
+        per_session(
+            &mut enc,
+            s,
+            "cosurg_session_over_budget",
+            "Datagrams dropped because their site exceeded its relay budget.",
+            false,
+            |s| s.stats.over_budget,
         )?;
         Ok(())
     }

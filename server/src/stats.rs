@@ -23,6 +23,7 @@ pub(crate) struct Counters {
     pub(crate) superseded_streams_in: AtomicU64,
     pub(crate) malformed_streams: AtomicU64,
     pub(crate) dropped_messages: AtomicU64,
+    pub(crate) over_budget: AtomicU64,
     pub(crate) overloaded: AtomicU64,
     pub(crate) control_frames_out: AtomicU64,
     pub(crate) bytes_relayed: AtomicU64,
@@ -61,6 +62,9 @@ pub struct CoordinatorStats {
     pub malformed_streams: u64,
     /// Well-formed messages dropped by policy (observer, not owner, stale, …).
     pub dropped_messages: u64,
+    /// Of `dropped_messages`: relayed-state datagrams dropped because their site exceeded
+    /// its relay budget ([`crate::session::RelayBudget`]).
+    pub over_budget: u64,
     /// Sites closed because their control queue overflowed.
     pub overloaded: u64,
     /// Control frames queued to sites (one per recipient).
@@ -92,6 +96,7 @@ impl Counters {
             superseded_streams_in: g(&self.superseded_streams_in),
             malformed_streams: g(&self.malformed_streams),
             dropped_messages: g(&self.dropped_messages),
+            over_budget: g(&self.over_budget),
             overloaded: g(&self.overloaded),
             control_frames_out: g(&self.control_frames_out),
             bytes_relayed: g(&self.bytes_relayed),
@@ -126,6 +131,7 @@ impl std::ops::AddAssign for CoordinatorStats {
         self.superseded_streams_in += o.superseded_streams_in;
         self.malformed_streams += o.malformed_streams;
         self.dropped_messages += o.dropped_messages;
+        self.over_budget += o.over_budget;
         self.overloaded += o.overloaded;
         self.control_frames_out += o.control_frames_out;
         self.bytes_relayed += o.bytes_relayed;

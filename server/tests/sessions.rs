@@ -582,3 +582,116 @@ fn log_json_writes_one_json_object_per_line() {
         "{err}"
     );
 }
+
+/// A site flooding its session with datagrams cannot starve another session: the flood is
+/// held to the site's relay budget (`session::RelayBudget`, default 1,000/s with a burst of
+/// 500) and the other session's poses all arrive. Counts only, no timing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_flooding_site_is_held_to_its_budget_and_the_other_session_loses_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path().to_str().unwrap();
+    let file = sessions_file(dir.path());
+    let server = start(
+        dir.path(),
+        &[
+            "--state-dir",
+            d,
+            "--sessions",
+            &file,
+            "--metrics",
+            "127.0.0.1:0",
+        ],
+    );
+    tokio::time::timeout(T, async {
+        let ep = endpoint(&server);
+        let flooder = join(
+            &ep,
+            &server,
+            "alpha",
+            "flood",
+            Role::Instructor,
+            token("alpha-secret"),
+        )
+        .await
+        .unwrap();
+        let inv_a = invitation(dir.path(), "alpha", Role::Trainee);
+        let mut victim = join(&ep, &server, "alpha", "a2", Role::Trainee, inv_a)
+            .await
+            .unwrap();
+        let b1 = join(
+            &ep,
+            &server,
+            "beta",
+            "b1",
+            Role::Instructor,
+            token("beta-secret"),
+        )
+        .await
+        .unwrap();
+        let inv_b = invitation(dir.path(), "beta", Role::Trainee);
+        let mut b2 = join(&ep, &server, "beta", "b2", Role::Trainee, inv_b)
+            .await
+            .unwrap();
+
+        const FLOOD: Duration = Duration::from_secs(2);
+        const BETA_POSES: u32 = 300;
+        let (fid, fconn) = (flooder.welcome.site, flooder.conn.clone());
+        let flood = tokio::spawn(async move {
+            let start = Instant::now();
+            let mut sent = 0u64;
+            while start.elapsed() < FLOOD {
+                let d = bytes::Bytes::from(proto::encode(&pose(fid, 1, sent as u32)));
+                if fconn.send_datagram_wait(d).await.is_err() {
+                    break;
+                }
+                sent += 1;
+            }
+            (sent, start.elapsed())
+        });
+        let (bid, bconn) = (b1.welcome.site, b1.conn.clone());
+        let beta = tokio::spawn(async move {
+            for seq in 0..BETA_POSES {
+                link::send_datagram(&bconn, &pose(bid, 2, seq)).unwrap();
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+        });
+        let window = FLOOD + Duration::from_millis(1500);
+        let (got_alpha, got_beta) =
+            tokio::join!(receive(&mut victim, window), receive(&mut b2, window));
+        let (flood_sent, flood_time) = flood.await.unwrap();
+        beta.await.unwrap();
+
+        // The flood exceeded the budget many times over, and what was relayed is the budget.
+        let budget = 500.0 + 1000.0 * flood_time.as_secs_f64();
+        let relayed = got_alpha.poses.iter().filter(|p| p.tool == 1).count() as f64;
+        assert!(
+            flood_sent as f64 > 3.0 * budget,
+            "the flood ({flood_sent} datagrams in {flood_time:?}) did not exceed the budget"
+        );
+        assert!(
+            relayed <= budget * 1.05 + 20.0,
+            "{relayed} flood datagrams relayed, budget {budget:.0}"
+        );
+        assert!(relayed >= 400.0, "only {relayed} flood datagrams relayed");
+        // Beta received every pose of its own session, and none of alpha's.
+        let beta_poses: std::collections::BTreeSet<u32> = got_beta
+            .poses
+            .iter()
+            .inspect(|p| assert_eq!(p.tool, 2, "alpha's pose reached beta"))
+            .map(|p| p.position[0] as u32)
+            .collect();
+        assert_eq!(
+            beta_poses.len() as u32,
+            BETA_POSES,
+            "beta lost poses while alpha flooded"
+        );
+        let m = scrape(server.metrics.unwrap());
+        assert!(metric(&m, "cosurg_session_over_budget_total{session=\"alpha\"}") > 0);
+        assert_eq!(
+            metric(&m, "cosurg_session_over_budget_total{session=\"beta\"}"),
+            0
+        );
+    })
+    .await
+    .expect("test timed out");
+}

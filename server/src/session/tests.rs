@@ -600,3 +600,47 @@ fn teaching_start_and_stop_are_refused_from_anyone_but_the_instructor() {
         );
     }
 }
+
+#[test]
+fn a_site_over_its_relay_budget_is_dropped_alone_and_refilled_at_its_rate() {
+    let mut s = session();
+    s.set_relay_budget(RelayBudget {
+        rate_per_s: 100.0,
+        burst: 10.0,
+    });
+    let a = join(&mut s, "a", Role::Trainee);
+    let b = join(&mut s, "b", Role::Trainee);
+    let relayed = |v: DatagramVerdict| matches!(v, DatagramVerdict::Relay { .. });
+    // A burst at one instant: the bucket's 10, then drops.
+    let burst = (0..50)
+        .filter(|_| relayed(s.on_datagram(a, pose(a), 0)))
+        .count();
+    assert_eq!(burst, 10);
+    assert_eq!(
+        s.on_datagram(a, pose(a), 0),
+        DatagramVerdict::Drop(DropReason::OverBudget)
+    );
+    // The other site keeps its own budget, and what is not relayed (clock pings) still works.
+    assert_eq!(
+        (0..5)
+            .filter(|_| relayed(s.on_datagram(b, pose(b), 0)))
+            .count(),
+        5
+    );
+    assert!(matches!(
+        s.on_datagram(a, Message::ClockPing(ClockPing { seq: 1, t1_us: 2 }), 0),
+        DatagramVerdict::Reply(_)
+    ));
+    // Flooding at 1000/s for 2 s: the refill rate (100/s) gets through, nothing more.
+    let mut n = 0;
+    for i in 1..=2000u64 {
+        n += usize::from(relayed(s.on_datagram(a, pose(a), i * 1000)));
+    }
+    assert!((199..=201).contains(&n), "relayed {n} of 2000");
+    // After a pause the bucket is full again, not larger.
+    let later = 2_000_000 + 10_000_000;
+    let refilled = (0..50)
+        .filter(|_| relayed(s.on_datagram(a, pose(a), later)))
+        .count();
+    assert_eq!(refilled, 10);
+}
