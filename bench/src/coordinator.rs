@@ -120,6 +120,10 @@ pub struct CoordinatorArgs {
     /// The `cosurg-server` executable (default: beside this executable, else on PATH).
     #[arg(long)]
     pub server: Option<PathBuf>,
+    /// Run the coordinator with `--record` (every session recorded into a temporary
+    /// folder), to measure what recording costs the relay.
+    #[arg(long)]
+    pub record: bool,
 }
 
 /// Mean keyframe frame size the demo sends (bytes), measured from the coordinator's relay
@@ -166,6 +170,9 @@ pub struct LoadRow {
     pub rss_kib_per_site: f64,
     /// Relay p99 within the goal and nothing dropped.
     pub meets_goal: bool,
+    /// With `--record`: bytes the coordinator wrote into its recordings.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub recording_bytes: Option<u64>,
 }
 
 /// The whole run.
@@ -177,6 +184,9 @@ pub struct CoordinatorBench {
     pub stamp_hz: f64,
     pub keyframe_hz: f64,
     pub keyframe_bytes: usize,
+    /// The coordinator recorded every session (`--record`).
+    #[serde(default)]
+    pub record: bool,
     pub cores: usize,
     pub rows: Vec<LoadRow>,
     /// The largest load meeting the goal (sites), if any.
@@ -225,6 +235,7 @@ pub fn run(mut args: CoordinatorArgs) -> Result<()> {
         stamp_hz: args.stamp_hz,
         keyframe_hz: args.keyframe_hz,
         keyframe_bytes: args.keyframe_bytes,
+        record: args.record,
         cores: std::thread::available_parallelism().map_or(1, |n| n.get()),
         rows,
         knee_sites,
@@ -301,6 +312,20 @@ fn table(b: &CoordinatorBench) -> String {
         b.knee_sites
             .map_or("none".to_string(), |n| format!("{n} sites"))
     );
+    if b.record {
+        s += "coordinator recording every session (--record):";
+        for r in &b.rows {
+            let bytes = r.recording_bytes.unwrap_or(0) as f64;
+            // The recording spans warm-up, window and drain.
+            let minutes = (b.warmup + b.seconds + 0.5) / 60.0;
+            s += &format!(
+                " {} sites {:.2} MB/session-minute;",
+                r.sites,
+                bytes / 1e6 / r.sessions.max(1) as f64 / minutes
+            );
+        }
+        s += "\n";
+    }
     s
 }
 
@@ -414,7 +439,12 @@ fn session_name(i: usize) -> String {
     format!("bench-{i:03}")
 }
 
-fn start_server(exe: &Path, state: &Path, load: Load) -> Result<ServerProcess> {
+fn start_server(
+    exe: &Path,
+    state: &Path,
+    load: Load,
+    record: Option<&Path>,
+) -> Result<ServerProcess> {
     use std::io::{BufRead, BufReader, Read};
     let mut file = String::new();
     for i in 0..load.sessions {
@@ -426,7 +456,11 @@ fn start_server(exe: &Path, state: &Path, load: Load) -> Result<ServerProcess> {
     }
     let sessions = state.join("bench-sessions.toml");
     std::fs::write(&sessions, file)?;
-    let mut child = Command::new(exe)
+    let mut command = Command::new(exe);
+    if let Some(dir) = record {
+        command.arg("--record").arg(dir);
+    }
+    let mut child = command
         .args(["--listen", "127.0.0.1:0", "--status-interval", "0"])
         .arg("--state-dir")
         .arg(state)
@@ -565,7 +599,8 @@ async fn run_load(server_exe: &Path, load: Load, args: &CoordinatorArgs) -> Resu
         .ok()
         .and_then(|s| s.split_whitespace().next()?.parse().ok())
         .unwrap_or(f64::NAN);
-    let server = start_server(server_exe, state.path(), load)?;
+    let recordings = args.record.then(|| state.path().join("recordings"));
+    let server = start_server(server_exe, state.path(), load, recordings.as_deref())?;
     let pid = server.child.id();
     let idle_rss = rss_kib(pid).unwrap_or(0);
     let client_cfg = server::tls::client_config_pinned(&server.fingerprint)?;
@@ -672,6 +707,15 @@ async fn run_load(server_exe: &Path, load: Load, args: &CoordinatorArgs) -> Resu
         keyframe_latency.extend(r.keyframe_latency_us);
     }
     drop(server);
+    let recording_bytes = recordings.map(|dir| {
+        std::fs::read_dir(dir)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .filter_map(|e| e.metadata().ok())
+            .map(|m| m.len())
+            .sum()
+    });
     for e in &endpoints {
         e.close(0u32.into(), b"bench done");
     }
@@ -722,6 +766,7 @@ async fn run_load(server_exe: &Path, load: Load, args: &CoordinatorArgs) -> Resu
         meets_goal: p99 <= GOAL_P99_MS
             && datagrams_received >= datagrams_expected
             && keyframes_received >= keyframes_expected,
+        recording_bytes,
     })
 }
 
