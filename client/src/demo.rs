@@ -38,11 +38,14 @@ pub struct DemoArgs {
     /// Output folder (default out/demo-<timestamp>).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Sync strategy: keyframe, full-state[:K] (every K steps), input-only.
+    /// Sync strategy: keyframe (owners' keyframes), hybrid (every site
+    /// simulates every tool from repeated input samples; owners' keyframes correct, blended),
+    /// full-state[:K] (every K steps), input-only.
     #[arg(long, default_value = "keyframe")]
     pub strategy: SyncStrategy,
     /// Network impairment preset applied to every site's link (netem presets: lan,
-    /// metro, good, average, poor, intercontinental).
+    /// metro, good, intercontinental, average, poor, burst (Gilbert–Elliott loss), outage
+    /// (3 s without a link)).
     #[arg(long)]
     pub preset: Option<String>,
     /// Slow trainee B's simulation by this factor.

@@ -90,7 +90,9 @@ pub struct JoinArgs {
     /// Print the summary as JSON.
     #[arg(long)]
     pub json: bool,
-    /// How sites share the interaction: keyframe, full-state[:K] (every K steps), input-only.
+    /// How sites share the interaction: keyframe (owners' keyframes), hybrid (every site
+    /// simulates every tool from repeated input samples; owners' keyframes correct, blended),
+    /// full-state[:K] (every K steps), input-only.
     #[arg(long, default_value = "keyframe")]
     pub strategy: SyncStrategy,
     /// Slow this site's simulation by a factor (real extra CPU per step).
