@@ -221,6 +221,12 @@ pub struct Args {
     /// Maximum number of sessions hosted.
     #[arg(long, default_value_t = 256)]
     pub max_sessions: usize,
+    /// Datagrams per second one site may have relayed (tool poses, stamps, deltas; a
+    /// normal site sends under 200/s); beyond it, with a burst allowance of half a second,
+    /// its datagrams are dropped and counted (metric `cosurg_session_over_budget_total`),
+    /// so that one site cannot take the coordinator's CPU from the other sessions.
+    #[arg(long, default_value_t = 1000.0, value_name = "PER_SECOND")]
+    pub relay_rate: f64,
     /// Serve Prometheus metrics at http://ADDR/metrics (no authentication: use a loopback
     /// or private address).
     #[arg(long, value_name = "ADDR")]
@@ -348,6 +354,13 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     config.admin_token = args.admin_token.clone().filter(|t| !t.is_empty());
     config.max_sessions = args.max_sessions.max(names.len());
     config.metrics = args.metrics;
+    if !(args.relay_rate.is_finite() && args.relay_rate >= 1.0) {
+        anyhow::bail!("--relay-rate must be at least 1 datagram per second");
+    }
+    config.relay_budget = crate::session::RelayBudget {
+        rate_per_s: args.relay_rate,
+        burst: (args.relay_rate / 2.0).max(1.0),
+    };
     let (handle, addr) = Coordinator::bind(config)?;
     println!("listening: {addr}");
     println!("fingerprint: {}", handle.fingerprint());

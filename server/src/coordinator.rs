@@ -47,7 +47,7 @@ use crate::admission::Admission;
 pub use crate::clock::WallClock;
 use crate::ratelimit::RateLimitConfig;
 use crate::recording::CoordinatorRecording;
-use crate::session::{Action, DatagramVerdict, DropReason, Session, Target};
+use crate::session::{Action, DatagramVerdict, DropReason, RelayBudget, Session, Target};
 pub use crate::stats::CoordinatorStats;
 use crate::stats::{Counters, add, inc};
 use crate::tls::{Identity, TlsError};
@@ -118,6 +118,8 @@ pub struct CoordinatorConfig {
     pub metrics: Option<SocketAddr>,
     /// Record the session into `DIR/<session>.cosrec` ([`crate::recording`]); `None`: off.
     pub record_dir: Option<PathBuf>,
+    /// Datagrams per second each site may have relayed ([`RelayBudget`]).
+    pub relay_budget: RelayBudget,
 }
 
 impl CoordinatorConfig {
@@ -137,6 +139,7 @@ impl CoordinatorConfig {
             max_sessions: 256,
             metrics: None,
             record_dir: None,
+            relay_budget: RelayBudget::default(),
         }
     }
 

@@ -44,6 +44,8 @@ pub(super) struct Hub {
     state_dir: Option<PathBuf>,
     /// Where every session's recording goes (`--record`); `None`: not recorded.
     record_dir: Option<PathBuf>,
+    /// Every site's relay budget, in every session.
+    relay_budget: RelayBudget,
     tasks: Mutex<Vec<AbortHandle>>,
 }
 
@@ -65,6 +67,7 @@ impl Hub {
             status_interval: config.status_interval,
             state_dir: config.state_dir.clone(),
             record_dir: config.record_dir.clone(),
+            relay_budget: config.relay_budget,
             tasks: Mutex::new(Vec::new()),
         }
     }
@@ -118,11 +121,13 @@ impl Hub {
                 })
                 .ok()
         });
+        let mut session = Session::new(config);
+        session.set_relay_budget(self.relay_budget);
         let shared = Arc::new(Shared {
             name: name.clone(),
             clock: self.clock,
             state: Mutex::new(State {
-                session: Session::new(config),
+                session,
                 peers: HashMap::new(),
                 recording,
             }),
