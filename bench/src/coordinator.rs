@@ -850,11 +850,15 @@ async fn site(
     let (ack_tx, mut ack_rx) = mpsc::channel::<Message>(1024);
     let end = tokio::time::Instant::from_std(shared.epoch + Duration::from_secs_f64(end_s));
     // Control: write acks, drain what the coordinator sends.
+    // One deadline timer per loop, not one per message: the generator's timer operations
+    // (a lock shared by the runtime's workers) were a visible share of its CPU.
     let control = async {
         let mut buf_ok = true;
+        let deadline = tokio::time::sleep_until(end);
+        tokio::pin!(deadline);
         loop {
             tokio::select! {
-                _ = tokio::time::sleep_until(end) => return,
+                _ = &mut deadline => return,
                 m = ack_rx.recv() => match m {
                     Some(m) => {
                         if send.write_all(&proto::encode_frame(&m)).await.is_err() {
@@ -876,7 +880,16 @@ async fn site(
     // Datagrams in.
     let datagrams = async {
         let mut lat = Vec::new();
-        while let Ok(Ok(d)) = tokio::time::timeout_at(end, conn.read_datagram()).await {
+        let deadline = tokio::time::sleep_until(end);
+        tokio::pin!(deadline);
+        loop {
+            let d = tokio::select! {
+                _ = &mut deadline => break,
+                d = conn.read_datagram() => match d {
+                    Ok(d) => d,
+                    Err(_) => break,
+                },
+            };
             let now = shared.now_s();
             let sent = match proto::decode(&d) {
                 Ok(Message::ToolPose(p)) => p.sim_time_s,
@@ -893,9 +906,11 @@ async fn site(
     let keyframes = async {
         let mut lat = Vec::new();
         let mut readers = tokio::task::JoinSet::new();
+        let deadline = tokio::time::sleep_until(end);
+        tokio::pin!(deadline);
         loop {
             tokio::select! {
-                _ = tokio::time::sleep_until(end) => break,
+                _ = &mut deadline => break,
                 s = conn.accept_uni() => match s {
                     Ok(mut r) => {
                         let shared = shared.clone();
