@@ -6,7 +6,7 @@ use std::path::Path;
 
 use cosurg_sim_core::cut::{OpId, ReleaseOp, TopologyOp};
 use cosurg_sim_core::sim_scene::Scene;
-use cosurg_sim_core::{SimError, SimOptions, Simulation};
+use cosurg_sim_core::{Interaction, SimError, SimOptions, Simulation};
 use nalgebra::Vector3;
 
 type V3 = Vector3<f64>;
@@ -15,6 +15,11 @@ type V3 = Vector3<f64>;
 /// tied by a layer of 200 N/m over the hanging block's top face. No damping on the hanging
 /// block, so that its free fall has a closed form.
 fn two_blocks(attachment: bool) -> String {
+    two_blocks_with(attachment, "")
+}
+
+/// [`two_blocks`] with extra scene text (tools).
+fn two_blocks_with(attachment: bool, extra: &str) -> String {
     let layer = if attachment {
         r#"
 [[attachment]]
@@ -61,6 +66,7 @@ material = "soft"
 [[fix]]
 box = {{ min = [-1.0, -1.0, 0.049], max = [1.0, 1.0, 0.051] }}
 {layer}
+{extra}
 [simulation]
 dt = 0.002
 model = "corotational"
@@ -211,4 +217,51 @@ fn bad_releases_and_touching_bodies_are_rejected() {
         );
     let e = sim_of(&touching).err().expect("rejected").to_string();
     assert!(e.contains("share lattice nodes"), "{e}");
+}
+
+/// A hook held still in the middle of the layer releases the springs within its radius at
+/// the layer's rate, nearest first, and only those carrying at least the threshold force.
+#[test]
+fn hook_releases_springs_near_its_tip_at_the_rate() {
+    let hook = r#"
+[[tool]]
+name = "hook"
+kind = "hook"
+position = [0.02, 0.02, 0.025]
+"#;
+    // release_radius 0.01 m in the scene; widen to 0.015 m: the 3 x 3 springs around the
+    // centre (midpoints 0, 0.01 and 0.0141 m away).
+    let text =
+        two_blocks_with(true, hook).replace("release_radius = 0.01", "release_radius = 0.015");
+    let run = |text: &str, steps: usize| {
+        let mut sim = sim_of(text).expect("scene");
+        let mut interaction = Interaction::new(&sim);
+        let mut released = 0;
+        for _ in 0..steps {
+            let inputs = interaction.scripted_inputs(&sim, sim.time());
+            released += interaction
+                .before_step(&mut sim, &inputs)
+                .expect("hook")
+                .released;
+            sim.step().expect("step");
+        }
+        (sim, released, interaction.hooks.made.len())
+    };
+    // 100 springs/s over 0.03 s: 3 releases gained (within one of it: float sums).
+    let (sim, released, ops) = run(&text, 15);
+    assert!((2..=3).contains(&released), "{released} released in 0.03 s");
+    assert_eq!(sim.topology().epoch() as usize, ops);
+    // Over 0.2 s the nine within reach go, nearest first, and no other.
+    let (sim, released, _) = run(&text, 100);
+    assert_eq!(released, 9);
+    let layer = &sim.attachments().layers[0];
+    for (i, s) in layer.springs.iter().enumerate() {
+        let off = ((s.attached.x - 0.02).powi(2) + (s.attached.y - 0.02).powi(2)).sqrt();
+        assert_eq!(layer.is_released(i), off < 0.015, "spring {i} at {off} m");
+    }
+    // A threshold above what the springs carry (the block's 0.31 N over 25 springs, with
+    // its swing): nothing releases.
+    let strong = text.replace("release_force = 0.0", "release_force = 1.0");
+    let (_, released, _) = run(&strong, 100);
+    assert_eq!(released, 0);
 }

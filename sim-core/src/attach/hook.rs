@@ -74,7 +74,7 @@ impl HookDissection {
                     .filter_map(|i| {
                         let st = layer.state(sim.positions(), i);
                         let d = (st.midpoint - tip).norm();
-                        (d <= layer.release_radius && st.tension >= layer.release_force)
+                        (d <= layer.release_radius && st.tension.abs() >= layer.release_force)
                             .then_some((d, i as u32))
                     })
                     .collect();

@@ -421,7 +421,8 @@ fn default_release_radius() -> f64 {
 /// one empty cell between them), otherwise they are one body and the layer ties nothing.
 ///
 /// A `hook` tool releases springs (dissection): a spring whose midpoint lies within
-/// `release_radius` of the hook's tip and whose tension is at least `release_force` is
+/// `release_radius` of the hook's tip and whose force (tension or compression) is at
+/// least `release_force` is
 /// released, nearest first, at most `release_rate` springs per second per hook. A released
 /// spring stays released.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -443,7 +444,8 @@ pub struct Attachment {
     /// Dissection rate: springs a hook releases per second (≥ 0; 0: the hook cannot).
     #[serde(default)]
     pub release_rate: f64,
-    /// Dissection threshold: a spring releases only under at least this tension in N (≥ 0).
+    /// Dissection threshold: a spring releases only when it carries at least this force
+    /// (tension or compression) in N (≥ 0).
     #[serde(default)]
     pub release_force: f64,
     /// The hook works on springs whose midpoint lies within this distance of its tip (m,
