@@ -524,9 +524,12 @@ impl ContactPipeline {
     }
 }
 
-/// Global triangle ids of every surface's rest mesh: owner (surface, triangle), longest
-/// rest edge (m), first global vertex of each surface, and the vertex count.
-fn surface_tables(sim: &Simulation) -> (Vec<(u32, u32)>, Vec<f64>, Vec<u32>, u32) {
+/// [`surface_tables`]: owner (surface, triangle) and longest rest edge (m) of every global
+/// triangle, first global vertex of each surface, and the vertex count.
+type SurfaceTables = (Vec<(u32, u32)>, Vec<f64>, Vec<u32>, u32);
+
+/// Global triangle ids of every surface's rest mesh ([`SurfaceTables`]).
+fn surface_tables(sim: &Simulation) -> SurfaceTables {
     let mut tri_owner = Vec::new();
     let mut tri_edge = Vec::new();
     let mut vert_base = Vec::new();
