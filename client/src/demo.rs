@@ -68,6 +68,11 @@ pub struct DemoArgs {
     /// Without it every site runs headless.
     #[arg(long)]
     pub view: bool,
+    /// Built-in scene: `cholecystectomy` (forceps lift, probe, trainee A repeats the lift)
+    /// or `cholecystectomy-bodies` (the instructor's forceps lifts the gallbladder, trainee
+    /// B's hook dissects the bed, trainee A's blade cuts the cystic duct at the end).
+    #[arg(long, default_value = "cholecystectomy")]
+    pub scene: String,
     /// Extra arguments passed to every site's `cosurg join` (after `--`).
     #[arg(last = true)]
     pub site_args: Vec<String>,
@@ -123,6 +128,27 @@ pub fn cast(n: usize, slowdown: f64) -> Vec<DemoSite> {
             },
         })
         .collect()
+}
+
+/// The demo's cast for `n` sites of the built-in scene `scene`: [`cast`] for the
+/// cholecystectomy; for `cholecystectomy-bodies` the instructor lifts the gallbladder with
+/// the forceps, trainee B dissects the bed with the hook and trainee A cuts the cystic duct
+/// with the blade at the end (every script from 0.5 s: the scene's scripts carry the
+/// timeline, lift 2.5–3.5 s, dissection 3–9.5 s, cut 11–12 s).
+pub fn cast_for(scene: &str, n: usize, slowdown: f64) -> Vec<DemoSite> {
+    let mut c = cast(n, slowdown);
+    if scene == "cholecystectomy-bodies" {
+        for site in &mut c {
+            site.script_start = 0.5;
+            site.tool = match site.name.as_str() {
+                "instructor" => Some("forceps"),
+                "trainee-a" => Some("blade"),
+                "trainee-b" => Some("hook"),
+                _ => site.tool,
+            };
+        }
+    }
+    c
 }
 
 /// Per-site row of the summary.
@@ -215,11 +241,21 @@ pub struct SessionRun {
     pub view: bool,
 }
 
-/// Runs a coordinator in-process and every site as a child process; returns the site
-/// reports (with divergence filled in) and the per-mark divergence series.
+/// Runs a coordinator in-process and every site as a child process on the built-in
+/// cholecystectomy; returns the site reports (with divergence filled in) and the per-mark
+/// divergence series.
 pub fn run_session(run: &SessionRun) -> Result<(Vec<SiteReport>, Vec<Series>)> {
+    run_session_on(run, "cholecystectomy")
+}
+
+/// [`run_session`] on the built-in scene `scene_name`.
+pub fn run_session_on(
+    run: &SessionRun,
+    scene_name: &str,
+) -> Result<(Vec<SiteReport>, Vec<Series>)> {
     let exe = std::env::current_exe().context("locating the cosurg executable")?;
-    let scene = sim_core::sim_scene::builtin::cholecystectomy();
+    let scene = sim_core::sim_scene::builtin::by_name(scene_name)
+        .with_context(|| format!("unknown built-in scene {scene_name:?}"))?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
         .enable_all()
@@ -260,6 +296,7 @@ pub fn run_session(run: &SessionRun) -> Result<(Vec<SiteReport>, Vec<Series>)> {
             .args(["--expect-sites", &run.cast.len().to_string()])
             .args(["--vtu-interval", &run.vtu_interval.to_string()])
             .args(["--seed", &run.seed.to_string()])
+            .args(["--scene", &format!("builtin:{scene_name}")])
             .arg("--out")
             .arg(&dir)
             .args(["--json", "--progress-lines"])
@@ -369,9 +406,15 @@ pub fn run_session(run: &SessionRun) -> Result<(Vec<SiteReport>, Vec<Series>)> {
 
 pub fn demo(args: DemoArgs) -> Result<()> {
     let out = out_dir(&args.out, "demo");
-    let scene = sim_core::sim_scene::builtin::cholecystectomy();
+    let scene = sim_core::sim_scene::builtin::by_name(&args.scene).with_context(|| {
+        format!(
+            "unknown built-in scene {:?} (known: {})",
+            args.scene,
+            sim_core::sim_scene::builtin::NAMES.join(", ")
+        )
+    })?;
     let run = SessionRun {
-        cast: cast(args.sites, args.slowdown),
+        cast: cast_for(&args.scene, args.sites, args.slowdown),
         seconds: args.seconds,
         strategy: args.strategy,
         preset: args.preset.clone(),
@@ -389,14 +432,15 @@ pub fn demo(args: DemoArgs) -> Result<()> {
     }
     if !args.json {
         eprintln!(
-            "cosurg demo: coordinator + {} sites on 127.0.0.1 (QUIC/TLS), scene builtin:cholecystectomy {}, strategy {}, {} s simulated",
+            "cosurg demo: coordinator + {} sites on 127.0.0.1 (QUIC/TLS), scene builtin:{} {}, strategy {}, {} s simulated",
             run.cast.len(),
+            args.scene,
             &scene.hash[..12],
             args.strategy.name(),
             args.seconds
         );
     }
-    let (reports, series) = run_session(&run)?;
+    let (reports, series) = run_session_on(&run, &args.scene)?;
     let rows: Vec<SiteRow> = reports
         .iter()
         .map(|r| SiteRow {

@@ -38,9 +38,11 @@ pub fn fill_divergence(reports: &mut [SiteReport]) -> Result<Vec<Series>> {
     if reports.len() < 2 {
         return Ok(Vec::new());
     }
-    let scene = sim_core::sim_scene::builtin::by_name("cholecystectomy")
-        .filter(|s| s.hash == reports[0].scene_hash)
-        .context("divergence: the runs' scene is not the built-in cholecystectomy scene")?;
+    let scene = sim_core::sim_scene::builtin::NAMES
+        .iter()
+        .filter_map(|n| sim_core::sim_scene::builtin::by_name(n))
+        .find(|s| s.hash == reports[0].scene_hash)
+        .context("divergence: the runs' scene is not a built-in scene")?;
     let regions = vertex_regions(scene)?;
     let mut recs = Vec::new();
     for r in reports.iter() {

@@ -1,5 +1,6 @@
 //! How commands name a scene: a path to a TOML file, or `builtin:NAME` for the scenes
-//! compiled into the binary (`cholecystectomy`, the default, and `cantilever`).
+//! compiled into the binary (`cholecystectomy`, the default, `cantilever` and
+//! `cholecystectomy-bodies`).
 
 use anyhow::{Result, anyhow};
 use sim_core::sim_scene::{LoadedScene, Scene, builtin};
@@ -10,7 +11,10 @@ pub fn load_scene(arg: Option<&str>) -> Result<LoadedScene> {
         None => Ok(builtin::cholecystectomy()),
         Some(s) => match s.strip_prefix("builtin:") {
             Some(name) => builtin::by_name(name).ok_or_else(|| {
-                anyhow!("unknown built-in scene {name:?} (known: cholecystectomy, cantilever)")
+                anyhow!(
+                    "unknown built-in scene {name:?} (known: {})",
+                    builtin::NAMES.join(", ")
+                )
             }),
             None => Ok(Scene::load(s)?),
         },

@@ -408,6 +408,9 @@ pub enum TopologyKind {
     /// A cut: the triangles a blade swept, in rest coordinates (m; exact `f64`, since every
     /// site decides with exact predicates on them).
     Cut { triangles: Vec<[[f64; 3]; 3]> },
+    /// A release of attachment springs (dissection): springs of one attachment layer of
+    /// the scene, by index (ascending). Released springs stay released.
+    Release { layer: u32, springs: Vec<u32> },
 }
 
 /// One timed tool sample of a teaching trajectory.

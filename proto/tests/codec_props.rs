@@ -96,16 +96,20 @@ fn topology_op() -> impl Strategy<Value = TopologyOp> {
         any::<u16>(),
         any::<u32>(),
         vec(vec(-1.0e3f64..1.0e3, 9), 0..4),
+        proptest::option::of((any::<u32>(), vec(any::<u32>(), 0..8))),
     )
-        .prop_map(|(epoch, site, seq, tris)| TopologyOp {
+        .prop_map(|(epoch, site, seq, tris, release)| TopologyOp {
             epoch,
             site,
             seq,
-            kind: TopologyKind::Cut {
-                triangles: tris
-                    .into_iter()
-                    .map(|t| std::array::from_fn(|i| std::array::from_fn(|k| t[3 * i + k])))
-                    .collect(),
+            kind: match release {
+                Some((layer, springs)) => TopologyKind::Release { layer, springs },
+                None => TopologyKind::Cut {
+                    triangles: tris
+                        .into_iter()
+                        .map(|t| std::array::from_fn(|i| std::array::from_fn(|k| t[3 * i + k])))
+                        .collect(),
+                },
             },
         })
 }

@@ -9,6 +9,7 @@ use sim_fem::{
 use sim_lattice::{Embedding, Lattice, LatticeParams, NodeId, ShapeKey, TetId, TopologyEvent};
 use sim_scene::{Aabb, BodyShape, InclusionShape, LoadedScene, TriMesh};
 
+use crate::attach::Attachments;
 use crate::cut::TopologyLog;
 use crate::error::SimError;
 use crate::options::SimOptions;
@@ -128,6 +129,8 @@ pub struct Simulation {
     topology: TopologyLog,
     /// Separation, virtual nodes and cut surfaces; `None` before the first cut.
     cut: Option<cutting::CutState>,
+    /// Connective layers between bodies (attachment springs) and what is released.
+    attachments: Attachments,
 }
 
 impl Simulation {
@@ -282,6 +285,8 @@ impl Simulation {
                 })
             })
             .collect::<Result<Vec<_>, SimError>>()?;
+        let rest_surfaces: Vec<&TriMesh> = surfaces.iter().map(|s| &s.rest).collect();
+        let attachments = Attachments::build(sc, &scene.file, &lattice, &rest_surfaces)?;
         let probe_points: Vec<V3> = sc.probes.iter().map(|p| p.point).collect();
         let probes = Embedding::new(&lattice, &probe_points)?;
         let probe_names = sc.probes.iter().map(|p| p.name.clone()).collect();
@@ -313,6 +318,7 @@ impl Simulation {
             steps: 0,
             topology: TopologyLog::default(),
             cut: None,
+            attachments,
             scene,
         };
         sim.select_nodes()?;
@@ -477,19 +483,21 @@ impl Simulation {
                 self.v[i] = V3::zeros();
             }
         }
-        let f_ext: Vec<V3> = self
+        let mut f_ext: Vec<V3> = self
             .f_scene
             .iter()
             .zip(&self.f_extra)
             .map(|(a, b)| a + b)
             .collect();
+        self.attachments
+            .add_forces(&self.x, &mut f_ext, &mut self.k_extra);
         let (x0, v0) = (self.x.clone(), self.v.clone());
         if let Some(shared) = self.sharing.update(fem, &self.x, &self.options)? {
             report.shared_rotations = shared.shared_elements;
             report.sharing_blocks_tested = shared.blocks_tested;
         }
         let params = self.options.step;
-        // Extra stiffness (contact) applies to this step only.
+        // Extra stiffness (contact, attachments) applies to this step only.
         fem.set_external_stiffness(&self.k_extra);
         let result = fem.step(&mut self.x, &mut self.v, &f_ext, dt, &params);
         fem.clear_external_stiffness();
@@ -592,6 +600,7 @@ impl Simulation {
             s.embedding.update(&self.lattice);
         }
         self.probes.update(&self.lattice);
+        self.attachments.update(&self.lattice);
         self.prescribed.retain(|n, _| self.lattice.node_alive(*n));
         self.assign_materials();
         self.select_nodes()?;
@@ -663,6 +672,10 @@ impl Simulation {
     /// Whether a node is clamped by the scene.
     pub fn is_fixed(&self, n: NodeId) -> bool {
         self.fixed_scene.get(n.0 as usize).copied().unwrap_or(false)
+    }
+    /// The connective layers between bodies and their released springs.
+    pub fn attachments(&self) -> &Attachments {
+        &self.attachments
     }
     /// The embedded surfaces.
     pub fn surfaces(&self) -> &[Surface] {
@@ -752,7 +765,8 @@ impl Simulation {
         );
         Ok(
             elastic + fem.kinetic_energy(&v) + fem.gravity_energy(&x, &g)
-                - fem.gravity_energy(&rest, &g),
+                - fem.gravity_energy(&rest, &g)
+                + self.attachments.energy(&x),
         )
     }
 }

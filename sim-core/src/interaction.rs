@@ -3,6 +3,7 @@
 //! order before every step.
 
 use crate::adapt::{AdaptParams, AdaptReport, Adaptivity};
+use crate::attach::hook::HookDissection;
 use crate::contact::{ContactParams, ContactPipeline, ContactState};
 use crate::cut::BladeStrokes;
 use crate::engine::Simulation;
@@ -24,6 +25,8 @@ pub struct InteractionReport {
     pub adapt: AdaptReport,
     /// Cuts a blade committed (and applied) in this pass.
     pub cuts: usize,
+    /// Attachment springs a hook released (and applied) in this pass.
+    pub released: usize,
 }
 
 /// Tools, contact and tool-following adaptivity of one simulation.
@@ -37,6 +40,8 @@ pub struct Interaction {
     pub adapt: Adaptivity,
     /// The blades' strokes (cuts); ops they made are in `blades.made`.
     pub blades: BladeStrokes,
+    /// The hooks' dissection (releases of attachment springs); ops in `hooks.made`.
+    pub hooks: HookDissection,
 }
 
 impl Interaction {
@@ -56,6 +61,7 @@ impl Interaction {
             contact: ContactPipeline::new(sim, &tools, contact),
             adapt: Adaptivity::new(sim, adapt),
             blades: BladeStrokes::new(sim, &tools, 0),
+            hooks: HookDissection::new(&tools, 0),
             tools,
         }
     }
@@ -78,6 +84,7 @@ impl Interaction {
             tool.set_input(&input, dt);
         }
         let cuts = self.blades.update(sim, &self.tools)?;
+        let released = self.hooks.update(sim, &self.tools)?;
         let focus = self.contact.focus_points();
         let adapt = self.adapt.update(sim, &focus)?;
         let before = self.contact.state().stats;
@@ -90,6 +97,7 @@ impl Interaction {
             narrow_tests: st.stats.narrow_tests - before.narrow_tests,
             adapt,
             cuts,
+            released,
         })
     }
 

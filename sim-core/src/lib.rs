@@ -12,6 +12,8 @@
 //!   sharing angle, stiffness kernel, solver budget), defaulted from the scene.
 //! * [`cut`] — cutting (virtual node algorithm on the lattice, cut and capped surfaces)
 //!   as topology operations shared across sites ([`Simulation::apply_topology_op`]).
+//! * [`attach`] — connective layers tying two bodies (attachment springs) and their
+//!   release by a hook (dissection), releases being topology operations like cuts.
 //! * [`Interaction`] — the scene's tools ([`tools`]), tool–tissue contact and grasping
 //!   ([`contact`]) and refinement following the tools ([`adapt`]): call
 //!   [`Interaction::before_step`] with the tool inputs before every [`Simulation::step`].
@@ -23,6 +25,7 @@
 //! Units: SI throughout (m, s, kg, N, Pa).
 
 pub mod adapt;
+pub mod attach;
 pub mod contact;
 pub mod cut;
 mod engine;

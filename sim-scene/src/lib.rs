@@ -35,9 +35,9 @@ pub mod vtk;
 
 pub use mesh::{MeshError, MeshFormat, TriMesh};
 pub use scene::{
-    Aabb, Body, BodyShape, CameraSpec, Capsule, DEFAULT_CAMERA_FOV_DEG, FORMAT_VERSION, Features,
-    FileReader, Fix, Inclusion, InclusionShape, LinearSolver, Load, LoadedScene, Material, Model,
-    NodeSelection, PolarMethod, Probe, Scene, SceneError, SimulationSettings, ToolKind, ToolSpec,
-    scene_hash,
+    Aabb, Attachment, Body, BodyShape, CameraSpec, Capsule, DEFAULT_CAMERA_FOV_DEG, FORMAT_VERSION,
+    Features, FileReader, Fix, Inclusion, InclusionShape, LinearSolver, Load, LoadedScene,
+    Material, Model, NodeSelection, PolarMethod, Probe, Scene, SceneError, SimulationSettings,
+    ToolKind, ToolSpec, scene_hash,
 };
 pub use script::{ScriptCommand, ScriptError, SessionCommand, ToolPose, ToolScript, ToolWaypoint};

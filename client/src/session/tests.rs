@@ -659,6 +659,7 @@ fn topology_ops_apply_once_and_keyframes_of_an_unreached_topology_are_dropped() 
         id: sim_core::cut::OpId { site: 1, seq: 0 },
         triangles: match &op.kind {
             proto::TopologyKind::Cut { triangles } => triangles.clone(),
+            proto::TopologyKind::Release { .. } => unreachable!("cut_message makes a cut"),
         },
     });
     p.a.share_topology(&[own]);

@@ -1,4 +1,4 @@
-//! Topology operations (cuts) between sim-core and the wire, and their handling in the
+//! Topology operations (cuts, releases of attachment springs) between sim-core and the wire, and their handling in the
 //! session: ops made here go to the coordinator on the control stream (reliable, ordered)
 //! and are relayed to every other site; the coordinator keeps them for late joiners' snapshots.
 //! Every site applies every op it receives (duplicates are no-ops, the order does not
@@ -7,7 +7,7 @@
 //! reached, and the owner's next keyframe replaces it.
 
 use proto::{Epoch, SiteId};
-use sim_core::cut::{CutOp, OpId, TopologyOp};
+use sim_core::cut::{CutOp, OpId, ReleaseOp, TopologyOp};
 
 /// An op of ours as the wire message of scene epoch `epoch`.
 pub fn topology_to_wire(op: &TopologyOp, epoch: Epoch) -> proto::TopologyOp {
@@ -18,6 +18,15 @@ pub fn topology_to_wire(op: &TopologyOp, epoch: Epoch) -> proto::TopologyOp {
             seq: c.id.seq,
             kind: proto::TopologyKind::Cut {
                 triangles: c.triangles.clone(),
+            },
+        },
+        TopologyOp::Release(r) => proto::TopologyOp {
+            epoch,
+            site: r.id.site as SiteId,
+            seq: r.id.seq,
+            kind: proto::TopologyKind::Release {
+                layer: r.layer,
+                springs: r.springs.clone(),
             },
         },
     }
@@ -32,6 +41,14 @@ pub fn topology_from_wire(op: &proto::TopologyOp) -> TopologyOp {
                 seq: op.seq,
             },
             triangles: triangles.clone(),
+        }),
+        proto::TopologyKind::Release { layer, springs } => TopologyOp::Release(ReleaseOp {
+            id: OpId {
+                site: u32::from(op.site),
+                seq: op.seq,
+            },
+            layer: *layer,
+            springs: springs.clone(),
         }),
     }
 }

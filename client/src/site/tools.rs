@@ -49,10 +49,12 @@ impl Tools {
             ),
             None => None,
         };
-        // Only the blade this site drives cuts here; the others' cuts arrive as ops.
+        // Only the blade (hook) this site drives cuts (dissects) here; the others' cuts
+        // and releases arrive as ops.
         interaction.blades.enabled = (0..interaction.tools.len())
             .map(|i| Some(i) == local)
             .collect();
+        interaction.hooks.enabled = interaction.blades.enabled.clone();
         Ok(Tools {
             remote: vec![None; interaction.tools.len()],
             remote_site: vec![None; interaction.tools.len()],
@@ -65,9 +67,12 @@ impl Tools {
         })
     }
 
-    /// The topology ops (cuts) our blade made since the last call, to share.
+    /// The topology ops (cuts, releases) our blade or hook made since the last call, to
+    /// share.
     pub fn take_topology_ops(&mut self) -> Vec<sim_core::cut::TopologyOp> {
-        std::mem::take(&mut self.interaction.blades.made)
+        let mut ops = std::mem::take(&mut self.interaction.blades.made);
+        ops.append(&mut self.interaction.hooks.made);
+        ops
     }
 
     /// After a scene reset: contact starts again on the rebuilt simulation (grasps and
@@ -77,6 +82,7 @@ impl Tools {
         self.interaction.blades.enabled = (0..self.interaction.tools.len())
             .map(|i| Some(i) == self.local)
             .collect();
+        self.interaction.hooks.enabled = self.interaction.blades.enabled.clone();
         self.touch_radius = 2.0 * sim.lattice().params().cell;
     }
 
@@ -136,6 +142,7 @@ impl Tools {
             })
             .collect();
         self.interaction.blades.site = session.site_id().map_or(0, u32::from);
+        self.interaction.hooks.site = self.interaction.blades.site;
         self.interaction.before_step(sim, &inputs)?;
         let Some(i) = self.local else {
             return Ok(Vec::new());

@@ -320,25 +320,7 @@ pub struct ContactPipeline {
 impl ContactPipeline {
     /// A pipeline for `sim`'s surfaces and `tools`.
     pub fn new(sim: &Simulation, tools: &ToolSet, params: ContactParams) -> Self {
-        let mut tri_owner = Vec::new();
-        let mut tri_edge = Vec::new();
-        let mut vert_base = Vec::new();
-        let mut verts = 0u32;
-        for (s, surf) in sim.surfaces().iter().enumerate() {
-            vert_base.push(verts);
-            verts += surf.rest.vertices.len() as u32;
-            for (t, tri) in surf.rest.triangles.iter().enumerate() {
-                tri_owner.push((s as u32, t as u32));
-                let e = (0..3)
-                    .map(|k| {
-                        let a = surf.rest.vertices[tri[k] as usize];
-                        let b = surf.rest.vertices[tri[(k + 1) % 3] as usize];
-                        (a - b).norm()
-                    })
-                    .fold(0.0, f64::max);
-                tri_edge.push(e);
-            }
-        }
+        let (tri_owner, tri_edge, vert_base, verts) = surface_tables(sim);
         ContactPipeline {
             params,
             topo: Topology::default(),
@@ -485,6 +467,24 @@ impl ContactPipeline {
             self.node_k.resize(cap, Matrix3::zeros());
             self.node_mark.resize(cap, false);
         }
+        // A cut re-meshes the surfaces (cut and capped): index them again.
+        let (tris, verts) = sim.surfaces().iter().fold((0, 0), |(t, v), s| {
+            (t + s.rest.triangles.len(), v + s.rest.vertices.len())
+        });
+        if tris != self.tri_owner.len() || verts != self.vert_pos.len() {
+            let (tri_owner, tri_edge, vert_base, verts) = surface_tables(sim);
+            self.tri_stamp = vec![0; tri_owner.len()];
+            self.tri_owner = tri_owner;
+            self.tri_edge = tri_edge;
+            self.vert_base = vert_base;
+            self.vert_pos = vec![V3::zeros(); verts as usize];
+            self.vert_stamp = vec![0; verts as usize];
+            self.topo = Topology::default();
+            self.last_cands.clear();
+            for m in &mut self.memory {
+                m.anchors.iter_mut().for_each(|a| *a = None);
+            }
+        }
         self.refresh_topology(sim);
         self.refit_roots(sim);
         let dt = sim.options().dt;
@@ -522,4 +522,32 @@ impl ContactPipeline {
             sim.add_stiffness(NodeId(n), self.node_k[i]);
         }
     }
+}
+
+/// [`surface_tables`]: owner (surface, triangle) and longest rest edge (m) of every global
+/// triangle, first global vertex of each surface, and the vertex count.
+type SurfaceTables = (Vec<(u32, u32)>, Vec<f64>, Vec<u32>, u32);
+
+/// Global triangle ids of every surface's rest mesh ([`SurfaceTables`]).
+fn surface_tables(sim: &Simulation) -> SurfaceTables {
+    let mut tri_owner = Vec::new();
+    let mut tri_edge = Vec::new();
+    let mut vert_base = Vec::new();
+    let mut verts = 0u32;
+    for (s, surf) in sim.surfaces().iter().enumerate() {
+        vert_base.push(verts);
+        verts += surf.rest.vertices.len() as u32;
+        for (t, tri) in surf.rest.triangles.iter().enumerate() {
+            tri_owner.push((s as u32, t as u32));
+            let e = (0..3)
+                .map(|k| {
+                    let a = surf.rest.vertices[tri[k] as usize];
+                    let b = surf.rest.vertices[tri[(k + 1) % 3] as usize];
+                    (a - b).norm()
+                })
+                .fold(0.0, f64::max);
+            tri_edge.push(e);
+        }
+    }
+    (tri_owner, tri_edge, vert_base, verts)
 }

@@ -93,11 +93,32 @@ impl CutOp {
     }
 }
 
-/// A topology operation (cuts now; releases of attachments later).
+/// A release of attachment springs (dissection, [`crate::attach`]): springs of one layer,
+/// by index. Releasing is idempotent and commutative (a released spring stays released).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ReleaseOp {
+    /// Identity and order.
+    pub id: OpId,
+    /// Attachment layer (scene order).
+    pub layer: u32,
+    /// Spring indices in the layer, ascending.
+    pub springs: Vec<u32>,
+}
+
+impl ReleaseOp {
+    /// Bytes of the op as carried (id + layer + length + 4 per spring).
+    pub fn wire_bytes(&self) -> usize {
+        8 + 4 + 4 + 4 * self.springs.len()
+    }
+}
+
+/// A topology operation: a cut, or a release of attachment springs.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum TopologyOp {
     /// A blade's cut.
     Cut(CutOp),
+    /// A hook's release of attachment springs.
+    Release(ReleaseOp),
 }
 
 impl TopologyOp {
@@ -105,6 +126,14 @@ impl TopologyOp {
     pub fn id(&self) -> OpId {
         match self {
             TopologyOp::Cut(c) => c.id,
+            TopologyOp::Release(r) => r.id,
+        }
+    }
+    /// Bytes of the op as carried.
+    pub fn wire_bytes(&self) -> usize {
+        match self {
+            TopologyOp::Cut(c) => c.wire_bytes(),
+            TopologyOp::Release(r) => r.wire_bytes(),
         }
     }
 }
@@ -135,12 +164,7 @@ impl TopologyLog {
     }
     /// Bytes of the whole log as carried.
     pub fn wire_bytes(&self) -> usize {
-        self.ops
-            .values()
-            .map(|o| match o {
-                TopologyOp::Cut(c) => c.wire_bytes(),
-            })
-            .sum()
+        self.ops.values().map(TopologyOp::wire_bytes).sum()
     }
     pub(crate) fn insert(&mut self, op: TopologyOp) -> bool {
         self.ops.insert(op.id(), op).is_none()
@@ -152,15 +176,21 @@ impl TopologyLog {
                 .values()
                 .flat_map(|o| match o {
                     TopologyOp::Cut(c) => c.sheet_triangles().collect::<Vec<_>>(),
+                    TopologyOp::Release(_) => Vec::new(),
                 })
                 .collect(),
         )
     }
+    /// Whether any applied op is a cut.
+    pub fn has_cut(&self) -> bool {
+        self.ops.values().any(|o| matches!(o, TopologyOp::Cut(_)))
+    }
     /// Recomputes the digest: SHA-256 (first 8 bytes, little endian) over every op (id
-    /// and the bits of its coordinates) and every crossed leaf's copies (tree root, heap
-    /// index, component mask, volume-fraction bits). Lattice node ids are not hashed:
-    /// they differ between sites.
-    pub(crate) fn update_digest(&mut self, separation: &Separation) {
+    /// and the bits of its coordinates, or its layer and spring indices), every crossed
+    /// leaf's copies (tree root, heap index, component mask, volume-fraction bits) and
+    /// every attachment layer's released springs. Lattice node ids are not hashed: they
+    /// differ between sites.
+    pub(crate) fn update_digest(&mut self, separation: Option<&Separation>, released: &[Vec<u32>]) {
         let mut h = Sha256::new();
         for op in self.ops.values() {
             match op {
@@ -176,14 +206,32 @@ impl TopologyLog {
                         }
                     }
                 }
+                TopologyOp::Release(r) => {
+                    h.update(b"release");
+                    h.update(r.id.site.to_le_bytes());
+                    h.update(r.id.seq.to_le_bytes());
+                    h.update(r.layer.to_le_bytes());
+                    for s in &r.springs {
+                        h.update(s.to_le_bytes());
+                    }
+                }
             }
         }
-        for &t in &separation.crossed {
-            for c in separation.copies_of(t) {
-                h.update(t.root.to_le_bytes());
-                h.update(t.heap.to_le_bytes());
-                h.update([c.mask]);
-                h.update(c.fraction.to_bits().to_le_bytes());
+        if let Some(separation) = separation {
+            for &t in &separation.crossed {
+                for c in separation.copies_of(t) {
+                    h.update(t.root.to_le_bytes());
+                    h.update(t.heap.to_le_bytes());
+                    h.update([c.mask]);
+                    h.update(c.fraction.to_bits().to_le_bytes());
+                }
+            }
+        }
+        for (layer, springs) in released.iter().enumerate() {
+            h.update(b"released");
+            h.update((layer as u32).to_le_bytes());
+            for s in springs {
+                h.update(s.to_le_bytes());
             }
         }
         let d = h.finalize();

@@ -41,15 +41,35 @@ pub struct TopologyChange {
     pub crossed: usize,
     /// Virtual nodes (all cuts).
     pub virtual_nodes: usize,
+    /// Attachment springs this op released (that were holding).
+    pub released: usize,
 }
 
 impl Simulation {
-    /// Applies a topology operation (a cut). Idempotent: an op already applied (same
-    /// [`crate::cut::OpId`]) changes nothing. The result depends only on the set of ops
-    /// applied, not on their order.
+    /// Applies a topology operation (a cut or a release of attachment springs).
+    /// Idempotent: an op already applied (same [`crate::cut::OpId`]) changes nothing. The
+    /// result depends only on the set of ops applied, not on their order.
     pub fn apply_topology_op(&mut self, op: TopologyOp) -> Result<TopologyChange, SimError> {
         match &op {
             TopologyOp::Cut(c) => c.validate().map_err(SimError::Topology)?,
+            TopologyOp::Release(r) => self.attachments.validate(r).map_err(SimError::Topology)?,
+        }
+        if let TopologyOp::Release(r) = &op {
+            if !self.topology.insert(op.clone()) {
+                return Ok(TopologyChange::default());
+            }
+            let released = self.attachments.release(r);
+            self.update_topology_digest();
+            let (crossed, virtual_nodes) = self.cut.as_ref().map_or((0, 0), |c| {
+                (c.separation.crossed.len(), c.separation.virtual_nodes.len())
+            });
+            return Ok(TopologyChange {
+                applied: true,
+                released,
+                crossed,
+                virtual_nodes,
+                ..TopologyChange::default()
+            });
         }
         if !self.topology.insert(op) {
             return Ok(TopologyChange::default());
@@ -78,14 +98,23 @@ impl Simulation {
         let refined = self.refine_along_sheet()?;
         self.cut_surfaces()?;
         self.reseparate(old)?;
+        self.update_topology_digest();
         let cut = self.cut.as_ref().expect("set above");
-        self.topology.update_digest(&cut.separation);
         Ok(TopologyChange {
             applied: true,
+            released: 0,
             refined,
             crossed: cut.separation.crossed.len(),
             virtual_nodes: cut.separation.virtual_nodes.len(),
         })
+    }
+
+    /// Recomputes the topology digest from the ops, the separation and the released
+    /// attachment springs.
+    fn update_topology_digest(&mut self) {
+        let released = self.attachments.released_sets();
+        self.topology
+            .update_digest(self.cut.as_ref().map(|c| &c.separation), &released);
     }
 
     /// Takes the virtual nodes' state out of the node arrays (they then have the lattice

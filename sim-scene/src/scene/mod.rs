@@ -407,6 +407,53 @@ impl ToolSpec {
     }
 }
 
+fn default_release_radius() -> f64 {
+    0.01
+}
+
+/// A connective layer between two bodies (`[[attachment]]`), e.g. the gallbladder bed.
+///
+/// The layer is a set of attachment springs: every surface vertex of `bodies[1]` (the
+/// attached body) inside `box` is tied to the nearest surface vertex of `bodies[0]` (the
+/// host) when that one lies within `reach`. A spring joins the two embedded points (each
+/// moves with its own body's lattice); its rest length is their rest distance. The two
+/// bodies must not share lattice nodes (their lattice cells must not touch: leave at least
+/// one empty cell between them), otherwise they are one body and the layer ties nothing.
+///
+/// A `hook` tool releases springs (dissection): a spring whose midpoint lies within
+/// `release_radius` of the hook's tip and whose force (tension or compression) is at
+/// least `release_force` is
+/// released, nearest first, at most `release_rate` springs per second per hook. A released
+/// spring stays released.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Attachment {
+    /// Unique name.
+    pub name: String,
+    /// `[host, attached]` body names (distinct).
+    pub bodies: [String; 2],
+    /// Where the layer is (inclusive box, m): attached-body surface vertices inside it get
+    /// a spring.
+    #[serde(rename = "box")]
+    pub region: Aabb,
+    /// Total stiffness of the layer in N/m (> 0), split equally over its springs (they act
+    /// in parallel).
+    pub stiffness: f64,
+    /// Longest spring in m (> 0): a vertex whose nearest host vertex is farther gets none.
+    pub reach: f64,
+    /// Dissection rate: springs a hook releases per second (≥ 0; 0: the hook cannot).
+    #[serde(default)]
+    pub release_rate: f64,
+    /// Dissection threshold: a spring releases only when it carries at least this force
+    /// (tension or compression) in N (≥ 0).
+    #[serde(default)]
+    pub release_force: f64,
+    /// The hook works on springs whose midpoint lies within this distance of its tip (m,
+    /// > 0, default 0.01).
+    #[serde(default = "default_release_radius")]
+    pub release_radius: f64,
+}
+
 /// Deformation models: `linear`, `corotational` (default), `stvk` (alias `nonlinear`). One
 /// enum for every crate, sim-fem's.
 pub use sim_fem::{LinearSolver, Model};
@@ -537,6 +584,9 @@ pub struct Scene {
     /// Tools (`[[tool]]`).
     #[serde(rename = "tool", default, skip_serializing_if = "Vec::is_empty")]
     pub tools: Vec<ToolSpec>,
+    /// Connective layers tying two bodies (`[[attachment]]`).
+    #[serde(rename = "attachment", default, skip_serializing_if = "Vec::is_empty")]
+    pub attachments: Vec<Attachment>,
     /// Solver settings.
     #[serde(default)]
     pub simulation: SimulationSettings,

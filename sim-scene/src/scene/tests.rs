@@ -734,3 +734,51 @@ fn unknown_linear_solver_is_named() {
         "{e}"
     );
 }
+
+#[test]
+fn attachment_parses_and_errors_name_the_key() {
+    let layer = r#"
+[[body]]
+name = "hanging"
+box = { min = [0.0, 0.0, -0.2], max = [0.4, 0.1, -0.1] }
+cell = 0.025
+material = "tissue"
+
+[[attachment]]
+name = "layer"
+bodies = ["beam", "hanging"]
+box = { min = [0.0, 0.0, -0.11], max = [0.4, 0.1, -0.09] }
+stiffness = 200.0
+reach = 0.12
+"#;
+    let ok = load(&format!("{EXAMPLE}{layer}")).unwrap();
+    let a = &ok.scene.attachments[0];
+    assert_eq!(a.bodies, ["beam".to_string(), "hanging".to_string()]);
+    assert_eq!((a.stiffness, a.reach), (200.0, 0.12));
+    // Defaults: no dissection rate, no threshold, 1 cm reach of the hook.
+    assert_eq!(
+        (a.release_rate, a.release_force, a.release_radius),
+        (0.0, 0.0, 0.01)
+    );
+    let again = Scene::parse(&ok.scene.to_toml(), "re.toml").unwrap();
+    assert_eq!(again, ok.scene);
+
+    let bad = |from: &str, to: &str| err(&format!("{EXAMPLE}{}", layer.replacen(from, to, 1)));
+    assert_eq!(
+        bad("[\"beam\", \"hanging\"]", "[\"beam\", \"liver\"]"),
+        "s.toml: `attachment[0].bodies[1]`: undefined body \"liver\" (defined: [\"beam\", \"hanging\"])"
+    );
+    assert_eq!(
+        bad("[\"beam\", \"hanging\"]", "[\"beam\", \"beam\"]"),
+        "s.toml: `attachment[0].bodies`: ties body \"beam\" to itself; name two bodies"
+    );
+    assert_eq!(
+        bad("stiffness = 200.0", "stiffness = -1.0"),
+        "s.toml: `attachment[0].stiffness`: must be positive and finite, got -1 N/m"
+    );
+    assert_eq!(
+        bad("reach = 0.12", "reach = 0.12\nrelease_rate = -2.0"),
+        "s.toml: `attachment[0].release_rate`: must be non-negative and finite, got -2"
+    );
+    assert!(bad("reach = 0.12", "reach = 0.12\nspeed = 1.0").contains("speed"));
+}

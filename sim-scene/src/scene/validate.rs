@@ -246,6 +246,50 @@ impl Scene {
             check_positive(file, &k("radius"), t.radius, " m")?;
             check_positive(file, &k("length"), t.length, " m")?;
         }
+        let mut names = BTreeSet::new();
+        for (i, a) in self.attachments.iter().enumerate() {
+            let k = |f: &str| format!("attachment[{i}].{f}");
+            if !names.insert(a.name.as_str()) || a.name.is_empty() {
+                return Err(SceneError::invalid(
+                    file,
+                    k("name"),
+                    format!("must be non-empty and unique, got \"{}\"", a.name),
+                ));
+            }
+            for (j, b) in a.bodies.iter().enumerate() {
+                if !self.bodies.iter().any(|body| &body.name == b) {
+                    let known: Vec<&str> = self.bodies.iter().map(|b| b.name.as_str()).collect();
+                    return Err(SceneError::invalid(
+                        file,
+                        format!("attachment[{i}].bodies[{j}]"),
+                        format!("undefined body \"{b}\" (defined: {known:?})"),
+                    ));
+                }
+            }
+            if a.bodies[0] == a.bodies[1] {
+                return Err(SceneError::invalid(
+                    file,
+                    k("bodies"),
+                    format!("ties body \"{}\" to itself; name two bodies", a.bodies[0]),
+                ));
+            }
+            check_box(file, &k("box"), &a.region, true)?;
+            check_positive(file, &k("stiffness"), a.stiffness, " N/m")?;
+            check_positive(file, &k("reach"), a.reach, " m")?;
+            check_positive(file, &k("release_radius"), a.release_radius, " m")?;
+            for (f, v) in [
+                ("release_rate", a.release_rate),
+                ("release_force", a.release_force),
+            ] {
+                if !(v.is_finite() && v >= 0.0) {
+                    return Err(SceneError::invalid(
+                        file,
+                        k(f),
+                        format!("must be non-negative and finite, got {v}"),
+                    ));
+                }
+            }
+        }
         let s = &self.simulation;
         check_positive(file, "simulation.dt", s.dt, " s")?;
         if s.cg_iterations == 0 {
