@@ -44,7 +44,8 @@ pub mod streams;
 /// and the keyframe's `topology` epoch; sessions created at run time
 /// (`AdminAction::CreateSession` → `Message::SessionCreated`); tool input histories
 /// (`Message::ToolPoseHistory`, the hybrid strategy's datagrams).
-pub const PROTOCOL_VERSION: u16 = 3;
+/// Version 4: attachment releases (`TopologyKind::Release`, hook dissection).
+pub const PROTOCOL_VERSION: u16 = 4;
 
 /// A keyframe stream is reset in favour of a newer keyframe of the same region only after
 /// it has been in flight this long. Resetting younger streams starves paths whose round
