@@ -67,8 +67,9 @@ impl SymRows {
         let mut lower_cols = vec![0u32; total];
         // Rows visited in ascending order: each row's lower entries come out sorted.
         for i in 0..n {
-            for k in diag[i] as usize + 1..upper_end[i] as usize {
-                let j = cols[k] as usize;
+            let (a, b) = (diag[i] as usize + 1, upper_end[i] as usize);
+            for (k, &j) in (a..b).zip(&cols[a..b]) {
+                let j = j as usize;
                 let at = fill[j] as usize;
                 lower_slots[at] = k as u32;
                 lower_cols[at] = i as u32;
