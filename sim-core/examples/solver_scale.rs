@@ -1,8 +1,12 @@
 //! Jacobi-PCG against MG-PCG on the cantilever beams, each step solved to a relative
 //! residual of 1e-6 (the same runs as `cosurg bench scale`, without the client, so that
 //! a release build needs sim-core only): `cargo run --release -p cosurg-sim-core
-//! --example solver_scale -- [steps]`. Prints one JSON object per line: beam, tets, dt,
-//! solver, mean and max CG iterations, p50/p99 ms per step (one thread).
+//! --example solver_scale -- [steps] [beam soft|stiff] [cell m] [dt s] [solver]`
+//! (each filter optional, for profiling one configuration with `perf`); the environment
+//! variables `COSURG_MG_SWEEPS`, `COSURG_MG_REFRESH` and `COSURG_THREADS` override the
+//! multigrid's Gauss–Seidel sweeps, its coarse refresh period and the step's threads. Prints one JSON
+//! object per line: beam, tets, dt, solver, mean and max CG iterations, p50/p99/min wall ms and mean on-CPU ms per
+//! step (one thread).
 
 use std::time::Instant;
 
@@ -16,41 +20,81 @@ fn percentile(samples: &[f64], p: f64) -> f64 {
     s[rank.min(s.len()) - 1]
 }
 
+/// On-CPU time of this thread (ms; tick-quantised on some kernels, hence a mean over the
+/// steps, not a percentile) from Linux's `/proc/thread-self/schedstat` (first
+/// field, ns): unlike wall time it does not count the time the thread waited for a core,
+/// so it stays meaningful on a loaded machine. NaN where the file is missing.
+fn thread_cpu_ms() -> f64 {
+    std::fs::read_to_string("/proc/thread-self/schedstat")
+        .ok()
+        .and_then(|s| s.split_whitespace().next()?.parse::<f64>().ok())
+        .map_or(f64::NAN, |ns| ns * 1e-6)
+}
+
+fn env_usize(name: &str) -> Option<usize> {
+    std::env::var(name).ok()?.parse().ok()
+}
+
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let steps: usize = std::env::args()
         .nth(1)
         .and_then(|s| s.parse().ok())
         .unwrap_or(40);
+    let arg = |i: usize| std::env::args().nth(i);
+    let want_material = arg(2);
+    let num = |i: usize| arg(i).and_then(|s| s.parse::<f64>().ok());
+    let cells = num(3).map_or(vec![0.025, 0.0125], |c| vec![c]);
+    let dts = num(4).map_or(vec![0.001, 0.01], |d| vec![d]);
+    let want_solver = arg(5);
     for (material, young) in [("soft", 1e5), ("stiff", 1e6)] {
-        for cell in [0.025, 0.0125] {
-            for dt in [0.001, 0.01] {
+        if want_material.as_deref().is_some_and(|m| m != material) {
+            continue;
+        }
+        for &cell in &cells {
+            for &dt in &dts {
                 for solver in LinearSolver::ALL {
+                    if want_solver.as_deref().is_some_and(|s| s != solver.name()) {
+                        continue;
+                    }
                     let scene = cosurg_sim_core::sim_scene::builtin::cantilever_with(young, cell)?;
                     let mut o = SimOptions::from_scene(&scene.scene);
                     o.dt = dt;
                     o.step.linear_solver = solver;
                     o.step.solver.tol = 1e-6;
                     o.step.solver.max_iters = 20_000;
+                    if let Some(k) = env_usize("COSURG_MG_SWEEPS") {
+                        o.step.mg_sweeps = k;
+                    }
+                    if let Some(k) = env_usize("COSURG_MG_REFRESH") {
+                        o.step.mg_refresh_steps = k;
+                    }
+                    if let Some(t) = env_usize("COSURG_THREADS") {
+                        o.step.threads = t;
+                    }
                     let mut sim = Simulation::new(scene, o)?;
                     for _ in 0..3 {
                         sim.step()?;
                     }
                     let (mut ms, mut iters, mut res) = (Vec::new(), Vec::new(), 0.0f64);
+                    let mut cpu = Vec::new();
                     for _ in 0..steps {
-                        let t = Instant::now();
+                        let (t, c) = (Instant::now(), thread_cpu_ms());
                         let r = sim.step()?;
                         ms.push(t.elapsed().as_secs_f64() * 1e3);
+                        cpu.push(thread_cpu_ms() - c);
                         iters.push(r.fem.cg_iterations);
                         res = res.max(r.fem.cg_residual);
                     }
                     println!(
-                        "{{\"material\":\"{material}\",\"young_pa\":{young},\"tets\":{},\"dt_s\":{dt},\"solver\":\"{}\",\"steps\":{steps},\"iterations_mean\":{:.1},\"iterations_max\":{},\"ms_p50\":{:.3},\"ms_p99\":{:.3},\"residual_max\":{res:.2e}}}",
+                        "{{\"material\":\"{material}\",\"young_pa\":{young},\"tets\":{},\"dt_s\":{dt},\"solver\":\"{}\",\"steps\":{steps},\"iterations_mean\":{:.1},\"iterations_max\":{},\"ms_p50\":{:.3},\"ms_p99\":{:.3},\"ms_min\":{:.3},\"cpu_ms_mean\":{:.3},\"residual_max\":{res:.2e}}}",
                         sim.lattice().leaf_count(),
                         solver.name(),
                         iters.iter().sum::<usize>() as f64 / steps as f64,
                         iters.iter().max().unwrap_or(&0),
                         percentile(&ms, 50.0),
                         percentile(&ms, 99.0),
+                        ms.iter().copied().fold(f64::INFINITY, f64::min),
+                        cpu.iter().sum::<f64>() / steps as f64,
                     );
                 }
             }

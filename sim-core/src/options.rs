@@ -56,6 +56,7 @@ impl SimOptions {
                 operator: OperatorMode::Assembled,
                 linear_solver: s.solver,
                 mg_refresh_steps: 4,
+                mg_sweeps: 1,
                 solver: SolverParams {
                     max_iters: s.cg_iterations as usize,
                     tol: s.cg_tolerance,

@@ -2,11 +2,9 @@
 //! of a prolongation by the fixed nodes, and the Galerkin product `Pᵀ A P` split into a
 //! symbolic plan (built once per hierarchy) and a numeric pass (every refresh).
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::Matrix3;
 
 use super::Prolongation;
-
-type V3 = Vector3<f64>;
 
 /// Structure of a symmetric block matrix storing the blocks on and above the diagonal;
 /// each row starts with its diagonal block.
@@ -19,27 +17,6 @@ pub(super) struct UpperCsr {
 impl UpperCsr {
     pub fn num_rows(&self) -> usize {
         self.row_ptr.len() - 1
-    }
-
-    /// Slot of the diagonal block of row `i`.
-    pub fn diag(&self, i: usize) -> usize {
-        self.row_ptr[i]
-    }
-
-    /// `out = A p`, each off-diagonal block used as `A_ij p_j` and `A_ijᵀ p_i`.
-    pub fn multiply(&self, blocks: &[Matrix3<f64>], p: &[V3], out: &mut [V3]) {
-        out.fill(V3::zeros());
-        for i in 0..self.num_rows() {
-            let (a, b) = (self.row_ptr[i], self.row_ptr[i + 1]);
-            let pi = p[i];
-            let mut acc = blocks[a] * pi;
-            for (blk, &j) in blocks[a + 1..b].iter().zip(&self.cols[a + 1..b]) {
-                let j = j as usize;
-                acc += blk * p[j];
-                out[j] += blk.tr_mul(&pi);
-            }
-            out[i] += acc;
-        }
     }
 
     /// The dense symmetric matrix (3n × 3n), for the coarsest direct solve.

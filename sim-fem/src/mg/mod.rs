@@ -3,7 +3,8 @@
 //! lattice's bisection hierarchy: weight 1 for a node kept on the coarser level, ½ and ½
 //! from the two ends of the edge a node bisects), Galerkin coarse operators `Pᵀ A P`
 //! refreshed every few steps (CG stays convergent with a slightly stale preconditioner),
-//! damped 3×3-block-Jacobi smoothing and a dense Cholesky solve on the coarsest level.
+//! symmetric 3×3-block Gauss–Seidel smoothing (forward sweeps down, backward sweeps up:
+//! `smoother.rs`) and a dense Cholesky solve on the coarsest level.
 //!
 //! Fixed (Dirichlet) nodes: their prolongation rows are zero on the finest level, and a
 //! coarse node that is the image (weight 1) of a fixed node is dropped from the coarse
@@ -11,6 +12,7 @@
 //! hold free nodes only and need no projection.
 
 mod galerkin;
+mod smoother;
 #[cfg(test)]
 mod tests;
 mod vcycle;

@@ -119,7 +119,7 @@ impl FemSystem {
         if self.uses_multigrid(p) {
             operator = OperatorMode::Assembled;
             self.refresh_order();
-            mg = Some(self.take_multigrid()?);
+            mg = Some(self.take_multigrid(p)?);
         }
         let mut direct = None;
         if self.uses_direct(p) {

@@ -6,13 +6,15 @@ use super::operator::SysOp;
 use super::{FemSystem, V3};
 use crate::FemError;
 use crate::mg::{Hierarchy, MgParams, Multigrid};
-use crate::solver::{CgResult, LinearOperator, Preconditioner, pcg_with};
+use crate::solver::{CgResult, Preconditioner, pcg_with};
 use crate::system::{LinearSolver, StepParams};
 
 /// A built preconditioner and its age.
 #[derive(Clone, Debug)]
 pub(super) struct MgCache {
     mg: Multigrid,
+    /// [`StepParams::mg_sweeps`] it was built with.
+    sweeps: usize,
     /// Steps since the coarse operators were rebuilt (`usize::MAX`: never).
     age: usize,
     /// dt of the matrix the coarse operators come from (s).
@@ -42,16 +44,21 @@ impl FemSystem {
 
     /// The preconditioner for the current Dirichlet mask, taken out of the caches (give
     /// it back with [`FemSystem::put_multigrid`]); the block pattern must exist.
-    pub(super) fn take_multigrid(&mut self) -> Result<MgCache, FemError> {
+    pub(super) fn take_multigrid(&mut self, p: &StepParams) -> Result<MgCache, FemError> {
         let fixed = &self.mesh.fixed;
         match self.caches.mg.take() {
-            Some(c) if c.mg.fixed() == fixed.as_slice() => Ok(c),
+            Some(c) if c.mg.fixed() == fixed.as_slice() && c.sweeps == p.mg_sweeps => Ok(c),
             _ => {
                 let h = self.caches.mg_hierarchy.as_ref().expect("uses_multigrid");
                 let pat = self.caches.pattern.as_ref().expect("pattern built");
-                let mg = Multigrid::new(h, fixed, pat, MgParams::default())?;
+                let params = MgParams {
+                    smoothing_steps: p.mg_sweeps.max(1),
+                    ..MgParams::default()
+                };
+                let mg = Multigrid::new(h, fixed, pat, params)?;
                 Ok(MgCache {
                     mg,
+                    sweeps: p.mg_sweeps,
                     age: usize::MAX,
                     dt: f64::NAN,
                 })
@@ -76,19 +83,17 @@ pub(super) fn solve_with_multigrid(
     p: &StepParams,
 ) -> CgResult {
     let (solver, refresh_steps) = (&p.solver, p.mg_refresh_steps);
-    let pat = op.sys.caches.pattern.as_ref().expect("pattern built");
     let blocks = op.assembled.as_ref().expect("MG-PCG assembles");
     if cache.age >= refresh_steps.max(1) || cache.dt != dt {
-        cache.mg.refresh(pat, blocks);
+        cache.mg.refresh(blocks);
         cache.age = 0;
         cache.dt = dt;
     } else {
-        cache.mg.update_fine_diagonal(pat, blocks);
+        cache.mg.update_fine_diagonal(blocks);
     }
     cache.age = cache.age.saturating_add(1);
     let mg = &mut cache.mg;
-    let mut apply = |x: &[V3], out: &mut [V3]| op.apply(x, out);
-    let mut vcycle = |r: &[V3], z: &mut [V3]| mg.vcycle(&mut apply, r, z);
+    let mut vcycle = |r: &[V3], z: &mut [V3]| mg.vcycle(blocks, r, z);
     pcg_with(
         op,
         fixed,

@@ -113,6 +113,9 @@ pub struct StepParams {
     /// every this many steps (and whenever dt or the fixed nodes change); in between the
     /// V-cycle uses the previous coarse operators with the current fine matrix (0 = 1).
     pub mg_refresh_steps: usize,
+    /// With [`LinearSolver::MgPcg`]: block Gauss–Seidel sweeps before (forward) and after
+    /// (backward) the coarse correction on every level (0 = 1).
+    pub mg_sweeps: usize,
     /// Gravity (m/s²).
     pub gravity: V3,
     /// Rotation extractor.
@@ -165,6 +168,7 @@ impl Default for StepParams {
             solver: SolverParams::realtime(),
             linear_solver: LinearSolver::JacobiPcg,
             mg_refresh_steps: 4,
+            mg_sweeps: 1,
             gravity: V3::new(0.0, 0.0, -9.81),
             polar: PolarMethod::default(),
             rest_threshold: 0.0,
