@@ -8,6 +8,15 @@ use clap::Parser;
 mod command;
 
 fn main() {
+    // Mesa's software OpenGL (llvmpipe) draws on the window thread alone unless the user
+    // says otherwise: its default, one worker per core, competed with the simulation for
+    // the cores of a small machine (docs/RESULTS.md, "The window": step p99 with the
+    // window 3.0 ms against 9.7 ms with the workers, 2.1 ms without a window). Set before
+    // any thread exists; the demo's site processes inherit it. No effect on hardware GL.
+    if std::env::var_os("LP_NUM_THREADS").is_none() {
+        // SAFETY: the first statement of main, before any other thread is started.
+        unsafe { std::env::set_var("LP_NUM_THREADS", "0") };
+    }
     let cli = command::Cli::parse();
     init_tracing(cli.verbose);
     let code = match command::dispatch(cli) {

@@ -6,7 +6,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use sim_core::{Interaction, SimOptions, Simulation};
@@ -20,9 +20,10 @@ use crate::stats::percentile;
 pub struct RunArgs {
     /// Scene file (TOML) or builtin:NAME; default: the built-in cholecystectomy scene.
     pub scene: Option<String>,
-    /// Simulated time (s).
-    #[arg(long, default_value_t = 2.0)]
-    pub seconds: f64,
+    /// Simulated time (s): headless and `--bench-window` runs (default 2), the screenshot's
+    /// default `--at`; with a window, stop after it (default: when the window closes).
+    #[arg(long)]
+    pub seconds: Option<f64>,
     /// Output folder (default out/run-<timestamp>).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -60,21 +61,26 @@ pub struct RunArgs {
     /// With `--bench-window`: the same loop without a window, for comparison.
     #[arg(long, requires = "bench_window")]
     pub no_window: bool,
-    /// With `--bench-window`: also write the statistics to this file.
-    #[arg(long, requires = "bench_window")]
+    /// With a window (or `--bench-window`): write the run's statistics to this file at the
+    /// end, with the local site at the start and end and every command of the hands.
+    #[arg(long, conflicts_with_all = ["headless", "screenshot"])]
     pub stats_json: Option<PathBuf>,
     #[command(flatten)]
     pub knobs: SimKnobs,
 }
 
+/// Simulated time of a run without a window when `--seconds` is not given (s).
+const DEFAULT_SECONDS: f64 = 2.0;
+
 pub fn run(args: RunArgs) -> Result<()> {
+    let seconds = args.seconds.unwrap_or(DEFAULT_SECONDS);
     let scene = load_scene(args.scene.as_deref())?;
     let label = scene.file.clone();
     let hash = scene.hash.clone();
     let mut options = SimOptions::from_scene(&scene.scene);
     args.knobs.apply(&mut options);
     if let Some(path) = &args.screenshot {
-        let at = args.at.unwrap_or(args.seconds);
+        let at = args.at.unwrap_or(seconds);
         if !(at.is_finite() && at >= 0.0) {
             anyhow::bail!(
                 "--at {at}: the screenshot time must be a non-negative number of seconds"
@@ -100,7 +106,7 @@ pub fn run(args: RunArgs) -> Result<()> {
             &crate::run_window::WindowRun {
                 scripted: args.script,
                 size: args.size,
-                seconds: Some(args.seconds),
+                seconds: Some(seconds),
                 window: !args.no_window,
                 finish_frames: true,
             },
@@ -120,11 +126,15 @@ pub fn run(args: RunArgs) -> Result<()> {
                 &crate::run_window::WindowRun {
                     scripted: args.script,
                     size: args.size,
-                    seconds: None,
+                    seconds: args.seconds,
                     window: true,
                     finish_frames: false,
                 },
             )?;
+            if let Some(p) = &args.stats_json {
+                std::fs::write(p, serde_json::to_string_pretty(&stats)?)
+                    .with_context(|| format!("writing {}", p.display()))?;
+            }
             println!(
                 "simulated {:.3} s in {} steps: step p50 {:.3} ms, p99 {:.3} ms; {} frames, {:.1} fps",
                 stats.sim_seconds,
@@ -148,7 +158,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         sim.lattice().node_count(),
         dt
     );
-    let steps = (args.seconds / dt).round() as u64;
+    let steps = (seconds / dt).round() as u64;
     let frame_every = ((args.frame_interval / dt).round() as u64).max(1);
     let bar = ProgressBar::new(steps).with_style(
         ProgressStyle::with_template("{bar:40} {pos}/{len} steps  {msg}").expect("static template"),

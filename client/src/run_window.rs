@@ -232,6 +232,48 @@ impl LocalSite {
     }
 }
 
+impl LocalSite {
+    /// The site's state now (`frame`: a frame of it, for the gallbladder's surface).
+    pub fn state(&self, frame: &viewer::ViewFrame) -> SiteState {
+        let tool = self.interaction.tools.tools.get(self.hands.active);
+        let gallbladder: Vec<&Vector3<f64>> = frame
+            .positions
+            .iter()
+            .zip(&frame.topology.vertex_tissue)
+            .filter(|(_, k)| **k == viewer::TissueKind::Gallbladder)
+            .map(|(p, _)| p)
+            .collect();
+        let centroid = (!gallbladder.is_empty()).then(|| {
+            let sum: Vector3<f64> = gallbladder.iter().copied().sum();
+            (sum / gallbladder.len() as f64).into()
+        });
+        SiteState {
+            t: self.sim.time(),
+            tool: self.active_tool(),
+            tip: tool.map(|t| t.tip().into()).unwrap_or_default(),
+            jaw: tool.map(|t| t.jaw()).unwrap_or_default(),
+            grasping: self.interaction.contact.is_grasping(self.hands.active),
+            gallbladder_centroid: centroid,
+        }
+    }
+}
+
+/// What `--stats-json` says about one command of the hands.
+fn hand_log(cmd: &ViewerCommand, site: SiteState) -> Option<HandCommandLog> {
+    let (command, target) = match cmd {
+        ViewerCommand::Tool(ToolCommand::MoveTo(p)) => ("move_to", Some((*p).into())),
+        ViewerCommand::Tool(ToolCommand::Jaw(true)) => ("jaw_closed", None),
+        ViewerCommand::Tool(ToolCommand::Jaw(false)) => ("jaw_open", None),
+        ViewerCommand::Tool(ToolCommand::NextTool) => ("next_tool", None),
+        _ => return None,
+    };
+    Some(HandCommandLog {
+        command: command.into(),
+        target,
+        site,
+    })
+}
+
 /// The guide path of a tool's script (sampled every 20 ms), empty without a script.
 pub fn guide_path(scene: &LoadedScene, tool: &str) -> Vec<Vector3<f64>> {
     let Some(script) = scene.scripts.get(tool) else {
@@ -260,7 +302,7 @@ pub struct WindowRun {
 }
 
 /// What a `cosurg run` with a window measured.
-#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct WindowRunStats {
     pub window: bool,
     pub size: (u32, u32),
@@ -278,6 +320,36 @@ pub struct WindowRunStats {
     /// Wall time of building and publishing one frame on the simulation thread (ms).
     pub publish_ms_p50: f64,
     pub publish_ms_p99: f64,
+    /// The site when the loop started and when it ended.
+    pub start: Option<SiteState>,
+    pub end: Option<SiteState>,
+    /// Every tool command the window's hands sent, with the site as the command arrived.
+    pub hands: Vec<HandCommandLog>,
+}
+
+/// The local site at one moment, as `--stats-json` reports it (positions in m).
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SiteState {
+    /// Simulated time (s).
+    pub t: f64,
+    /// The tool the hands drive, its tip, its jaw angle (rad) and whether it grasps.
+    pub tool: String,
+    pub tip: [f64; 3],
+    pub jaw: f64,
+    pub grasping: bool,
+    /// Mean of the gallbladder's surface vertices (none without a gallbladder).
+    pub gallbladder_centroid: Option<[f64; 3]>,
+}
+
+/// One command from the window's hands and the site when it arrived.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct HandCommandLog {
+    /// `move_to`, `jaw_closed`, `jaw_open` or `next_tool`.
+    pub command: String,
+    /// Where a `move_to` puts the tip (m).
+    pub target: Option<[f64; 3]>,
+    /// The site just before the command applies.
+    pub site: SiteState,
 }
 
 /// `cosurg run` with a window (or, to compare, the same real-time loop without one).
@@ -312,6 +384,8 @@ pub fn run_with_window(
 
     let mut step_ms: Vec<f64> = Vec::new();
     let mut publish_ms: Vec<f64> = Vec::new();
+    let mut hands_log: Vec<HandCommandLog> = Vec::new();
+    let start_state = site.state(&site.frame(&mut builder, false, None));
     let mut recent: std::collections::VecDeque<f64> = Default::default();
     let mut last_publish = Instant::now();
     let started = Instant::now();
@@ -322,6 +396,10 @@ pub fn run_with_window(
         .is_none_or(|s| site.sim.time() + 0.5 * site.sim.options().dt < s)
     {
         for cmd in rx.try_iter() {
+            if matches!(cmd, ViewerCommand::Tool(_)) {
+                let state = site.state(&site.frame(&mut builder, false, None));
+                hands_log.extend(hand_log(&cmd, state));
+            }
             let reset = cmd == ViewerCommand::Session(SessionCommand::Reset);
             if !site.apply(cmd)? {
                 break 'outer;
@@ -358,6 +436,7 @@ pub fn run_with_window(
     }
     slot.close();
     drop(rx);
+    let end_state = site.state(&site.frame(&mut builder, false, None));
     let frames = match render.map(|r| r.join()) {
         None => viewer::WindowStats::default(),
         Some(Ok(r)) => r?,
@@ -378,6 +457,9 @@ pub fn run_with_window(
         frame_ms_p99: p(&frames.frame_ms, 99.0),
         publish_ms_p50: p(&publish_ms, 50.0),
         publish_ms_p99: p(&publish_ms, 99.0),
+        start: Some(start_state),
+        end: Some(end_state),
+        hands: hands_log,
     })
 }
 

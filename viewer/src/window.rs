@@ -55,7 +55,10 @@ pub struct WindowOptions {
     /// Wait for every frame to be rendered before the next (`glFinish`), so that frame
     /// times measure the rendering (benchmarks).
     pub finish_frames: bool,
-    /// Nice value of the window thread (Linux; 0 = unchanged). Set before the OpenGL
+    /// How much lower the window thread's priority is than the process's (Linux nice
+    /// increment, added to the thread's nice value at start, at most 19; 0 = unchanged).
+    /// Relative, so that a site started under `nice -n 19` does not get a window thread
+    /// of *higher* priority than its simulation (as an absolute value did). Set before the OpenGL
     /// context exists, so that a software renderer's worker threads (Mesa llvmpipe)
     /// inherit it: on a machine with few cores the scheduler then prefers the simulation
     /// and haptic threads to the window's.
@@ -118,7 +121,7 @@ pub(crate) fn event_loop() -> Result<EventLoop<()>, ViewerError> {
     })
 }
 
-/// Lowers the calling thread's scheduling priority to `nice` (Linux: nice values are per
+/// Lowers the calling thread's scheduling priority by `nice` (Linux: nice values are per
 /// thread and inherited by threads it creates). Fails soft: a warning.
 fn lower_thread_priority(nice: i32) {
     if nice == 0 {
@@ -127,10 +130,14 @@ fn lower_thread_priority(nice: i32) {
     #[cfg(target_os = "linux")]
     {
         unsafe extern "C" {
+            fn getpriority(which: i32, who: u32) -> i32;
             fn setpriority(which: i32, who: u32, prio: i32) -> i32;
         }
         const PRIO_PROCESS: i32 = 0;
-        // SAFETY: a plain libc call without pointers; who = 0 is the calling thread.
+        // SAFETY: plain libc calls without pointers; who = 0 is the calling thread. The
+        // current value is -20..=19 (a -1 that is an error reads as nice -1: harmless).
+        let current = unsafe { getpriority(PRIO_PROCESS, 0) };
+        let nice = (current + nice).clamp(-20, 19);
         let r = unsafe { setpriority(PRIO_PROCESS, 0, nice) };
         if r != 0 {
             tracing::warn!(nice, "could not lower the window thread's priority");

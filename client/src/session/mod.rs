@@ -169,6 +169,8 @@ pub struct SessionSnapshot {
     pub sites: usize,
     pub owned: Vec<RegionId>,
     pub remote_owners: Vec<(RegionId, SiteId)>,
+    /// Live divergence from the owners' keyframes (m; see `SiteSync::divergence_m`).
+    pub divergence_m: Option<f64>,
 }
 
 /// The site's protocol state machine (see the module documentation).
@@ -303,6 +305,7 @@ impl SiteSession {
             sites: self.sites.len(),
             owned: self.claims.owned().collect(),
             remote_owners: self.clocks.owners.iter().map(|(&r, &s)| (r, s)).collect(),
+            divergence_m: self.sync.divergence_m(),
         }
     }
 

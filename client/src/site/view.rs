@@ -356,9 +356,9 @@ impl SiteViewer {
             step_p99_ms: (!recent.is_empty()).then(|| percentile(&recent, 99.0)),
             keyframes_per_s: self.rates.keyframes_per_s,
             bytes_per_s: self.rates.bytes_per_s,
-            // Not measured live at a site (the demo measures it afterwards from the
-            // sites' recordings).
-            divergence: None,
+            // at the newest keyframe from an owner (the demo also measures it afterwards
+            // from the sites' surface recordings)
+            divergence: snapshot.divergence_m,
             region_owners: region_owners
                 .into_iter()
                 .map(|(r, site)| RegionOwner {

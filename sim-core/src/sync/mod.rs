@@ -196,6 +196,9 @@ pub struct SiteSync {
     /// Regions another site released; late frames for them are ignored once their
     /// remote state has blended out.
     released: BTreeSet<RegionId>,
+    /// Largest node distance (m) from the owner's keyframe at the newest keyframe applied
+    /// (any region, either strategy): the site's live divergence.
+    divergence_m: Option<f64>,
 }
 
 impl SiteSync {
@@ -234,10 +237,18 @@ impl SiteSync {
             full_state_last: None,
             newest_id: BTreeMap::new(),
             released: Default::default(),
+            divergence_m: None,
         }
     }
 
     /// Remote region state (created on its first keyframe).
+    /// The site's divergence from the owners (m): the largest node distance from the
+    /// owner's keyframe, moved on to this site's time, when the newest keyframe arrived;
+    /// `None` before any.
+    pub fn divergence_m(&self) -> Option<f64> {
+        self.divergence_m
+    }
+
     pub fn remote(&self, region: RegionId) -> Option<&RemoteRegion> {
         self.remote.get(&region)
     }
@@ -379,10 +390,13 @@ impl SiteSync {
                     .corrected
                     .entry(kf.region)
                     .or_insert_with(|| CorrectedRegion::new(kf.region, hybrid));
-                let used = matches!(
-                    c.apply_keyframe(sim, &self.map, kf)?,
-                    Correction::Started { .. }
-                );
+                let used = match c.apply_keyframe(sim, &self.map, kf)? {
+                    Correction::Started { max_m, .. } => {
+                        self.divergence_m = Some(max_m);
+                        true
+                    }
+                    _ => false,
+                };
                 if used {
                     self.note_id(kf.region, kf.keyframe_id);
                 }
@@ -404,6 +418,7 @@ impl SiteSync {
                     .or_insert_with(|| RemoteRegion::new(kf.region, config));
                 let applied = r.apply_keyframe(sim, &self.map, kf)? == Applied::Applied;
                 if applied {
+                    self.divergence_m = Some(r.last_divergence_m());
                     self.note_id(kf.region, kf.keyframe_id);
                 }
                 Ok(applied.then_some(kf.keyframe_id))

@@ -88,6 +88,9 @@ pub struct RemoteRegion {
     pub(super) released: bool,
     cache: NodeCache,
     keyframes_applied: u64,
+    /// Largest distance (m) between this site's nodes and the owner's keyframe (moved on
+    /// to this site's time) when the newest keyframe arrived: the live divergence.
+    last_divergence_m: f64,
     deltas_applied: u64,
 }
 
@@ -107,12 +110,19 @@ impl RemoteRegion {
             released: false,
             cache: NodeCache::default(),
             keyframes_applied: 0,
+            last_divergence_m: 0.0,
             deltas_applied: 0,
         }
     }
 
     pub fn region(&self) -> RegionId {
         self.region
+    }
+
+    /// Largest node distance (m) from the owner's state when the newest keyframe was
+    /// applied (0 before the first).
+    pub fn last_divergence_m(&self) -> f64 {
+        self.last_divergence_m
     }
 
     /// Newest keyframe applied.
@@ -162,11 +172,13 @@ impl RemoteRegion {
         let h = self.config.max_extrapolation_s;
         self.offsets.clear();
         self.corr_start = t;
+        let mut divergence: f64 = 0.0;
         for (i, &n) in nodes.iter().enumerate() {
             if sim.is_fixed(n) {
                 continue;
             }
             let (x, v) = self.motions.motions[&grids[i]].eval(t, h);
+            divergence = divergence.max((sim.positions()[n.0 as usize] - x).norm());
             if self.config.blend_window_s > 0.0 {
                 self.offsets
                     .insert(grids[i], sim.positions()[n.0 as usize] - x);
@@ -189,6 +201,7 @@ impl RemoteRegion {
         self.last_keyframe = Some(kf.keyframe_id);
         self.last_time = self.last_time.max(kf.sim_time);
         self.keyframes_applied += 1;
+        self.last_divergence_m = divergence;
         Ok(Applied::Applied)
     }
 
