@@ -37,7 +37,7 @@ import struct
 import sys
 import time
 
-WIRE_TAG = 3
+WIRE_TAG = 4
 PROTOCOL_VERSION = 4
 ALPN = "cosurg/1"
 
