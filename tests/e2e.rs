@@ -2,7 +2,6 @@
 //! speaking QUIC with TLS on 127.0.0.1. Every child is killed when its test ends; every
 //! wait is bounded.
 
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::sync::Arc;
@@ -28,19 +27,12 @@ fn cosurg() -> Command {
     c
 }
 
-/// A coordinator process; killed on drop.
+/// A coordinator process (killed on drop) and its state directory.
 struct Server {
-    child: Child,
+    _process: test_support::server::ServerProcess,
     addr: String,
     fingerprint: String,
     _state: tempfile::TempDir,
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 fn start_server() -> Server {
@@ -58,7 +50,8 @@ fn start_server_in(state: tempfile::TempDir) -> Server {
 fn start_server_for(state: tempfile::TempDir, scene_hash: &str) -> Server {
     // `cosurg-server` belongs to another package: no CARGO_BIN_EXE_ for it here.
     let server_exe = test_support::exe::sibling_exe(env!("CARGO_BIN_EXE_cosurg"), "cosurg-server");
-    let mut child = Command::new(server_exe)
+    let mut command = Command::new(server_exe);
+    command
         .args([
             "--listen",
             "127.0.0.1:0",
@@ -71,27 +64,12 @@ fn start_server_for(state: tempfile::TempDir, scene_hash: &str) -> Server {
         .arg("--state-dir")
         .arg(state.path())
         .env("COSURG_LOG", "warn")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("start cosurg-server");
-    let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
-    let (mut addr, mut fingerprint) = (None, None);
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while (addr.is_none() || fingerprint.is_none()) && Instant::now() < deadline {
-        let Some(Ok(line)) = lines.next() else { break };
-        if let Some(a) = line.strip_prefix("listening: ") {
-            addr = Some(a.trim().to_string());
-        } else if let Some(f) = line.strip_prefix("fingerprint: ") {
-            fingerprint = Some(f.trim().to_string());
-        }
-    }
-    // Keep draining stdout so the server never blocks on a full pipe.
-    std::thread::spawn(move || for _ in lines {});
+        .stderr(Stdio::null());
+    let process = test_support::server::spawn(command, &[]);
     Server {
-        child,
-        addr: addr.expect("server printed its address"),
-        fingerprint: fingerprint.expect("server printed its fingerprint"),
+        addr: process.addr.clone(),
+        fingerprint: process.fingerprint.clone(),
+        _process: process,
         _state: state,
     }
 }

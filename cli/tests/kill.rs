@@ -5,7 +5,6 @@
 //! the whole session, A's tool poses until the kill and A's leave included; and
 //! `cosurg score` scores A from the coordinator's recording when A's own file is gone.
 
-use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -114,36 +113,20 @@ fn a_killed_site_leaves_a_readable_recording_and_the_coordinator_keeps_the_sessi
     let state = dir.join("state");
     let scene = sim_core::sim_scene::builtin::cholecystectomy();
 
-    let mut server = Reaped(
-        Command::new(server_exe())
-            .args(["--listen", "127.0.0.1:0", "--session", SESSION])
-            .args(["--token", TOKEN, "--scene-hash", &scene.hash])
-            .args(["--seconds", "300", "--status-interval", "0"])
-            .arg("--state-dir")
-            .arg(&state)
-            .arg("--record")
-            .arg(dir.join("coordinator"))
-            .env("COSURG_LOG", "warn")
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("start cosurg-server"),
-    );
-    let mut lines = BufReader::new(server.0.stdout.take().unwrap()).lines();
-    let (mut addr, mut fingerprint, mut recording) = (None, None, None);
-    while addr.is_none() || fingerprint.is_none() || recording.is_none() {
-        let line = lines.next().expect("server output").unwrap();
-        if let Some(a) = line.strip_prefix("listening: ") {
-            addr = Some(a.trim().to_string());
-        } else if let Some(f) = line.strip_prefix("fingerprint: ") {
-            fingerprint = Some(f.trim().to_string());
-        } else if let Some(r) = line.strip_prefix("recording: ") {
-            recording = Some(std::path::PathBuf::from(r.trim()));
-        }
-    }
-    std::thread::spawn(move || for _ in lines {});
-    let (addr, fingerprint) = (addr.unwrap(), fingerprint.unwrap());
-    let coordinator_file = recording.unwrap();
+    let mut command = Command::new(server_exe());
+    command
+        .args(["--listen", "127.0.0.1:0", "--session", SESSION])
+        .args(["--token", TOKEN, "--scene-hash", &scene.hash])
+        .args(["--seconds", "300", "--status-interval", "0"])
+        .arg("--state-dir")
+        .arg(&state)
+        .arg("--record")
+        .arg(dir.join("coordinator"))
+        .env("COSURG_LOG", "warn")
+        .stderr(Stdio::null());
+    let mut server = test_support::server::spawn(command, &["recording"]);
+    let (addr, fingerprint) = (server.addr.clone(), server.fingerprint.clone());
+    let coordinator_file = std::path::PathBuf::from(&server.announced["recording"]);
     assert_eq!(
         coordinator_file,
         dir.join("coordinator").join("kill.cosrec")
@@ -236,11 +219,11 @@ fn a_killed_site_leaves_a_readable_recording_and_the_coordinator_keeps_the_sessi
         std::thread::sleep(Duration::from_millis(100));
     }
     let term = Command::new("kill")
-        .args(["-TERM", &server.0.id().to_string()])
+        .args(["-TERM", &server.child.id().to_string()])
         .status()
         .unwrap();
     assert!(term.success());
-    assert!(wait_exit(&mut server.0, Duration::from_secs(30)).success());
+    assert!(wait_exit(&mut server.child, Duration::from_secs(30)).success());
 
     let coord = Recording::open(&coordinator_file).unwrap();
     assert_eq!(coord.tail, Tail::Complete, "finished on SIGTERM");

@@ -8,7 +8,6 @@
 //! Needs `Xvfb` (Debian: `xvfb`, plus `libgl1-mesa-dri`; `.ci/run` installs them). If no
 //! X server can be started the test FAILS: it never passes without rendering.
 
-use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -158,19 +157,12 @@ fn screenshot_shows_the_organ_and_the_lift_moves_the_gallbladder() {
 const TOKEN: &str = "window-test";
 const SESSION: &str = "window";
 
-/// A `cosurg-server` process with its state directory; killed on drop.
+/// A `cosurg-server` process (killed on drop) with its state directory.
 struct Server {
-    child: Child,
+    _process: test_support::server::ServerProcess,
     addr: String,
     fingerprint: String,
     state: tempfile::TempDir,
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 fn server_exe() -> std::path::PathBuf {
@@ -181,34 +173,20 @@ fn server_exe() -> std::path::PathBuf {
 fn start_server() -> Server {
     let scene = sim_core::sim_scene::builtin::cholecystectomy();
     let state = tempfile::tempdir().unwrap();
-    let mut child = Command::new(server_exe())
+    let mut command = Command::new(server_exe());
+    command
         .args(["--listen", "127.0.0.1:0", "--session", SESSION])
         .args(["--token", TOKEN, "--scene-hash", &scene.hash])
         .args(["--seconds", "120"])
         .arg("--state-dir")
         .arg(state.path())
         .env("COSURG_LOG", "warn")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("start cosurg-server");
-    let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
-    let (mut addr, mut fingerprint) = (None, None);
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while (addr.is_none() || fingerprint.is_none()) && Instant::now() < deadline {
-        let Some(Ok(line)) = lines.next() else { break };
-        if let Some(a) = line.strip_prefix("listening: ") {
-            addr = Some(a.trim().to_string());
-        } else if let Some(f) = line.strip_prefix("fingerprint: ") {
-            fingerprint = Some(f.trim().to_string());
-        }
-    }
-    // keep draining stdout so the server never blocks on a full pipe
-    std::thread::spawn(move || for _ in lines {});
+        .stderr(Stdio::null());
+    let process = test_support::server::spawn(command, &[]);
     Server {
-        child,
-        addr: addr.expect("server printed its address"),
-        fingerprint: fingerprint.expect("server printed its fingerprint"),
+        addr: process.addr.clone(),
+        fingerprint: process.fingerprint.clone(),
+        _process: process,
         state,
     }
 }

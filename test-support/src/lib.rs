@@ -3,8 +3,10 @@
 //! * [`link`] — a bare site client: connect, join, frames, datagrams, streams;
 //! * [`exe`] — locating a sibling executable that another package builds (`cosurg-server`
 //!   for the tests of the `cosurg` binary);
+//! * [`server`] — a `cosurg-server` child process and its announcements;
 //! * [`xvfb`] — a virtual X display for the window tests.
 
 pub mod exe;
 pub mod link;
+pub mod server;
 pub mod xvfb;
