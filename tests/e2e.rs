@@ -131,22 +131,6 @@ fn join_with_invite(server: &Server, site: &str, role: &str, invite: &str) -> Co
     c
 }
 
-fn run_bounded(mut cmd: Command, limit: Duration) -> Output {
-    let mut child = cmd
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn");
-    let deadline = Instant::now() + limit;
-    loop {
-        if child.try_wait().unwrap().is_some() || Instant::now() > deadline {
-            let _ = child.kill();
-            return child.wait_with_output().unwrap();
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
-
 fn report_of(out: &Output) -> SiteReport {
     let stdout = String::from_utf8_lossy(&out.stdout);
     let line = stdout
@@ -165,7 +149,7 @@ fn report_of(out: &Output) -> SiteReport {
 
 fn refused(mut cmd: Command, expect: &str) {
     cmd.args(["--seconds", "1", "--no-tool"]);
-    let out = run_bounded(cmd, Duration::from_secs(60));
+    let out = test_support::run::run_bounded(cmd, Duration::from_secs(60));
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(
         out.status.code(),
@@ -671,7 +655,7 @@ fn total_outage_then_recovery_resynchronises() {
 /// A site that joins, runs one simulated second and leaves: exit code 0.
 fn joins(mut cmd: Command) {
     cmd.args(["--seconds", "1", "--no-tool", "--no-realtime"]);
-    let out = run_bounded(cmd, Duration::from_secs(60));
+    let out = test_support::run::run_bounded(cmd, Duration::from_secs(60));
     assert!(
         out.status.success(),
         "joined and left; stderr: {}",
@@ -825,16 +809,7 @@ fn demo_scene_reset_keeps_the_sites_together() {
         .arg("--out")
         .arg(out.path())
         .args(["--", "--no-haptics"]);
-    let output = run_bounded(cmd, Duration::from_secs(300));
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    assert!(
-        output.status.success(),
-        "demo failed: {:?}\n{stdout}\n{}",
-        output.status,
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let json = &stdout[stdout.find('{').expect("JSON summary")..];
-    let summary: serde_json::Value = serde_json::from_str(json).expect("summary JSON");
+    let summary = test_support::run::json_summary(cmd, Duration::from_secs(300));
     let sites = summary["sites"].as_array().expect("sites");
     assert_eq!(sites.len(), 3);
     for s in sites {

@@ -4,8 +4,8 @@
 //! as processes on the recordings.
 
 use std::path::Path;
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::process::Command;
+use std::time::Duration;
 
 use cosurg::record::record_scripted;
 use debrief::{ActKind, EventKind, RecorderSettings, Recording, ScoreReport, Tail};
@@ -165,34 +165,13 @@ fn numbers(v: &serde_json::Value, out: &mut Vec<f64>) {
 fn demo_sites_record_and_the_summary_scores_trainee_a() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_cosurg"))
-        .env("COSURG_LOG", "warn")
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_cosurg"));
+    cmd.env("COSURG_LOG", "warn")
         .args(["demo", "--seconds", "8", "--json", "--vtu-interval", "100"])
         .arg("--out")
         .arg(out)
-        .args(["--", "--no-haptics"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let deadline = Instant::now() + Duration::from_secs(240);
-    while child.try_wait().unwrap().is_none() {
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            panic!("cosurg demo did not finish within 240 s");
-        }
-        std::thread::sleep(Duration::from_millis(100));
-    }
-    let output = child.wait_with_output().unwrap();
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    assert!(
-        output.status.success(),
-        "demo failed: {:?}\n{stdout}\n{}",
-        output.status,
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let summary: serde_json::Value =
-        serde_json::from_str(&stdout[stdout.find('{').expect("JSON summary")..]).unwrap();
+        .args(["--", "--no-haptics"]);
+    let summary = test_support::run::json_summary(cmd, Duration::from_secs(240));
 
     for site in ["instructor", "trainee-a", "trainee-b"] {
         let path = out.join(site).join(format!("{site}.cosrec"));

@@ -4,42 +4,21 @@
 //! the end every site has applied the same topology ops (epoch) with the same result
 //! (digest).
 
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::process::Command;
+use std::time::Duration;
 
 #[test]
 fn demo_dissection_ends_with_the_same_topology_on_every_site() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_cosurg"))
-        .env("COSURG_LOG", "warn")
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_cosurg"));
+    cmd.env("COSURG_LOG", "warn")
         .args(["demo", "--scene", "cholecystectomy-bodies"])
         .args(["--seconds", "14", "--json", "--vtu-interval", "100"])
         .arg("--out")
         .arg(out)
-        .args(["--", "--no-haptics"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let deadline = Instant::now() + Duration::from_secs(420);
-    while child.try_wait().unwrap().is_none() {
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            panic!("cosurg demo did not finish within 420 s");
-        }
-        std::thread::sleep(Duration::from_millis(100));
-    }
-    let output = child.wait_with_output().unwrap();
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    assert!(
-        output.status.success(),
-        "demo failed: {:?}\n{stdout}\n{}",
-        output.status,
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let summary: serde_json::Value =
-        serde_json::from_str(&stdout[stdout.find('{').expect("JSON summary")..]).unwrap();
+        .args(["--", "--no-haptics"]);
+    let summary = test_support::run::json_summary(cmd, Duration::from_secs(420));
     let sites = summary["sites"].as_array().expect("sites");
     assert_eq!(sites.len(), 3, "{summary}");
     let epochs: Vec<u64> = sites

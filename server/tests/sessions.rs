@@ -250,13 +250,13 @@ fn metric(text: &str, series: &str) -> u64 {
         .unwrap_or_else(|| panic!("{series} not in\n{text}"))
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn two_sessions_never_see_each_others_messages() {
-    let dir = tempfile::tempdir().unwrap();
-    let d = dir.path().to_str().unwrap();
-    let file = sessions_file(dir.path());
-    let server = start(
-        dir.path(),
+/// A coordinator hosting the sessions of [`SESSIONS`] (alpha, beta) with its state in `dir`
+/// and its metrics served on a loopback port.
+fn start_alpha_and_beta_with_metrics(dir: &Path) -> Server {
+    let file = sessions_file(dir);
+    let d = dir.to_str().unwrap();
+    start(
+        dir,
         &[
             "--state-dir",
             d,
@@ -265,7 +265,13 @@ async fn two_sessions_never_see_each_others_messages() {
             "--metrics",
             "127.0.0.1:0",
         ],
-    );
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_sessions_never_see_each_others_messages() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start_alpha_and_beta_with_metrics(dir.path());
     tokio::time::timeout(T, async {
         let ep = endpoint(&server);
         let mut a1 = join(
@@ -589,19 +595,7 @@ fn log_json_writes_one_json_object_per_line() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_flooding_site_is_held_to_its_budget_and_the_other_session_loses_nothing() {
     let dir = tempfile::tempdir().unwrap();
-    let d = dir.path().to_str().unwrap();
-    let file = sessions_file(dir.path());
-    let server = start(
-        dir.path(),
-        &[
-            "--state-dir",
-            d,
-            "--sessions",
-            &file,
-            "--metrics",
-            "127.0.0.1:0",
-        ],
-    );
+    let server = start_alpha_and_beta_with_metrics(dir.path());
     tokio::time::timeout(T, async {
         let ep = endpoint(&server);
         let flooder = join(

@@ -35,7 +35,8 @@ fn credential(role: Role, token: &str) -> Credential {
     }
 }
 
-fn join(s: &mut Session, name: &str, role: Role) -> SiteId {
+/// `name` joins as `role` with the right credential, at time 0.
+fn join_full(s: &mut Session, name: &str, role: Role) -> Joined {
     s.join(
         &Join {
             protocol_version: PROTOCOL_VERSION,
@@ -48,8 +49,10 @@ fn join(s: &mut Session, name: &str, role: Role) -> SiteId {
         0,
     )
     .unwrap()
-    .welcome
-    .site
+}
+
+fn join(s: &mut Session, name: &str, role: Role) -> SiteId {
+    join_full(s, name, role).welcome.site
 }
 
 fn kf(region: RegionId, id: KeyframeId, owner: SiteId, epoch: u32) -> RegionKeyframe {
@@ -292,19 +295,7 @@ fn late_joiner_gets_teaching_state() {
         }),
         0,
     );
-    let j = s
-        .join(
-            &Join {
-                protocol_version: PROTOCOL_VERSION,
-                scene_hash: "ab".into(),
-                role: Role::Trainee,
-                site_name: "late".into(),
-                session: "s".into(),
-                credential: credential(Role::Trainee, "t"),
-            },
-            0,
-        )
-        .unwrap();
+    let j = join_full(&mut s, "late", Role::Trainee);
     assert!(j.actions.iter().any(|a| matches!(
         a,
         Action::Control {
@@ -568,19 +559,7 @@ fn teaching_start_and_stop_are_refused_from_anyone_but_the_instructor() {
         }
     }
     // nothing was armed for late joiners by the refused start
-    let late = s
-        .join(
-            &Join {
-                protocol_version: PROTOCOL_VERSION,
-                scene_hash: "ab".into(),
-                role: Role::Trainee,
-                site_name: "late".into(),
-                session: "s".into(),
-                credential: credential(Role::Trainee, "t"),
-            },
-            0,
-        )
-        .unwrap();
+    let late = join_full(&mut s, "late", Role::Trainee);
     assert!(!late.actions.iter().any(|x| matches!(
         x,
         Action::Control {
