@@ -265,10 +265,11 @@ pub struct CoordinatorHandle {
 /// 4 MiB is Linux's default `net.core.rmem_max`; the kernel caps the request there.
 pub const RECV_BUFFER_BYTES: usize = 4 << 20;
 
-/// The server endpoint on `addr`, with a receive buffer of [`RECV_BUFFER_BYTES`] where the
-/// system grants it (a smaller grant is logged, not an error).
-fn bind_endpoint(
-    server_config: quinn::ServerConfig,
+/// A QUIC endpoint on a UDP socket bound to `addr`, with a receive buffer of
+/// [`RECV_BUFFER_BYTES`] where the system grants it (a smaller grant is logged, not an
+/// error); a server when `server_config` is given. Must be called within a tokio runtime.
+pub fn bind_endpoint(
+    server_config: Option<quinn::ServerConfig>,
     addr: SocketAddr,
 ) -> std::io::Result<Endpoint> {
     let socket = std::net::UdpSocket::bind(addr)?;
@@ -282,7 +283,7 @@ fn bind_endpoint(
         quinn::default_runtime().ok_or_else(|| std::io::Error::other("no async runtime found"))?;
     Endpoint::new(
         quinn::EndpointConfig::default(),
-        Some(server_config),
+        server_config,
         socket,
         runtime,
     )
@@ -296,11 +297,12 @@ impl Coordinator {
     /// Returns the handle and the bound address.
     pub fn bind(config: CoordinatorConfig) -> Result<(CoordinatorHandle, SocketAddr), ServerError> {
         let server_config = crate::tls::server_config(&config.identity)?;
-        let endpoint =
-            bind_endpoint(server_config, config.listen).map_err(|source| ServerError::Bind {
+        let endpoint = bind_endpoint(Some(server_config), config.listen).map_err(|source| {
+            ServerError::Bind {
                 addr: config.listen,
                 source,
-            })?;
+            }
+        })?;
         let local_addr = endpoint.local_addr().map_err(|source| ServerError::Bind {
             addr: config.listen,
             source,

@@ -253,22 +253,7 @@ impl Gallbladder {
             }
         }
         m.vertices.push(self.neck);
-        let last = (m.vertices.len() - 1) as u32;
-        let v = |i: usize, j: usize| (1 + i * segments + j % segments) as u32;
-        for j in 0..segments {
-            m.triangles.push([0, v(0, j + 1), v(0, j)]);
-        }
-        for i in 0..rings - 1 {
-            for j in 0..segments {
-                let (a, b, c, d) = (v(i, j), v(i, j + 1), v(i + 1, j + 1), v(i + 1, j));
-                m.triangles.push([a, b, c]);
-                m.triangles.push([a, c, d]);
-            }
-        }
-        for j in 0..segments {
-            m.triangles
-                .push([last, v(rings - 1, j), v(rings - 1, j + 1)]);
-        }
+        stitch_rings(&mut m, rings, segments);
         m
     }
 }
@@ -304,6 +289,29 @@ pub fn organ_distance(p: &Vector3<f64>) -> f64 {
 }
 
 /// Unit icosphere subdivided `level` times (outward triangles).
+/// Triangles of a closed tube-like surface whose vertices are: one cap (index 0), `rings`
+/// rings of `segments` vertices each, then the other cap (the last vertex). Outward when the
+/// rings run from the first cap to the second and each ring turns anticlockwise seen from
+/// the first cap.
+fn stitch_rings(m: &mut TriMesh, rings: usize, segments: usize) {
+    let last = (m.vertices.len() - 1) as u32;
+    let v = |i: usize, j: usize| (1 + i * segments + j % segments) as u32;
+    for j in 0..segments {
+        m.triangles.push([0, v(0, j + 1), v(0, j)]);
+    }
+    for i in 0..rings - 1 {
+        for j in 0..segments {
+            let (a, b, c, d) = (v(i, j), v(i, j + 1), v(i + 1, j + 1), v(i + 1, j));
+            m.triangles.push([a, b, c]);
+            m.triangles.push([a, c, d]);
+        }
+    }
+    for j in 0..segments {
+        m.triangles
+            .push([last, v(rings - 1, j), v(rings - 1, j + 1)]);
+    }
+}
+
 fn icosphere(level: usize) -> TriMesh {
     let t = (1.0 + 5f64.sqrt()) / 2.0;
     let mut m = TriMesh {

@@ -483,12 +483,8 @@ async fn run_load(server_exe: &Path, load: Load, args: &CoordinatorArgs) -> Resu
         .map(|_| {
             // Each socket stands for several remote machines: give it the coordinator's
             // receive buffer, so the load generator does not drop what the coordinator sent.
-            let socket = std::net::UdpSocket::bind("127.0.0.1:0")?;
-            socket2::SockRef::from(&socket)
-                .set_recv_buffer_size(server::coordinator::RECV_BUFFER_BYTES)?;
-            let runtime = quinn::default_runtime()
-                .ok_or_else(|| std::io::Error::other("no async runtime found"))?;
-            let mut e = Endpoint::new(quinn::EndpointConfig::default(), None, socket, runtime)?;
+            let addr = "127.0.0.1:0".parse().expect("addr");
+            let mut e = server::coordinator::bind_endpoint(None, addr)?;
             e.set_default_client_config(client_cfg.clone());
             Ok(e)
         })

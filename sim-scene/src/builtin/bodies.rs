@@ -16,7 +16,7 @@
 
 use nalgebra::{UnitQuaternion, Vector3};
 
-use super::{Gallbladder, JAW_OPEN, liver_distance, pointing, radial_mesh, waypoint};
+use super::{Gallbladder, JAW_OPEN, liver_distance, pointing, radial_mesh, stitch_rings, waypoint};
 use crate::mesh::TriMesh;
 use crate::script::ToolScript;
 
@@ -107,22 +107,7 @@ impl Vessel {
             }
         }
         m.vertices.push(self.b + u * self.radius);
-        let last = (m.vertices.len() - 1) as u32;
-        let v = |i: usize, j: usize| (1 + i * segments + j % segments) as u32;
-        for j in 0..segments {
-            m.triangles.push([0, v(0, j + 1), v(0, j)]);
-        }
-        for i in 0..rings - 1 {
-            for j in 0..segments {
-                let (a, b, c, d) = (v(i, j), v(i, j + 1), v(i + 1, j + 1), v(i + 1, j));
-                m.triangles.push([a, b, c]);
-                m.triangles.push([a, c, d]);
-            }
-        }
-        for j in 0..segments {
-            m.triangles
-                .push([last, v(rings - 1, j), v(rings - 1, j + 1)]);
-        }
+        stitch_rings(&mut m, rings, segments);
         m
     }
 }
