@@ -265,3 +265,89 @@ position = [0.02, 0.02, 0.025]
     let (_, released, _) = run(&strong, 100);
     assert_eq!(released, 0);
 }
+
+/// A blade cuts the tied block in two (a vertical sheet at x = 20.1 mm, through the
+/// hanging block only): every spring then pulls on the part on its own side of the cut,
+/// and both parts keep hanging from the layer.
+#[test]
+fn a_cut_through_a_tied_block_splits_its_springs_and_both_parts_hang() {
+    use cosurg_sim_core::cut::CutOp;
+    let cut_x = 0.0201;
+    let mut sim = sim_of(&two_blocks(true)).expect("scene");
+    let c0 = hanging_centroid(&sim);
+    let (y0, y1, z0, z1) = (-0.01, 0.05, -0.01, 0.025);
+    let op = TopologyOp::Cut(CutOp {
+        id: OpId { site: 0, seq: 0 },
+        triangles: vec![
+            [[cut_x, y0, z0], [cut_x, y1, z0], [cut_x, y1, z1]],
+            [[cut_x, y0, z0], [cut_x, y1, z1], [cut_x, y0, z1]],
+        ],
+    });
+    let change = sim.apply_topology_op(op).expect("cut");
+    assert!(change.crossed > 0 && change.virtual_nodes > 0, "{change:?}");
+
+    // Parts of the element graph (copies sharing a degree of freedom).
+    let sep = sim.separation().expect("cut").clone();
+    let mut parent: Vec<usize> = (0..sep.dof_count()).collect();
+    fn find(p: &mut [usize], mut i: usize) -> usize {
+        while p[i] != i {
+            p[i] = p[p[i]];
+            i = p[i];
+        }
+        i
+    }
+    for c in &sep.copies {
+        for k in 1..4 {
+            let (a, b) = (find(&mut parent, c.dofs[0]), find(&mut parent, c.dofs[k]));
+            parent[a.max(b)] = a.min(b);
+        }
+    }
+    let layer = &sim.attachments().layers[0];
+    let mut part = [None, None]; // left, right of the cut
+    for (i, s) in layer.springs.iter().enumerate() {
+        let parts: Vec<usize> = layer
+            .end_dofs(2 * i)
+            .iter()
+            .map(|&d| find(&mut parent, d))
+            .collect();
+        assert!(
+            parts.iter().all(|&p| p == parts[0]),
+            "spring {i} (attached at {:?}) pulls on both parts: {parts:?}",
+            s.attached
+        );
+        let side = usize::from(s.attached.x > cut_x);
+        match part[side] {
+            None => part[side] = Some(parts[0]),
+            Some(p) => assert_eq!(p, parts[0], "spring {i} pulls on another part"),
+        }
+    }
+    assert_ne!(
+        part[0], part[1],
+        "the cut left the hanging block in one part"
+    );
+
+    // Both parts hang: each half of the block stays within the layer's stretch (see
+    // `tied_block_hangs_and_untied_block_falls`) of where it was; a part that the layer
+    // no longer held would fall 1.2 m in 0.5 s.
+    for _ in 0..250 {
+        sim.step().expect("step");
+    }
+    let s = &sim.surfaces()[1];
+    for (side, keep) in [("left", true), ("right", false)] {
+        let pts: Vec<V3> = s
+            .rest
+            .vertices
+            .iter()
+            .zip(&s.deformed)
+            .filter(|(r, _)| (r.x < cut_x - 0.002) == keep && (r.x - cut_x).abs() > 0.002)
+            .map(|(_, d)| *d)
+            .collect();
+        let z = pts.iter().map(|p| p.z).sum::<f64>() / pts.len() as f64;
+        let drop = c0.z - z;
+        let stretch = 0.032 * 9.81 / 200.0;
+        assert!(
+            drop < 2.0 * stretch + 0.002,
+            "{side} part dropped {drop} m (layer stretch {stretch} m)"
+        );
+    }
+}

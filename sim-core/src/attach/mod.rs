@@ -23,7 +23,7 @@ pub mod hook;
 mod tests;
 
 use nalgebra::{Matrix3, Vector3};
-use sim_lattice::{Embedding, Lattice, NodeId};
+use sim_lattice::{Embedding, Lattice, NodeId, TetId};
 use sim_scene::{Scene, TriMesh};
 
 use crate::cut::ReleaseOp;
@@ -74,6 +74,10 @@ pub struct Layer {
     released: Vec<bool>,
     /// Embedded ends: `2 i` the attached end of spring `i`, `2 i + 1` its host end.
     ends: Embedding,
+    /// Once a cut has separated elements: the degrees of freedom each end follows (the
+    /// copy of its host leaf on its side of the cut), in the order of `ends`. `None`: the
+    /// host leaf's lattice nodes.
+    end_dofs: Option<Vec<[usize; 4]>>,
 }
 
 impl Layer {
@@ -93,10 +97,27 @@ impl Layer {
             .collect()
     }
 
-    fn end(&self, x: &[V3], k: usize) -> (V3, [NodeId; 4], [f64; 4]) {
-        let (_, w, nodes) = self.ends.host(k);
-        let p = (0..4).map(|j| w[j] * x[nodes[j].0 as usize]).sum();
-        (p, nodes, w)
+    /// End `k`'s position (m), the degrees of freedom it follows and their weights.
+    fn end(&self, x: &[V3], k: usize) -> (V3, [usize; 4], [f64; 4]) {
+        let (_, w, _) = self.ends.host(k);
+        let dofs = self.end_dofs(k);
+        let p = (0..4).map(|j| w[j] * x[dofs[j]]).sum();
+        (p, dofs, w)
+    }
+
+    /// The degrees of freedom end `k` follows (`2 i`: spring `i`'s attached end, `2 i + 1`
+    /// its host end): its host leaf's nodes, or after a cut the copy on its side.
+    pub fn end_dofs(&self, k: usize) -> [usize; 4] {
+        match &self.end_dofs {
+            Some(d) => d[k],
+            None => self.ends.host(k).2.map(|n| n.0 as usize),
+        }
+    }
+
+    /// Rest position (m) of end `k`.
+    fn end_rest(&self, k: usize) -> &V3 {
+        let s = &self.springs[k / 2];
+        if k % 2 == 0 { &s.attached } else { &s.host }
     }
 
     /// Current midpoint and tension of spring `i` at node positions `x` (m).
@@ -210,6 +231,7 @@ impl Attachments {
                 springs,
                 released: vec![false; n],
                 ends,
+                end_dofs: None,
             });
         }
         Ok(Attachments { layers })
@@ -219,6 +241,20 @@ impl Attachments {
     pub(crate) fn update(&mut self, lattice: &Lattice) {
         for l in &mut self.layers {
             l.ends.update(lattice);
+        }
+    }
+
+    /// After a cut: every end follows `dofs(host leaf, its nodes, end's rest position)`,
+    /// the degrees of freedom of the leaf's copy on the end's side.
+    pub(crate) fn follow_cut(&mut self, dofs: impl Fn(TetId, [NodeId; 4], &V3) -> [usize; 4]) {
+        for l in &mut self.layers {
+            let follow = (0..l.ends.len())
+                .map(|k| {
+                    let (t, _, nodes) = l.ends.host(k);
+                    dofs(t, nodes, l.end_rest(k))
+                })
+                .collect();
+            l.end_dofs = Some(follow);
         }
     }
 
@@ -298,7 +334,7 @@ impl Attachments {
                     (V3::zeros(), ks * Matrix3::identity())
                 };
                 for j in 0..4 {
-                    let (a, h) = (na[j].0 as usize, nh[j].0 as usize);
+                    let (a, h) = (na[j], nh[j]);
                     if let Some(fa) = f.get_mut(a) {
                         *fa += wa[j] * force;
                     }

@@ -30,6 +30,45 @@ pub(crate) struct CutState {
     pub(crate) surface_errors: Vec<Option<String>>,
 }
 
+impl CutState {
+    /// The degrees of freedom that a point embedded in leaf `t` (corner nodes `nodes`) at
+    /// rest position `p` (m) follows: the copy of the leaf holding the nearest corner that
+    /// `p` reaches without crossing the sheet (exact test); the lattice nodes themselves
+    /// when the leaf is not crossed.
+    pub(crate) fn copy_dofs(
+        &self,
+        lat: &sim_lattice::Lattice,
+        t: TetId,
+        nodes: [NodeId; 4],
+        p: &V3,
+    ) -> [usize; 4] {
+        let copies = self.separation.copies_of(t);
+        match copies.len() {
+            0 => nodes.map(|n| n.0 as usize),
+            1 => copies[0].dofs,
+            _ => {
+                let mut order: Vec<(f64, usize)> = (0..4)
+                    .map(|k| ((lat.node_rest(nodes[k]) - p).norm_squared(), k))
+                    .collect();
+                order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                let corner = order
+                    .iter()
+                    .map(|o| o.1)
+                    .find(|&k| self.sheet.crossing(p, &lat.node_rest(nodes[k])).is_none());
+                corner
+                    .and_then(|k| copies.iter().find(|c| c.mask & (1 << k) != 0))
+                    .unwrap_or_else(|| {
+                        copies
+                            .iter()
+                            .max_by(|a, b| a.fraction.total_cmp(&b.fraction))
+                            .expect("two or more copies")
+                    })
+                    .dofs
+            }
+        }
+    }
+}
+
 /// What applying a topology op did.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct TopologyChange {
@@ -239,8 +278,8 @@ impl Simulation {
         Ok(())
     }
 
-    /// Which copy of its host leaf every surface vertex follows: the copy holding the
-    /// nearest corner that the vertex reaches without crossing the sheet (exact test).
+    /// Which copy of its host leaf every surface vertex and every attachment spring end
+    /// follows (see [`CutState::copy_dofs`]).
     fn update_cut_hosts(&mut self) {
         let Some(cut) = &mut self.cut else { return };
         let lat = &self.lattice;
@@ -251,35 +290,16 @@ impl Simulation {
                 (0..s.embedding.len())
                     .map(|i| {
                         let (t, w, nodes) = s.embedding.host(i);
-                        let copies = cut.separation.copies_of(t);
-                        let dofs = match copies.len() {
-                            0 => nodes.map(|n| n.0 as usize),
-                            1 => copies[0].dofs,
-                            _ => {
-                                let p = s.rest.vertices[i];
-                                let mut order: Vec<(f64, usize)> = (0..4)
-                                    .map(|k| ((lat.node_rest(nodes[k]) - p).norm_squared(), k))
-                                    .collect();
-                                order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-                                let corner = order.iter().map(|o| o.1).find(|&k| {
-                                    cut.sheet.crossing(&p, &lat.node_rest(nodes[k])).is_none()
-                                });
-                                corner
-                                    .and_then(|k| copies.iter().find(|c| c.mask & (1 << k) != 0))
-                                    .unwrap_or_else(|| {
-                                        copies
-                                            .iter()
-                                            .max_by(|a, b| a.fraction.total_cmp(&b.fraction))
-                                            .expect("two or more copies")
-                                    })
-                                    .dofs
-                            }
-                        };
-                        (dofs, w)
+                        (cut.copy_dofs(lat, t, nodes, &s.rest.vertices[i]), w)
                     })
                     .collect()
             })
             .collect();
+        // A cut through a connective layer splits its springs with it: each end pulls on
+        // the copy on its own side, not on the original lattice node.
+        let cut = &*cut;
+        self.attachments
+            .follow_cut(|t, nodes, p| cut.copy_dofs(lat, t, nodes, p));
     }
 
     /// The elements of the FEM system when a cut exists: (degrees of freedom, leaf,
