@@ -117,7 +117,11 @@ impl Layer {
     /// Rest position (m) of end `k`.
     fn end_rest(&self, k: usize) -> &V3 {
         let s = &self.springs[k / 2];
-        if k.is_multiple_of(2) { &s.attached } else { &s.host }
+        if k.is_multiple_of(2) {
+            &s.attached
+        } else {
+            &s.host
+        }
     }
 
     /// Current midpoint and tension of spring `i` at node positions `x` (m).

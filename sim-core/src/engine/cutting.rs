@@ -383,6 +383,15 @@ impl Simulation {
         &self.topology
     }
 
+    /// Sets the state of degree of freedom `dof` (a lattice node slot, or a cut's virtual
+    /// node `capacity + k`): position (m) and velocity (m/s). Out of range: nothing.
+    pub fn set_dof_state(&mut self, dof: usize, x: V3, v: V3) {
+        if dof < self.x.len() {
+            self.x[dof] = x;
+            self.v[dof] = v;
+        }
+    }
+
     /// The separation of the lattice by the cuts (`None` before the first cut).
     pub fn separation(&self) -> Option<&Separation> {
         self.cut.as_ref().map(|c| &c.separation)

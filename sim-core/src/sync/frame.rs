@@ -6,7 +6,7 @@ use std::collections::HashSet;
 
 use sim_lattice::{NodeId, RegionState, TetId};
 
-use super::{FULL_STATE_REGION, KeyframeId, RegionId, RegionMap, SyncError, V3};
+use super::{FULL_STATE_REGION, Grid, KeyframeId, RegionId, RegionMap, SyncError, V3};
 use crate::engine::Simulation;
 
 /// Full state of one region (field set of `proto::Message::Keyframe` minus what the client
@@ -76,14 +76,57 @@ pub(super) fn keyframe_from_nodes(
     nodes: &[NodeId],
 ) -> RegionKeyframe {
     let (x, v) = (sim.positions(), sim.velocities());
+    // The region's lattice nodes, then the virtual nodes a cut added to them.
+    let dofs: Vec<usize> = nodes
+        .iter()
+        .map(|n| n.0 as usize)
+        .chain(region_virtual_dofs(sim, nodes))
+        .collect();
     RegionKeyframe {
         region,
         keyframe_id,
         sim_time: sim.time(),
         tree_bits: map.state(sim.lattice(), region).to_bytes(),
-        positions: nodes.iter().map(|n| x[n.0 as usize].into()).collect(),
-        velocities: nodes.iter().map(|n| v[n.0 as usize].into()).collect(),
+        positions: dofs.iter().map(|&d| x[d].into()).collect(),
+        velocities: dofs.iter().map(|&d| v[d].into()).collect(),
     }
+}
+
+/// The virtual nodes of a cut (degrees of freedom `>= capacity`, see
+/// [`crate::cut::Separation`]) that duplicate one of `nodes`, in an order every site with
+/// the same topology agrees on: by the grid point of the node they duplicate, then by the
+/// first (leaf, corner) of the element copies that use them. Their slot numbers are no
+/// such order: they depend on each site's lattice history.
+pub(super) fn region_virtual_dofs(sim: &Simulation, nodes: &[NodeId]) -> Vec<usize> {
+    let Some(sep) = sim.separation() else {
+        return Vec::new();
+    };
+    if sep.virtual_nodes.is_empty() {
+        return Vec::new();
+    }
+    let cap = sep.capacity;
+    let mut first: Vec<Option<(TetId, usize)>> = vec![None; sep.virtual_nodes.len()];
+    for c in &sep.copies {
+        for (corner, &d) in c.dofs.iter().enumerate() {
+            if let Some(slot) = d.checked_sub(cap).and_then(|k| first.get_mut(k)) {
+                let key = (c.leaf, corner);
+                if slot.is_none_or(|f| key < f) {
+                    *slot = Some(key);
+                }
+            }
+        }
+    }
+    let in_region: HashSet<NodeId> = nodes.iter().copied().collect();
+    let lattice = sim.lattice();
+    let mut keyed: Vec<(Grid, (TetId, usize), usize)> = sep
+        .virtual_nodes
+        .iter()
+        .enumerate()
+        .filter(|(_, n)| in_region.contains(n))
+        .filter_map(|(k, n)| first[k].map(|f| (lattice.node_grid(*n), f, cap + k)))
+        .collect();
+    keyed.sort_unstable();
+    keyed.into_iter().map(|(_, _, d)| d).collect()
 }
 
 /// The frame of [`SyncStrategy::FullState`](super::SyncStrategy::FullState): every node
@@ -149,12 +192,24 @@ pub(super) fn match_tree_and_nodes(
         .map_err(|source| SyncError::TreeBits { region, source })?;
     apply_tree(sim, map, region, &target)?;
     let nodes = map.canonical_nodes(sim.lattice(), region);
-    if nodes.len() != kf.positions.len() {
+    let virtual_dofs = region_virtual_dofs(sim, &nodes);
+    if nodes.len() + virtual_dofs.len() != kf.positions.len() {
         return Err(SyncError::NodeCount {
             region,
-            expected: nodes.len(),
+            expected: nodes.len() + virtual_dofs.len(),
             got: kf.positions.len(),
         });
+    }
+    // The virtual nodes take the owner's state at once, extrapolated to our time like the
+    // lattice nodes' targets (they are few: the corners of the elements a cut crossed; the
+    // callers blend or extrapolate only the lattice nodes).
+    let ahead = (sim.time() - kf.sim_time).max(0.0);
+    for (j, &d) in virtual_dofs.iter().enumerate() {
+        let i = nodes.len() + j;
+        let v = V3::from(kf.velocities[i]);
+        if !sim.is_fixed(NodeId(d as u32)) {
+            sim.set_dof_state(d, V3::from(kf.positions[i]) + v * ahead, v);
+        }
     }
     Ok(nodes)
 }
