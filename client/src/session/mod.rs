@@ -286,6 +286,22 @@ impl SiteSession {
         self.clocks.target_lag()
     }
 
+    /// The regions holding an element that a cut separated (none without a cut).
+    pub fn regions_of_cut(&self, sim: &Simulation) -> Vec<RegionId> {
+        let mut regions: Vec<RegionId> = sim
+            .separation()
+            .map(|sep| {
+                sep.crossed
+                    .iter()
+                    .filter_map(|t| self.map.region_of_root(t.root))
+                    .collect()
+            })
+            .unwrap_or_default();
+        regions.sort_unstable();
+        regions.dedup();
+        regions
+    }
+
     /// Regions near the deformed point `p` (m) within `radius` (m).
     pub fn regions_near(
         &self,
@@ -574,11 +590,9 @@ impl SiteSession {
     }
 
     /// The regions the local tool touches at `t`: claims the new ones and releases those
-    /// left alone for [`claims::RELEASE_AFTER`] once they are at rest (with a final
-    /// keyframe first, so that the others end where we are). The instructor also claims
-    /// the regions nobody owns that move by themselves ([`claims::SUPERVISE_SPEED`]).
-    /// Input-only sites claim too: ownership then says whose organ the others are compared
-    /// with. Observers never claim.
+    /// left alone for [`claims::RELEASE_AFTER`] (with a final keyframe first, so that the
+    /// others end where we are). Input-only sites claim too: ownership then says whose
+    /// organ the others are compared with. Observers never claim.
     pub fn handle_touched(&mut self, sim: &Simulation, touched: &[RegionId], now: Now) {
         self.topology_epoch = sim.topology().epoch();
         if !self.cfg.linked || self.cfg.role == Role::Observer {
@@ -586,25 +600,7 @@ impl SiteSession {
         }
         let Some(me) = self.sites.me() else { return };
         let t = sim.time();
-        // Region speeds only when they decide something: a release, or the instructor's
-        // supervision of motion nobody drives.
-        let supervise = self.cfg.role == Role::Instructor;
-        let speeds = if supervise || self.claims.any() {
-            self.map.max_speeds(sim.lattice(), sim.velocities())
-        } else {
-            Vec::new()
-        };
-        let speed = |r: RegionId| speeds.get(r as usize).copied().unwrap_or(0.0);
-        let unowned_moving: Vec<RegionId> = if supervise {
-            (0..speeds.len() as RegionId)
-                .filter(|r| {
-                    speed(*r) > claims::SUPERVISE_SPEED && !self.clocks.owners.contains_key(r)
-                })
-                .collect()
-        } else {
-            Vec::new()
-        };
-        for &region in touched.iter().chain(&unowned_moving) {
+        for &region in touched {
             if self.claims.touch(region, t) {
                 self.control(Message::OwnershipRequest(proto::OwnershipRequest {
                     region,
@@ -612,7 +608,7 @@ impl SiteSession {
                 }));
             }
         }
-        for region in self.claims.stale(t, speed) {
+        for region in self.claims.stale(t) {
             if let Some(frame) = self.sync.release(sim, region) {
                 self.send_frame(frame, me, now);
             }

@@ -290,8 +290,18 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         if let Some(m) = teaching.record(t, local.as_ref()) {
             session.send_control(m);
         }
-        let touched = tools.before_step(&mut sim, local, &session)?;
-        session.share_topology(&tools.take_topology_ops());
+        let mut touched = tools.before_step(&mut sim, local, &session)?;
+        let ops = tools.take_topology_ops();
+        if ops
+            .iter()
+            .any(|op| matches!(op, sim_core::cut::TopologyOp::Cut(_)))
+        {
+            // The regions our cut separated are ours until they are at rest: the others
+            // made their copies of the new (virtual) nodes when the op reached them, at
+            // another simulated time, and our keyframes correct them to ours.
+            touched.extend(session.regions_of_cut(&sim));
+        }
+        session.share_topology(&ops);
         report.max_tool_force_n = report.max_tool_force_n.max(tools.local_force().norm());
         if let Some(h) = &haptic {
             h.publish(&tools, t);

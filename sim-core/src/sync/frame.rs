@@ -2,7 +2,7 @@
 //! how a region's state is encoded into one, and how a frame's tree state and node states
 //! are applied (full-state frames here, keyframes by the receiver).
 
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 
 use sim_lattice::{NodeId, RegionState, TetId};
 
@@ -80,7 +80,7 @@ pub(super) fn keyframe_from_nodes(
     let dofs: Vec<usize> = nodes
         .iter()
         .map(|n| n.0 as usize)
-        .chain(region_virtual_dofs(sim, nodes))
+        .chain(region_virtual_dofs(sim, map, region))
         .collect();
     RegionKeyframe {
         region,
@@ -93,11 +93,17 @@ pub(super) fn keyframe_from_nodes(
 }
 
 /// The virtual nodes of a cut (degrees of freedom `>= capacity`, see
-/// [`crate::cut::Separation`]) that duplicate one of `nodes`, in an order every site with
-/// the same topology agrees on: by the grid point of the node they duplicate, then by the
-/// first (leaf, corner) of the element copies that use them. Their slot numbers are no
-/// such order: they depend on each site's lattice history.
-pub(super) fn region_virtual_dofs(sim: &Simulation, nodes: &[NodeId]) -> Vec<usize> {
+/// [`crate::cut::Separation`]) used by the element copies of `region`'s leaves
+/// ([`FULL_STATE_REGION`]: every leaf), in an order every site with the same region trees
+/// and cuts agrees on: by the grid point of the node they duplicate, then by the first
+/// (leaf, corner) of the region's copies that use them. Their slot numbers are no such
+/// order (they depend on each site's lattice history), and neither are the copies of
+/// neighbouring regions, whose trees may differ between sites.
+pub(super) fn region_virtual_dofs(
+    sim: &Simulation,
+    map: &RegionMap,
+    region: RegionId,
+) -> Vec<usize> {
     let Some(sep) = sim.separation() else {
         return Vec::new();
     };
@@ -105,25 +111,25 @@ pub(super) fn region_virtual_dofs(sim: &Simulation, nodes: &[NodeId]) -> Vec<usi
         return Vec::new();
     }
     let cap = sep.capacity;
-    let mut first: Vec<Option<(TetId, usize)>> = vec![None; sep.virtual_nodes.len()];
+    let mut first: HashMap<usize, (TetId, usize)> = HashMap::new();
     for c in &sep.copies {
+        if region != FULL_STATE_REGION && map.region_of_root(c.leaf.root) != Some(region) {
+            continue;
+        }
         for (corner, &d) in c.dofs.iter().enumerate() {
-            if let Some(slot) = d.checked_sub(cap).and_then(|k| first.get_mut(k)) {
+            if d >= cap {
                 let key = (c.leaf, corner);
-                if slot.is_none_or(|f| key < f) {
-                    *slot = Some(key);
-                }
+                first
+                    .entry(d)
+                    .and_modify(|f| *f = (*f).min(key))
+                    .or_insert(key);
             }
         }
     }
-    let in_region: HashSet<NodeId> = nodes.iter().copied().collect();
     let lattice = sim.lattice();
-    let mut keyed: Vec<(Grid, (TetId, usize), usize)> = sep
-        .virtual_nodes
-        .iter()
-        .enumerate()
-        .filter(|(_, n)| in_region.contains(n))
-        .filter_map(|(k, n)| first[k].map(|f| (lattice.node_grid(*n), f, cap + k)))
+    let mut keyed: Vec<(Grid, (TetId, usize), usize)> = first
+        .into_iter()
+        .map(|(d, f)| (lattice.node_grid(sep.dof_node(d)), f, d))
         .collect();
     keyed.sort_unstable();
     keyed.into_iter().map(|(_, _, d)| d).collect()
@@ -192,13 +198,24 @@ pub(super) fn match_tree_and_nodes(
         .map_err(|source| SyncError::TreeBits { region, source })?;
     apply_tree(sim, map, region, &target)?;
     let nodes = map.canonical_nodes(sim.lattice(), region);
-    let virtual_dofs = region_virtual_dofs(sim, &nodes);
-    if nodes.len() + virtual_dofs.len() != kf.positions.len() {
+    let virtual_dofs = region_virtual_dofs(sim, map, region);
+    if nodes.len() > kf.positions.len() {
         return Err(SyncError::NodeCount {
             region,
             expected: nodes.len() + virtual_dofs.len(),
             got: kf.positions.len(),
         });
+    }
+    if nodes.len() + virtual_dofs.len() != kf.positions.len() {
+        // Same trees and cuts, other virtual nodes (a copy's connectivity runs through a
+        // neighbouring region whose trees differ here): the lattice nodes still apply.
+        tracing::debug!(
+            region,
+            ours = virtual_dofs.len(),
+            theirs = kf.positions.len() - nodes.len(),
+            "keyframe's virtual nodes not applied"
+        );
+        return Ok(nodes);
     }
     // The virtual nodes take the owner's state at once, extrapolated to our time like the
     // lattice nodes' targets (they are few: the corners of the elements a cut crossed; the

@@ -285,7 +285,8 @@ impl RemoteRegion {
         let same_tree = RegionState::from_bytes(&kf.tree_bits)
             .is_ok_and(|s| s == map.state(sim.lattice(), self.region));
         let grids = self.cache.get(map, sim.lattice(), self.region).1;
-        if !same_tree || grids.len() != kf.positions.len() {
+        // Entries past the lattice nodes are a cut's virtual nodes (not interpolated).
+        if !same_tree || grids.len() > kf.positions.len() {
             self.refused_next = Some(kf.keyframe_id);
             return false;
         }
