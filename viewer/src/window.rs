@@ -77,8 +77,9 @@ impl Default for WindowOptions {
     }
 }
 
-/// A window of `options.title` and `options.size` with a GL context on it: multisampled
-/// if the driver offers it, else without multisampling (some software drivers refuse it).
+/// A window of `options.title` and `options.size` with a GL context on it, without
+/// multisampling: under Mesa's software renderer 4× multisampling cost more than half of
+/// every frame (12.9 against 31 fps at 1280×720, docs/RESULTS.md § The window).
 pub(crate) fn open_window(
     event_loop: &EventLoop<()>,
     options: &WindowOptions,
@@ -91,17 +92,14 @@ pub(crate) fn open_window(
         ))
         .build(event_loop)
         .map_err(|e| ViewerError::Window(e.to_string()))?;
-    let gl = WindowedContext::from_winit_window(&window, three_d::SurfaceSettings::default())
-        .or_else(|_| {
-            WindowedContext::from_winit_window(
-                &window,
-                three_d::SurfaceSettings {
-                    multisamples: 0,
-                    ..Default::default()
-                },
-            )
-        })
-        .map_err(|e| ViewerError::Window(e.to_string()))?;
+    let gl = WindowedContext::from_winit_window(
+        &window,
+        three_d::SurfaceSettings {
+            multisamples: 0,
+            ..Default::default()
+        },
+    )
+    .map_err(|e| ViewerError::Window(e.to_string()))?;
     Ok((window, gl))
 }
 
