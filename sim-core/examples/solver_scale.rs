@@ -68,6 +68,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     if let Some(k) = env_usize("COSURG_MG_REFRESH") {
                         o.step.mg_refresh_steps = k;
                     }
+                    if let Some(w) = env_usize("COSURG_WARM_START") {
+                        o.step.solver.warm_start = w != 0;
+                    }
                     if let Some(t) = env_usize("COSURG_THREADS") {
                         o.step.threads = t;
                     }
