@@ -5,8 +5,18 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use proto::RegionId;
 
-/// A site releases a region this long after its tool last touched it (s of sim time).
+/// A site releases a region this long after its tool last touched it (s of sim time)...
 pub const RELEASE_AFTER: f64 = 0.4;
+
+/// ...and once the region has come to rest: no node faster than this (m/s). Tissue keeps
+/// moving after a tool lets go (a released fold springs back, a freed gallbladder swings);
+/// without an owner nobody would send keyframes of that motion and every site's copy would
+/// settle on its own.
+pub const SETTLED_SPEED: f64 = 0.005;
+
+/// A region still moving this long after the tool left (s) is released all the same (a
+/// bound, so that a region that never quite settles is not held for ever).
+pub const HOLD_MOVING_AT_MOST: f64 = 3.0;
 
 #[derive(Debug, Default, Clone)]
 pub struct Claims {
@@ -27,15 +37,16 @@ impl Claims {
         !self.owned.contains_key(&region) && self.requested.insert(region)
     }
 
-    /// Owned regions our tool has left alone for longer than [`RELEASE_AFTER`] at `t`.
-    pub fn stale(&self, t: f64) -> Vec<RegionId> {
+    /// Owned regions to release at `t`: left alone by our tool for longer than
+    /// [`RELEASE_AFTER`] and at rest (`speed(region)`, m/s, at most [`SETTLED_SPEED`]), or
+    /// left alone for longer than [`HOLD_MOVING_AT_MOST`] whatever their speed.
+    pub fn stale(&self, t: f64, speed: impl Fn(RegionId) -> f64) -> Vec<RegionId> {
         self.owned
             .keys()
             .copied()
             .filter(|r| {
-                self.last_touch
-                    .get(r)
-                    .is_none_or(|lt| t - lt > RELEASE_AFTER)
+                let idle = self.last_touch.get(r).map_or(f64::INFINITY, |lt| t - lt);
+                idle > RELEASE_AFTER && (speed(*r) <= SETTLED_SPEED || idle > HOLD_MOVING_AT_MOST)
             })
             .collect()
     }

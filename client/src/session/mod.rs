@@ -590,8 +590,8 @@ impl SiteSession {
     }
 
     /// The regions the local tool touches at `t`: claims the new ones and releases those
-    /// left alone for [`claims::RELEASE_AFTER`] (with a final keyframe first, so that the
-    /// others end where we are). Input-only sites claim too: ownership then says whose
+    /// left alone for [`claims::RELEASE_AFTER`] once they are at rest (with a final
+    /// keyframe first, so that the others end where we are). Input-only sites claim too: ownership then says whose
     /// organ the others are compared with. Observers never claim.
     pub fn handle_touched(&mut self, sim: &Simulation, touched: &[RegionId], now: Now) {
         self.topology_epoch = sim.topology().epoch();
@@ -608,7 +608,15 @@ impl SiteSession {
                 }));
             }
         }
-        for region in self.claims.stale(t) {
+        // Region speeds only when a release is due.
+        let idle = self.claims.stale(t, |_| 0.0);
+        let speeds = if idle.is_empty() {
+            Vec::new()
+        } else {
+            self.map.max_speeds(sim.lattice(), sim.velocities())
+        };
+        let speed = |r: RegionId| speeds.get(r as usize).copied().unwrap_or(0.0);
+        for region in self.claims.stale(t, speed) {
             if let Some(frame) = self.sync.release(sim, region) {
                 self.send_frame(frame, me, now);
             }

@@ -240,6 +240,59 @@ fn join_waits_for_the_snapshot_and_takes_its_time_and_epoch() {
     assert!(t.is_ready(1, clock.now().wall));
 }
 
+/// Tissue that still moves after the tool let go stays owned (its owner keeps sending
+/// keyframes of the motion) until it is at rest, or for [`claims::HOLD_MOVING_AT_MOST`].
+#[test]
+fn a_region_still_moving_is_released_once_at_rest() {
+    let clock = FakeClock::new();
+    let mut sim = new_sim();
+    let mut s = session(Role::Trainee, &sim, &clock);
+    s.handle_welcome(
+        &welcome(2, &[(1, Role::Instructor), (2, Role::Trainee)]),
+        clock.now(),
+    );
+    let r = first_region(&sim);
+    s.handle_touched(&sim, &[r], clock.now());
+    s.handle_message(&mut sim, grant(r, 2), clock.now())
+        .unwrap();
+    drain(&mut s);
+    // One free node of the region moves at 4× the settled speed.
+    let map = RegionMap::for_simulation(&sim);
+    let node = map
+        .canonical_nodes(sim.lattice(), r)
+        .into_iter()
+        .find(|&n| !sim.is_fixed(n))
+        .expect("a free node");
+    let x = sim.positions()[node.0 as usize];
+    let moving = nalgebra::Vector3::new(0.0, 0.0, 4.0 * claims::SETTLED_SPEED);
+    sim.set_node_state(node, x, moving);
+    sim.set_time(claims::RELEASE_AFTER + 0.01);
+    s.handle_touched(&sim, &[], clock.now());
+    drain(&mut s);
+    assert_eq!(s.snapshot().owned, vec![r], "released while moving");
+    // At rest: released.
+    sim.set_node_state(node, x, nalgebra::Vector3::zeros());
+    s.handle_touched(&sim, &[], clock.now());
+    assert!(s.snapshot().owned.is_empty(), "kept at rest");
+    // Moving for ever: released after the bound all the same.
+    let mut s = session(Role::Trainee, &sim, &clock);
+    s.handle_welcome(
+        &welcome(2, &[(1, Role::Instructor), (2, Role::Trainee)]),
+        clock.now(),
+    );
+    sim.set_time(0.0);
+    s.handle_touched(&sim, &[r], clock.now());
+    s.handle_message(&mut sim, grant(r, 2), clock.now())
+        .unwrap();
+    sim.set_node_state(node, x, moving);
+    sim.set_time(claims::HOLD_MOVING_AT_MOST - 0.01);
+    s.handle_touched(&sim, &[], clock.now());
+    assert_eq!(s.snapshot().owned, vec![r]);
+    sim.set_time(claims::HOLD_MOVING_AT_MOST + 0.01);
+    s.handle_touched(&sim, &[], clock.now());
+    assert!(s.snapshot().owned.is_empty(), "held beyond the bound");
+}
+
 #[test]
 fn claim_then_release_after_the_tool_leaves() {
     let clock = FakeClock::new();

@@ -163,6 +163,26 @@ impl RegionMap {
             .collect()
     }
 
+    /// Fastest node speed (m/s) of every region (indexed by region id) at node
+    /// velocities `v` (lattice slots; a cut's virtual nodes are not counted).
+    pub fn max_speeds(&self, lattice: &Lattice, v: &[V3]) -> Vec<f64> {
+        let mut speeds = vec![0.0f64; self.roots.len()];
+        for &t in lattice.leaves() {
+            let Some(r) = self.region_of_root(t.root) else {
+                continue;
+            };
+            let fastest = lattice
+                .tet_nodes(t)
+                .iter()
+                .filter_map(|n| v.get(n.0 as usize))
+                .map(|v| v.norm())
+                .fold(0.0f64, f64::max);
+            let slot = &mut speeds[r as usize];
+            *slot = slot.max(fastest);
+        }
+        speeds
+    }
+
     /// Whether `region` names a region of this map or [`FULL_STATE_REGION`].
     pub fn contains(&self, region: RegionId) -> bool {
         region == FULL_STATE_REGION || (region as usize) < self.roots.len()
