@@ -3,10 +3,12 @@
 //! and force arrows. All tubes are instances of one unit cylinder.
 
 use three_d::{
-    AmbientLight, Camera, ClearState, Context, CpuMaterial, CpuMesh, DirectionalLight, Gm, Indices,
-    InstancedMesh, Instances, Mat4, Mesh, Object, PhysicalMaterial, Positions, Quat, RenderTarget,
-    Srgba, Vec3, Viewport, radians, vec3,
+    Camera, ClearState, Context, CpuMesh, Gm, Indices, InstancedMesh, Instances, Mat4, Mesh,
+    Object, Positions, Quat, RenderTarget, Srgba, Vec3, Viewport, radians, vec3,
 };
+
+mod headlight;
+pub use headlight::HeadlightMaterial;
 
 use crate::camera::View;
 use crate::frame::{Segment, TissueKind, ViewFrame};
@@ -129,7 +131,7 @@ impl Renderer {
         )
     }
 
-    fn surface_mesh(&self, frame: &ViewFrame) -> Gm<Mesh, PhysicalMaterial> {
+    fn surface_mesh(&self, frame: &ViewFrame, light: Vec3) -> Gm<Mesh, HeadlightMaterial> {
         let topo = &frame.topology;
         let mut cpu = CpuMesh {
             positions: Positions::F32(frame.positions.iter().map(v3).collect()),
@@ -145,32 +147,24 @@ impl Renderer {
         cpu.compute_normals();
         Gm::new(
             Mesh::new(&self.context, &cpu),
-            PhysicalMaterial::new_opaque(
-                &self.context,
-                &CpuMaterial {
-                    albedo: Srgba::WHITE,
-                    roughness: 0.55,
-                    metallic: 0.0,
-                    ..Default::default()
-                },
-            ),
+            HeadlightMaterial::new(Srgba::WHITE, light),
         )
     }
 
-    fn tubes(&self, list: TubeList, alpha: u8) -> Option<Gm<InstancedMesh, PhysicalMaterial>> {
+    fn tubes(
+        &self,
+        list: TubeList,
+        alpha: u8,
+        light: Vec3,
+    ) -> Option<Gm<InstancedMesh, HeadlightMaterial>> {
         if list.transformations.is_empty() {
             return None;
         }
-        let material = CpuMaterial {
-            albedo: Srgba::new(255, 255, 255, alpha),
-            roughness: 0.4,
-            metallic: if alpha < 255 { 0.0 } else { 0.3 },
-            ..Default::default()
-        };
-        let material = if alpha < 255 {
-            PhysicalMaterial::new_transparent(&self.context, &material)
-        } else {
-            PhysicalMaterial::new_opaque(&self.context, &material)
+        // instruments are metal: a brighter, sharper highlight than tissue
+        let material = HeadlightMaterial {
+            specular: 0.35,
+            shininess: 40.0,
+            ..HeadlightMaterial::new(Srgba::new(255, 255, 255, alpha), light)
         };
         Some(Gm::new(
             InstancedMesh::new(&self.context, &list.instances(), &self.cylinder),
@@ -188,7 +182,10 @@ impl Renderer {
         options: DrawOptions,
     ) {
         let camera = Self::camera(view, viewport);
-        let surface = self.surface_mesh(frame);
+        // the laparoscope carries its own light: a headlight along the view direction,
+        // and no other (every light is paid per pixel on a CPU renderer)
+        let light = v3(&view.forward());
+        let surface = self.surface_mesh(frame, light);
 
         let mut solid = TubeList::default();
         for (seg, r) in &frame.vessels {
@@ -250,22 +247,14 @@ impl Renderer {
             }
         }
 
-        let solid = self.tubes(solid, 255);
-        let ghosts = self.tubes(ghosts, 90);
+        let solid = self.tubes(solid, 255, light);
+        let ghosts = self.tubes(ghosts, 90, light);
         let heads = (!heads.transformations.is_empty()).then(|| {
             Gm::new(
                 InstancedMesh::new(&self.context, &heads.instances(), &self.cone),
-                PhysicalMaterial::new_opaque(&self.context, &CpuMaterial::default()),
+                HeadlightMaterial::new(Srgba::WHITE, light),
             )
         });
-
-        let ambient = AmbientLight::new(&self.context, 0.35, Srgba::WHITE);
-        // the laparoscope carries its own light: a headlight along the view direction,
-        // and no other (each light is a term of the physical shading of every pixel,
-        // which Mesa's software renderer pays on the CPU: a second, overhead light cost
-        // 13 % of the frame rate at 1280×720)
-        let headlight =
-            DirectionalLight::new(&self.context, 2.2, Srgba::WHITE, v3(&view.forward()));
 
         let mut objects: Vec<&dyn Object> = vec![&surface];
         if let Some(s) = &solid {
@@ -280,6 +269,6 @@ impl Renderer {
         let [r, g, b] = BACKGROUND;
         target
             .clear(ClearState::color_and_depth(r, g, b, 1.0, 1.0))
-            .render(&camera, objects, &[&ambient, &headlight]);
+            .render(&camera, objects, &[]);
     }
 }
