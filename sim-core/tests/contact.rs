@@ -412,3 +412,56 @@ fn forceps_grasps_lifts_and_releases_the_gallbladder() {
         "not at rest: KE {ke} J (peak after release {peak_ke} J)"
     );
 }
+
+/// A grasp tears loose when its tissue is pulled more than `grasp_tear` from the jaws —
+/// unless tearing is off for that tool (`grasp_tears`: a site that simulates another
+/// site's forceps leaves that decision to the site that drives it); then only opening the
+/// jaws lets go.
+#[test]
+fn a_grasp_tears_only_where_tearing_is_on_and_always_lets_go_when_the_jaws_open() {
+    for tears in [true, false] {
+        let mut sim = sim_of(cosurg_sim_core::sim_scene::builtin::cholecystectomy());
+        let mut ia = Interaction::new(&sim);
+        let forceps = ia.tools.index("forceps").unwrap();
+        ia.contact.grasp_tears[forceps] = tears;
+        // The script closes the jaws on the fundus at 1.5–2.0 s; hold there until 2.3 s.
+        while sim.time() < 2.3 {
+            let inputs = ia.scripted_inputs(&sim, sim.time());
+            ia.before_step(&mut sim, &inputs).unwrap();
+            sim.step().unwrap();
+        }
+        assert!(
+            ia.contact.is_grasping(forceps),
+            "the script's grasp did not take"
+        );
+        let mut inputs = ia.scripted_inputs(&sim, sim.time());
+        assert!(inputs[forceps].jaw < 0.05, "jaws not closed");
+        // Snap the closed jaws away in one step: twice the tear distance.
+        let tear = ia.contact.params.grasp_tear;
+        inputs[forceps].pose.translation.vector.z += 2.0 * tear;
+        ia.before_step(&mut sim, &inputs).unwrap();
+        let on_off = if tears { "on" } else { "off" };
+        assert_eq!(
+            ia.contact.is_grasping(forceps),
+            !tears,
+            "tearing {on_off}: pulled {} m from the jaws (tear distance {tear} m)",
+            2.0 * tear
+        );
+        if !tears {
+            // The grasp pulls the tissue towards the jaws, finitely; opening them lets go.
+            assert!(ia.state().tools[forceps].grasped > 0);
+            sim.step().unwrap();
+            assert!(
+                sim.positions()
+                    .iter()
+                    .all(|p| p.iter().all(|c| c.is_finite()))
+            );
+            inputs[forceps].jaw = 0.6;
+            ia.before_step(&mut sim, &inputs).unwrap();
+            assert!(
+                !ia.contact.is_grasping(forceps),
+                "opening the jaws did not let go"
+            );
+        }
+    }
+}

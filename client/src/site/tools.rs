@@ -55,6 +55,9 @@ impl Tools {
             .map(|i| Some(i) == local)
             .collect();
         interaction.hooks.enabled = interaction.blades.enabled.clone();
+        // Likewise only the tool this site drives tears its grasp loose: a remote tool
+        // lets go when its site opens the jaws (see `ContactPipeline::grasp_tears`).
+        interaction.contact.grasp_tears = interaction.blades.enabled.clone();
         Ok(Tools {
             remote: vec![None; interaction.tools.len()],
             remote_site: vec![None; interaction.tools.len()],
@@ -83,6 +86,7 @@ impl Tools {
             .map(|i| Some(i) == self.local)
             .collect();
         self.interaction.hooks.enabled = self.interaction.blades.enabled.clone();
+        self.interaction.contact.grasp_tears = self.interaction.blades.enabled.clone();
         self.touch_radius = 2.0 * sim.lattice().params().cell;
     }
 

@@ -315,6 +315,13 @@ pub struct ContactPipeline {
     touched: Vec<u32>,
     node_k: Vec<Matrix3<f64>>,
     node_mark: Vec<bool>,
+    /// Per tool: whether its grasp may tear loose here (a grasped point farther than
+    /// [`ContactParams::grasp_tear`] from its jaw lets go). All true by default. A site
+    /// that simulates another site's tool from that site's input turns it off for that
+    /// tool: whether a grasp tore is the driving site's decision (its tissue, its
+    /// pull), and a follower whose copy of the tissue a keyframe has just corrected
+    /// would otherwise tear a grasp the driver still holds and drop the organ.
+    pub grasp_tears: Vec<bool>,
 }
 
 impl ContactPipeline {
@@ -357,6 +364,7 @@ impl ContactPipeline {
             touched: Vec::new(),
             node_k: Vec::new(),
             node_mark: Vec::new(),
+            grasp_tears: vec![true; tools.tools.len()],
         }
     }
 

@@ -250,13 +250,14 @@ impl ContactPipeline {
             .interpolate(sim.lattice(), sim.positions(), &mut pos);
         let k = Matrix3::identity() * (p.grasp_stiffness + p.grasp_damping / dt);
         let k_tool = Matrix3::identity() * p.grasp_stiffness;
+        let tears = self.grasp_tears.get(ti).copied().unwrap_or(true);
         let mut w: Vec<(u32, f64)> = Vec::with_capacity(4);
         for (j, pj) in pos.iter().enumerate() {
             if !grasp.alive[j] {
                 continue;
             }
             let target = tip + tool.pose().rotation * grasp.offsets[j];
-            if (target - pj).norm() > p.grasp_tear {
+            if tears && (target - pj).norm() > p.grasp_tear {
                 grasp.alive[j] = false;
                 continue;
             }
@@ -271,6 +272,10 @@ impl ContactPipeline {
             t.grasped += 1;
             t.grasped_points.push(*pj);
         }
-        (self.state.tools[ti].grasped > 0).then_some(grasp)
+        if self.state.tools[ti].grasped == 0 {
+            tracing::debug!(tool = %tool.name, "grasp torn loose");
+            return None;
+        }
+        Some(grasp)
     }
 }
