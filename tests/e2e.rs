@@ -534,15 +534,16 @@ fn poor_network_keeps_divergence_bounded_and_settles() {
 }
 
 /// Hybrid sync bounds, from the goals of issue 15 (worst over 5 seeds in `cosurg bench
-/// sync`, release build): 5 mm max divergence under `poor` and `burst`, display delay at
-/// most 50 ms above the owner → coordinator → follower path's one-way delay (twice the
-/// preset's), 0.05 mm after the tools stop. The 5 mm motion goal is NOT met yet (issue 15
-/// stays open): on the merged tree, with debug binaries on a 2-core machine, two runs under
-/// `poor` gave 10.2 and 28.2 mm while the tools moved. This test therefore asserts what
-/// hybrid does hold today: the owner's keyframes get through and the sites agree again
-/// after the tools stop, within the settled goal ×4 (a late step on a loaded machine
-/// shifts the last correction). Motion divergence and display delay are reported, not
-/// asserted (see below).
+/// sync`, release build): 5 mm max divergence under `poor` and `burst`, 0.05 mm after the
+/// tools stop. Here, with test-profile binaries on a 2-core machine that may be running
+/// other tests, each bound gets a margin: ×2 on the motion (a site that falls behind real
+/// time holds its tool input late and its lag takes a second to grow), ×4 on the settled
+/// divergence (a late step shifts the last correction). Before the followers' playout lag
+/// learned from late inputs (`PeerClocks::input_shortfall`), two runs under `poor` gave 10.2
+/// and 28.2 mm here, and the release bench 33 mm (the follower released the grasp 60–120
+/// ms of simulated time after the owner). Display delay is reported, not asserted (see
+/// below).
+const HYBRID_MOTION_BOUND_MM: f64 = 10.0;
 const HYBRID_SETTLED_BOUND_MM: f64 = 0.2;
 
 /// An instructor lifting and a trainee watching, both under hybrid sync with `preset` on
@@ -590,14 +591,14 @@ fn hybrid_follows_under(preset: &str) {
         "hybrid under {preset}: divergence {max:.2} mm, settled {settled:.3} mm, display \
          delay {delay:.0} ms (path {path_ms:.0} ms, target lag at the end {target:.0} ms)"
     );
-    // Motion divergence is printed, not asserted: hybrid does not hold a bound under these
-    // presets yet (10 and 28 mm in two runs under poor on the merged tree; see above).
-    // Display delay is printed, not asserted: the goal (≤ path + 50 ms) is not met yet.
-    // Measured here with debug binaries on a loaded 2-core machine: target lag 504 ms on
-    // poor's 400 ms path, 497–854 ms on burst's 200 ms path (the stamps' measured transit
-    // includes the sites' own queueing when their simulations do not keep real time, and
-    // datagrams queued behind congestion control); the mean reached 578–1590 ms. The
-    // release-build numbers are in `cosurg bench sync` (docs/RESULTS.md).
+    // Display delay is printed, not asserted: the goal (≤ path + 50 ms) is not met. The
+    // followers' lag covers the inputs' real arrival (jitter without reordering queues
+    // packets behind the slowest, and loss recovery adds its interval); the release-build
+    // figures are in `cosurg bench sync` (docs/RESULTS.md).
+    assert!(
+        max < HYBRID_MOTION_BOUND_MM,
+        "divergence {max} mm under {preset} while the tools moved"
+    );
     assert!(
         settled < HYBRID_SETTLED_BOUND_MM,
         "settled divergence {settled} mm under {preset}"

@@ -158,6 +158,9 @@ pub struct SessionStats {
     pub topology_apply_us_total: f64,
     pub keyframes_topology_dropped: u64,
     pub topology_bytes_sent: u64,
+    /// Under hybrid: new input samples of remote tools that arrived after the simulation
+    /// had passed their time (it held the tool at its newest pose instead).
+    pub late_inputs: u64,
 }
 
 /// What a renderer or HUD reads of the session (see `site::SiteStatus`).
@@ -284,6 +287,18 @@ impl SiteSession {
     /// The playout lag aimed at now (s).
     pub fn target_lag(&self) -> f64 {
         self.clocks.target_lag()
+    }
+
+    /// Under hybrid: a new input sample of a remote tool this site simulates arrived
+    /// `late` seconds after the simulation needed it (negative: that much early) while
+    /// the simulation was about to step to `at` (s). A late input raises the playout lag
+    /// (see `PeerClocks::input_shortfall`).
+    pub fn input_lateness(&mut self, late: f64, at: f64, now: Now) {
+        if late > 0.0 {
+            self.stats.late_inputs += 1;
+        }
+        let wall = self.wall(now.wall);
+        self.clocks.input_shortfall(late, at, wall);
     }
 
     /// The regions holding an element that a cut separated (none without a cut).

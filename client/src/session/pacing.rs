@@ -52,6 +52,15 @@ const HYBRID_INPUT_INTERVAL: f64 = 0.008;
 const HYBRID_HOLD_BEYOND: f64 = 0.02;
 /// Under hybrid: largest automatic playout lag (s).
 pub const MAX_HYBRID_LAG: f64 = 2.0;
+/// Under hybrid: headroom (s) the automatic lag keeps above the largest input shortfall
+/// seen (one input datagram interval and one 4 ms step).
+const INPUT_HEADROOM: f64 = HYBRID_INPUT_INTERVAL + 0.004;
+/// Under hybrid: how fast (s of lag per wall s) the lag floor set by input shortfalls
+/// comes back down while the inputs arrive in time.
+const INPUT_FLOOR_DECAY: f64 = 0.01;
+/// Under hybrid: a shortfall larger than this (s) is a tool that stopped sending, not a
+/// late input.
+const MAX_INPUT_SHORTFALL: f64 = 0.5;
 /// Slowest and fastest step rate while slewing towards the target lag (× real time).
 pub const MIN_RATE: f64 = 0.8;
 pub const MAX_RATE: f64 = 1.05;
@@ -178,6 +187,10 @@ pub struct PeerClocks {
     lag: PlayoutLag,
     /// Hybrid sync: the lag follows the input path only (see the module documentation).
     inputs_only: bool,
+    /// Hybrid sync: a lag (s) found too short by the inputs themselves (see
+    /// [`PeerClocks::input_shortfall`]), and when it was last raised or decayed (wall s).
+    input_floor: f64,
+    input_floor_at: f64,
 }
 
 impl PeerClocks {
@@ -193,6 +206,37 @@ impl PeerClocks {
             },
             lag,
             inputs_only: false,
+            input_floor: 0.0,
+            input_floor_at: 0.0,
+        }
+    }
+
+    /// Under hybrid, a follower about to step to simulation time `at` (s) at wall time
+    /// `now` (s) found the newest input sample of a remote tool it simulates `shortfall`
+    /// seconds older than `at` (negative: that much in hand). A positive shortfall means
+    /// the lag was too short for the inputs' real path, whatever the delay estimate says
+    /// (it rests on clock synchronisation, which assumes a symmetric path; a loaded
+    /// downlink is not): the lag must grow by the shortfall and a margin. The floor this
+    /// sets rises at once and decays slowly ([`INPUT_FLOOR_DECAY`]) while the inputs are
+    /// in time.
+    pub fn input_shortfall(&mut self, shortfall: f64, at: f64, now: f64) {
+        if !self.inputs_only || !shortfall.is_finite() || shortfall > MAX_INPUT_SHORTFALL {
+            return;
+        }
+        let elapsed = (now - self.input_floor_at).max(0.0);
+        self.input_floor = (self.input_floor - INPUT_FLOOR_DECAY * elapsed).max(0.0);
+        self.input_floor_at = now;
+        if shortfall + INPUT_HEADROOM > 0.0 {
+            let behind = self
+                .followed(now)
+                .into_iter()
+                .filter_map(|s| self.estimate_now(s, now))
+                .reduce(f64::min)
+                .map(|lead| lead - at);
+            if let Some(behind) = behind {
+                let needed = behind + shortfall + INPUT_HEADROOM;
+                self.input_floor = self.input_floor.max(needed.min(MAX_HYBRID_LAG));
+            }
         }
     }
 
@@ -324,7 +368,9 @@ impl PeerClocks {
             PlayoutLag::Fixed(l) => l.max(0.0),
             PlayoutLag::Auto if self.inputs_only => {
                 let delay = self.delay.with_margin(HYBRID_JITTER_DEVS).unwrap_or(0.1);
-                (delay + HYBRID_INPUT_INTERVAL).min(MAX_HYBRID_LAG)
+                (delay + HYBRID_INPUT_INTERVAL)
+                    .max(self.input_floor)
+                    .min(MAX_HYBRID_LAG)
             }
             PlayoutLag::Auto => {
                 let delay = self.delay.with_margin(4.0).unwrap_or(0.1);
@@ -559,5 +605,59 @@ mod tests {
         // Far behind its target it catches up faster than the keyframe strategy may.
         let pace = c.pace(399.0 * 0.05 - 2.0, now, false, true);
         assert_eq!(pace.rate, HYBRID_MAX_RATE);
+    }
+
+    /// The inputs' real path is longer than the stamps' transit says (an asymmetric
+    /// path fools the clock synchronisation): inputs arrive after the follower passed
+    /// their time. The lag grows at once to cover the shortfall, stays there while the
+    /// inputs stay late, and comes back down slowly once they arrive in time; early
+    /// inputs, other strategies and a tool that stopped sending change nothing.
+    #[test]
+    fn late_inputs_raise_the_hybrid_lag_which_decays_slowly_once_they_are_in_time() {
+        let mut c =
+            PeerClocks::new(PlayoutLag::Auto).for_strategy(sim_core::sync::SyncStrategy::Hybrid);
+        // Stamps say 0.2 s of transit, steady.
+        for i in 0..200 {
+            let wall = i as f64 * 0.05;
+            c.heard(1, wall, wall + 0.2, Some(0.2));
+        }
+        c.tool_heard(1, 10.0);
+        let base = c.target_lag();
+        assert!(
+            (base - (0.2 + HYBRID_INPUT_INTERVAL)).abs() < 1e-6,
+            "{base}"
+        );
+        // At wall 10.2 the owner is at 10.0 + 0.2 = about 10.2 s; we are `base` behind.
+        let now = 10.2;
+        let at = 10.2 - base;
+        // Early inputs: nothing changes.
+        c.input_shortfall(-0.05, at, now);
+        assert_eq!(c.target_lag(), base);
+        // A sample 0.3 s late: the lag must cover it, plus the headroom.
+        c.input_shortfall(0.3, at, now);
+        let raised = c.target_lag();
+        let behind = c.estimate_now(1, now).unwrap() - at;
+        assert!(
+            (raised - (behind + 0.3 + INPUT_HEADROOM)).abs() < 1e-9,
+            "raised to {raised}, behind {behind}"
+        );
+        // In time for 10 s: down by the decay rate, not below the transit-based lag.
+        c.input_shortfall(-0.1, at + 10.0, now + 10.0);
+        let decayed = c.target_lag();
+        assert!(
+            (decayed - (raised - 10.0 * INPUT_FLOOR_DECAY)).abs() < 1e-9,
+            "{decayed}"
+        );
+        c.input_shortfall(-0.1, at + 100.0, now + 100.0);
+        assert_eq!(c.target_lag(), base);
+        // A tool that stopped sending (older than any late input) is no shortfall.
+        c.input_shortfall(MAX_INPUT_SHORTFALL + 0.1, at + 100.0, now + 100.0);
+        assert_eq!(c.target_lag(), base);
+        // Under the keyframe strategy the inputs do not pace the site.
+        let mut k = PeerClocks::new(PlayoutLag::Auto);
+        k.heard(1, 0.0, 0.2, Some(0.2));
+        let before = k.target_lag();
+        k.input_shortfall(0.3, 0.0, 0.2);
+        assert_eq!(k.target_lag(), before);
     }
 }

@@ -169,6 +169,10 @@ pub struct SiteReport {
     /// Wall time spent waiting so as not to run ahead of the owners' clocks (s).
     #[serde(default)]
     pub paced_seconds: f64,
+    /// Under hybrid: remote tools' input samples that arrived after the simulation had
+    /// passed their time (the playout lag was too short then).
+    #[serde(default)]
+    pub late_inputs: u64,
     /// Display delay: mean simulation-time lag behind the sites followed (ms), over the
     /// steps this site followed another without leading itself; 0 if it never did.
     #[serde(default)]

@@ -207,7 +207,12 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         session.apply_due(&mut sim)?;
         while let Some(ev) = session.poll_event() {
             match ev {
-                SessionEvent::RemotePose(p) => tools.remote_pose(&p),
+                SessionEvent::RemotePose(p) => {
+                    let at = sim.time() + sim.options().dt;
+                    if let Some(late) = tools.remote_pose(&p, at) {
+                        session.input_lateness(late, at, now_of(link.as_ref()));
+                    }
+                }
                 SessionEvent::SceneReset { epoch } => {
                     info!(site = %cfg.name, epoch, t = sim.time(), "scene reset");
                     tools.reset(&sim);
@@ -442,6 +447,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     };
     report.playout_target_ms = session.target_lag() * 1e3;
     report.paced_seconds = stats.paced_seconds;
+    report.late_inputs = stats.late_inputs;
     report.reconnects = stats.reconnects;
     report.resets = stats.resets;
     report.topology_epoch = sim.topology().epoch();

@@ -174,13 +174,19 @@ impl Tools {
     }
 
     /// A pose of a tool from another site (held until our simulation time reaches it).
-    pub fn remote_pose(&mut self, p: &proto::ToolPose) {
+    ///
+    /// `at` (s) is the simulated time of the next step's input (`sim.time() + dt`).
+    /// Returns how late a new sample of a tool this site simulates arrived: `at` minus
+    /// its time (positive: the simulation had already used a held pose in its place);
+    /// `None` for repeats and for tools that are only drawn.
+    pub fn remote_pose(&mut self, p: &proto::ToolPose, at: f64) -> Option<f64> {
         if let Some(site) = self.remote_site.get_mut(p.tool as usize) {
             *site = Some(p.site);
         }
+        let simulated = self.remote_contact && Some(p.tool as usize) != self.local;
         if let Some(track) = self.remote_track.get_mut(p.tool as usize) {
             let q = p.orientation.map(f64::from);
-            track.insert(
+            let new = track.insert(
                 p.sim_time_s,
                 ToolInput::new(
                     V3::new(
@@ -192,7 +198,9 @@ impl Tools {
                     p.jaw_rad.into(),
                 ),
             );
+            return (new && simulated).then_some(at - p.sim_time_s);
         }
+        None
     }
 
     /// The site that last sent a pose of tool `i` (the one that moves it), if any.
@@ -322,13 +330,20 @@ impl PoseTrack {
     /// Simulated seconds of poses kept behind the newest (covers any playout lag).
     const KEEP_S: f64 = 2.0;
 
-    fn insert(&mut self, t: f64, input: ToolInput) {
+    /// Adds a sample; whether it is new (not a repeat carried by a later datagram).
+    fn insert(&mut self, t: f64, input: ToolInput) -> bool {
         // Datagrams may be reordered: keep the track sorted by time.
         let i = self.poses.partition_point(|(pt, _)| *pt < t);
-        match self.poses.get_mut(i) {
-            Some(slot) if slot.0 == t => slot.1 = input,
-            _ => self.poses.insert(i, (t, input)),
-        }
+        let new = match self.poses.get_mut(i) {
+            Some(slot) if slot.0 == t => {
+                slot.1 = input;
+                false
+            }
+            _ => {
+                self.poses.insert(i, (t, input));
+                true
+            }
+        };
         let newest = self.poses.back().map_or(t, |p| p.0);
         while self.poses.len() > 2
             && self
@@ -338,6 +353,7 @@ impl PoseTrack {
         {
             self.poses.pop_front();
         }
+        new
     }
 
     fn sample(&self, t: f64) -> Option<ToolInput> {

@@ -503,6 +503,7 @@ impl ContactPipeline {
                 self.memory[ti].armed = true;
             }
             if self.memory[ti].grasp.is_some() && tool.wants_release() {
+                tracing::debug!(tool = %tool.name, t = sim.time(), jaw = tool.jaw(), "grasp released");
                 self.memory[ti].grasp = None;
             }
             if let Some(grasp) = self.memory[ti].grasp.take() {

@@ -222,7 +222,7 @@ impl ContactPipeline {
         embedding.interpolate(sim.lattice(), sim.positions(), &mut pos);
         let inv = tool.pose().rotation.inverse();
         let offsets = pos.iter().map(|p| inv * (p - tool.tip())).collect();
-        tracing::debug!(tool = %tool.name, points = rest.len(), "grasp");
+        tracing::debug!(tool = %tool.name, t = sim.time(), points = rest.len(), "grasp");
         Some(Grasp {
             embedding,
             offsets,
@@ -273,7 +273,7 @@ impl ContactPipeline {
             t.grasped_points.push(*pj);
         }
         if self.state.tools[ti].grasped == 0 {
-            tracing::debug!(tool = %tool.name, "grasp torn loose");
+            tracing::debug!(tool = %tool.name, t = sim.time(), "grasp torn loose");
             return None;
         }
         Some(grasp)
