@@ -45,7 +45,9 @@ pub mod streams;
 /// (`AdminAction::CreateSession` → `Message::SessionCreated`); tool input histories
 /// (`Message::ToolPoseHistory`, the hybrid strategy's datagrams).
 /// Version 4: attachment releases (`TopologyKind::Release`, hook dissection).
-pub const PROTOCOL_VERSION: u16 = 4;
+/// Version 5: a topology operation carries the simulated time it was made at
+/// (`TopologyOp::sim_time`), so that every site applies it at that time.
+pub const PROTOCOL_VERSION: u16 = 5;
 
 /// A keyframe stream is reset in favour of a newer keyframe of the same region only after
 /// it has been in flight this long. Resetting younger streams starves paths whose round

@@ -97,11 +97,13 @@ fn topology_op() -> impl Strategy<Value = TopologyOp> {
         any::<u32>(),
         vec(vec(-1.0e3f64..1.0e3, 9), 0..4),
         proptest::option::of((any::<u32>(), vec(any::<u32>(), 0..8))),
+        any::<f64>(),
     )
-        .prop_map(|(epoch, site, seq, tris, release)| TopologyOp {
+        .prop_map(|(epoch, site, seq, tris, release, sim_time)| TopologyOp {
             epoch,
             site,
             seq,
+            sim_time,
             kind: match release {
                 Some((layer, springs)) => TopologyKind::Release { layer, springs },
                 None => TopologyKind::Cut {

@@ -202,6 +202,9 @@ pub struct SiteSession {
     started: bool,
     /// A reset to apply when the simulated time reaches it: (new epoch, sim time s).
     scheduled_reset: Option<(Epoch, f64)>,
+    /// Topology ops of the current epoch received before our clock reached the simulated
+    /// time they were made at, in order of that time: applied by [`Self::apply_due`].
+    held_topology: Vec<proto::TopologyOp>,
     transmits: VecDeque<Transmit>,
     events: VecDeque<SessionEvent>,
     stats: SessionStats,
@@ -250,6 +253,7 @@ impl SiteSession {
             got_snapshot: false,
             started: false,
             scheduled_reset: None,
+            held_topology: Vec::new(),
             transmits: VecDeque::new(),
             events: VecDeque::new(),
             stats: SessionStats::default(),
@@ -422,7 +426,10 @@ impl SiteSession {
                 }
             }
             Message::Keyframe(kf) if self.sites.is_other(kf.owner) => {
-                if kf.topology > sim.topology().epoch() {
+                // Ops we hold for their time count: they are applied before a keyframe
+                // made after them is due.
+                let reachable = sim.topology().epoch() + self.held_topology.len() as u32;
+                if kf.topology > reachable {
                     debug!(
                         region = kf.region,
                         topology = kf.topology,
@@ -532,7 +539,15 @@ impl SiteSession {
             Message::Teaching(tr) => self.events.push_back(SessionEvent::Teaching(tr)),
             Message::Topology(op) => {
                 if op.epoch == self.epoch {
-                    self.apply_topology(sim, &op)?;
+                    if op.sim_time.is_finite() && op.sim_time > t + 0.5 * sim.options().dt {
+                        // Our clock is behind its maker's: the op waits for its time.
+                        let i = self
+                            .held_topology
+                            .partition_point(|h| h.sim_time <= op.sim_time);
+                        self.held_topology.insert(i, op);
+                    } else {
+                        self.apply_topology(sim, &op)?;
+                    }
                 } else {
                     debug!(epoch = op.epoch, "topology op of another epoch dropped");
                 }
@@ -584,6 +599,12 @@ impl SiteSession {
         {
             self.scheduled_reset = None;
             self.reset(sim, epoch)?;
+        }
+        let due = self
+            .held_topology
+            .partition_point(|h| h.sim_time <= sim.time() + 0.5 * sim.options().dt);
+        for op in self.held_topology.drain(..due).collect::<Vec<_>>() {
+            self.apply_topology(sim, &op)?;
         }
         let started = Instant::now();
         let applied = self.inbox.apply_due(self.epoch, &mut self.sync, sim);
@@ -669,12 +690,13 @@ impl SiteSession {
 
     /// Sends the topology ops our own tools made (already applied to our simulation) to
     /// the others.
-    pub fn share_topology(&mut self, ops: &[sim_core::cut::TopologyOp]) {
+    /// `t` (s): the simulated time they were applied at here.
+    pub fn share_topology(&mut self, ops: &[sim_core::cut::TopologyOp], t: f64) {
         if self.cfg.role == Role::Observer {
             return;
         }
         for op in ops {
-            let msg = Message::Topology(topology::topology_to_wire(op, self.epoch));
+            let msg = Message::Topology(topology::topology_to_wire(op, self.epoch, t));
             self.stats.topology_bytes_sent += proto::encode_frame(&msg).len() as u64;
             self.control(msg);
         }
@@ -890,6 +912,7 @@ impl SiteSession {
         self.sync = SiteSync::new(self.cfg.strategy, self.map.clone(), sync_config());
         self.pose_history.clear();
         self.inbox.reset(epoch);
+        self.held_topology.clear();
         self.baselines.clear();
         self.claims.clear(t);
         self.clocks.owners.clear();

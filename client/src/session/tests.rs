@@ -639,6 +639,7 @@ fn cut_message(sim: &Simulation, epoch: Epoch) -> proto::TopologyOp {
         epoch,
         site: 1,
         seq: 0,
+        sim_time: sim.time(),
         kind: proto::TopologyKind::Cut {
             triangles: vec![
                 [[x, -1.0, -1.0], [x, 1.0, -1.0], [x, 1.0, 1.0]],
@@ -715,7 +716,7 @@ fn topology_ops_apply_once_and_keyframes_of_an_unreached_topology_are_dropped() 
             proto::TopologyKind::Release { .. } => unreachable!("cut_message makes a cut"),
         },
     });
-    p.a.share_topology(&[own]);
+    p.a.share_topology(&[own], op.sim_time);
     let sent: Vec<Transmit> = drain(&mut p.a);
     assert!(
         sent.iter()
@@ -800,4 +801,32 @@ fn hybrid_input_datagrams_repeat_samples_so_a_loss_costs_nothing() {
         .filter(|t| *t <= last)
         .collect();
     assert_eq!(heard, want);
+}
+
+/// A cut made by a site whose clock is ahead of ours waits for our clock to reach the
+/// simulated time it was made at (so that the tissue parts at the same simulated moment
+/// everywhere); a keyframe made after it is kept meanwhile, not dropped as one of an
+/// unreached topology.
+#[test]
+fn a_topology_op_from_ahead_waits_for_its_simulated_time() {
+    let mut p = pair();
+    let t0 = p.sim_b.time();
+    let mut op = cut_message(&p.sim_b, 0);
+    op.sim_time = t0 + 0.5;
+    let now = p.clock.now();
+    p.b.handle_message(&mut p.sim_b, Message::Topology(op), now)
+        .unwrap();
+    let mut after = p.a_keyframe_after_grant(0);
+    after.topology = 1;
+    after.sim_time = t0 + 0.6;
+    let now = p.clock.now();
+    p.b.handle_message(&mut p.sim_b, Message::Keyframe(after), now)
+        .unwrap();
+    assert_eq!(p.b.stats().keyframes_topology_dropped, 0);
+    p.b.apply_due(&mut p.sim_b).unwrap();
+    assert_eq!(p.sim_b.topology().epoch(), 0, "applied before its time");
+    p.sim_b.set_time(t0 + 0.5);
+    p.b.apply_due(&mut p.sim_b).unwrap();
+    assert_eq!(p.sim_b.topology().epoch(), 1, "not applied at its time");
+    assert_eq!(p.b.stats().topology_applied, 1);
 }

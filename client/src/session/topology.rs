@@ -2,20 +2,23 @@
 //! session: ops made here go to the coordinator on the control stream (reliable, ordered)
 //! and are relayed to every other site; the coordinator keeps them for late joiners' snapshots.
 //! Every site applies every op it receives (duplicates are no-ops, the order does not
-//! matter: `sim_core::cut`). A keyframe whose sender had applied more ops than we have is
+//! matter: `sim_core::cut`), when its clock reaches the simulated time the op was made at
+//! (a site behind holds it, as it holds keyframes). A keyframe whose sender had applied more ops than we have is
 //! dropped (`SiteSession::handle_message`): its nodes belong to a topology we have not
 //! reached, and the owner's next keyframe replaces it.
 
 use proto::{Epoch, SiteId};
 use sim_core::cut::{CutOp, OpId, ReleaseOp, TopologyOp};
 
-/// An op of ours as the wire message of scene epoch `epoch`.
-pub fn topology_to_wire(op: &TopologyOp, epoch: Epoch) -> proto::TopologyOp {
+/// An op of ours, applied at simulated time `sim_time` (s), as the wire message of scene
+/// epoch `epoch`.
+pub fn topology_to_wire(op: &TopologyOp, epoch: Epoch, sim_time: f64) -> proto::TopologyOp {
     match op {
         TopologyOp::Cut(c) => proto::TopologyOp {
             epoch,
             site: c.id.site as SiteId,
             seq: c.id.seq,
+            sim_time,
             kind: proto::TopologyKind::Cut {
                 triangles: c.triangles.clone(),
             },
@@ -24,6 +27,7 @@ pub fn topology_to_wire(op: &TopologyOp, epoch: Epoch) -> proto::TopologyOp {
             epoch,
             site: r.id.site as SiteId,
             seq: r.id.seq,
+            sim_time,
             kind: proto::TopologyKind::Release {
                 layer: r.layer,
                 springs: r.springs.clone(),

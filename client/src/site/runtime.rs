@@ -306,7 +306,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
             // another simulated time, and our keyframes correct them to ours.
             touched.extend(session.regions_of_cut(&sim));
         }
-        session.share_topology(&ops);
+        session.share_topology(&ops, sim.time());
         report.max_tool_force_n = report.max_tool_force_n.max(tools.local_force().norm());
         if let Some(h) = &haptic {
             h.publish(&tools, t);

@@ -461,6 +461,7 @@ fn cut(epoch: u32, site: SiteId, seq: u32) -> TopologyOp {
         epoch,
         site,
         seq,
+        sim_time: 1.0,
         kind: TopologyKind::Cut {
             triangles: vec![[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]],
         },
