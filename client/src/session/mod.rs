@@ -176,6 +176,16 @@ pub struct SessionSnapshot {
     pub divergence_m: Option<f64>,
 }
 
+/// How far ahead (s of simulated time) a site schedules its own cuts: the path of the op
+/// to the other sites that lead (owners and tool drivers run level, at most
+/// `pacing::MAX_LEAD` apart) is one round trip to the coordinator (two hops), plus that
+/// lead and a margin; at least 50 ms, at most 0.5 s (on longer paths a leader applies
+/// the cut on arrival, late, and the owner's keyframes correct it).
+pub fn topology_lead(rtt: Option<Duration>) -> f64 {
+    let rtt = rtt.map_or(0.0, |d| d.as_secs_f64());
+    (1.25 * rtt + pacing::MAX_LEAD + 0.01).clamp(0.05, 0.5)
+}
+
 /// The site's protocol state machine (see the module documentation).
 pub struct SiteSession {
     cfg: SessionConfig,
@@ -205,6 +215,8 @@ pub struct SiteSession {
     /// Topology ops of the current epoch received before our clock reached the simulated
     /// time they were made at, in order of that time: applied by [`Self::apply_due`].
     held_topology: Vec<proto::TopologyOp>,
+    /// One of our own cuts was applied since [`Self::take_own_cut_applied`].
+    own_cut_applied: bool,
     transmits: VecDeque<Transmit>,
     events: VecDeque<SessionEvent>,
     stats: SessionStats,
@@ -254,6 +266,7 @@ impl SiteSession {
             started: false,
             scheduled_reset: None,
             held_topology: Vec::new(),
+            own_cut_applied: false,
             transmits: VecDeque::new(),
             events: VecDeque::new(),
             stats: SessionStats::default(),
@@ -286,6 +299,28 @@ impl SiteSession {
     /// Ownership intervals held, the open ones closed at `t` (s of sim time).
     pub fn owned_intervals(&self, t: f64) -> Vec<(RegionId, f64, f64)> {
         self.claims.intervals(t)
+    }
+
+    /// Whether this site is linked to a session (else it runs alone).
+    pub fn linked(&self) -> bool {
+        self.cfg.linked
+    }
+
+    /// Whether topology ops are applied at their simulated time (held until our clock
+    /// reaches it; our own cuts scheduled a little ahead): linked, under the strategies
+    /// whose sites simulate every tool (hybrid, input-only), where a cut must part the
+    /// tissue at the same moment everywhere. Under keyframe and full-state sync the
+    /// owners' frames carry the shape and ops are applied on arrival: holding them there
+    /// was measured to make the dissection demo worse (a claim tussle after the duct's
+    /// cut, up to 284 mm, and a step p99 of 45–60 ms, one run).
+    pub fn times_topology(&self) -> bool {
+        self.cfg.linked && self.cfg.strategy.simulates_remote_tools()
+    }
+
+    /// Whether one of our own cuts was applied (at its scheduled time) since the last
+    /// call: the driver then claims the regions it separated.
+    pub fn take_own_cut_applied(&mut self) -> bool {
+        std::mem::take(&mut self.own_cut_applied)
     }
 
     /// The playout lag aimed at now (s).
@@ -539,7 +574,10 @@ impl SiteSession {
             Message::Teaching(tr) => self.events.push_back(SessionEvent::Teaching(tr)),
             Message::Topology(op) => {
                 if op.epoch == self.epoch {
-                    if op.sim_time.is_finite() && op.sim_time > t + 0.5 * sim.options().dt {
+                    if self.times_topology()
+                        && op.sim_time.is_finite()
+                        && op.sim_time > t + 0.5 * sim.options().dt
+                    {
                         // Our clock is behind its maker's: the op waits for its time.
                         let i = self
                             .held_topology
@@ -674,7 +712,11 @@ impl SiteSession {
     ) -> Result<(), SimError> {
         let t0 = Instant::now();
         let change = sim.apply_topology_op(topology::topology_from_wire(op))?;
-        if change.applied {
+        if change.applied && Some(op.site) == self.sites.me() {
+            // One of our own cuts, at the time we scheduled it for.
+            self.own_cut_applied = true;
+            info!(seq = op.seq, t = sim.time(), "our cut applied");
+        } else if change.applied {
             self.stats.topology_applied += 1;
             self.stats.topology_apply_us_total += t0.elapsed().as_secs_f64() * 1e6;
             info!(
@@ -688,15 +730,35 @@ impl SiteSession {
         Ok(())
     }
 
-    /// Sends the topology ops our own tools made (already applied to our simulation) to
-    /// the others.
-    /// `t` (s): the simulated time they were applied at here.
-    pub fn share_topology(&mut self, ops: &[sim_core::cut::TopologyOp], t: f64) {
+    /// Sends the topology ops our own tools made at simulated time `t` (s) to the others.
+    /// Releases of attachment springs were applied here at `t` already (they are gradual).
+    /// A cut is not (the blade's `apply_own` is off on a linked site): it is scheduled
+    /// [`topology_lead`] ahead, for every site, this one included, so that the tissue
+    /// parts at the same simulated moment everywhere — also on the sites that lead like
+    /// us and would otherwise receive it after its time. `rtt`: the round trip to the
+    /// coordinator, when known.
+    pub fn share_topology(
+        &mut self,
+        ops: &[sim_core::cut::TopologyOp],
+        t: f64,
+        rtt: Option<Duration>,
+    ) {
         if self.cfg.role == Role::Observer {
             return;
         }
         for op in ops {
-            let msg = Message::Topology(topology::topology_to_wire(op, self.epoch, t));
+            let at = match op {
+                sim_core::cut::TopologyOp::Cut(_) if self.times_topology() => {
+                    t + topology_lead(rtt)
+                }
+                _ => t,
+            };
+            let wire = topology::topology_to_wire(op, self.epoch, at);
+            if at > t {
+                let i = self.held_topology.partition_point(|h| h.sim_time <= at);
+                self.held_topology.insert(i, wire.clone());
+            }
+            let msg = Message::Topology(wire);
             self.stats.topology_bytes_sent += proto::encode_frame(&msg).len() as u64;
             self.control(msg);
         }

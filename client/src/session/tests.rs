@@ -149,11 +149,15 @@ struct Pair {
 }
 
 fn pair() -> Pair {
+    pair_with(SyncStrategy::Keyframe)
+}
+
+fn pair_with(strategy: SyncStrategy) -> Pair {
     let clock = FakeClock::new();
     let sim_a = new_sim();
     let sim_b = new_sim();
-    let mut a = session(Role::Instructor, &sim_a, &clock);
-    let mut b = session(Role::Trainee, &sim_b, &clock);
+    let mut a = session_with(Role::Instructor, &sim_a, &clock, strategy);
+    let mut b = session_with(Role::Trainee, &sim_b, &clock, strategy);
     let sites = [(1, Role::Instructor), (2, Role::Trainee)];
     a.handle_welcome(&welcome(1, &sites), clock.now());
     b.handle_welcome(&welcome(2, &sites), clock.now());
@@ -716,14 +720,70 @@ fn topology_ops_apply_once_and_keyframes_of_an_unreached_topology_are_dropped() 
             proto::TopologyKind::Release { .. } => unreachable!("cut_message makes a cut"),
         },
     });
-    p.a.share_topology(&[own], op.sim_time);
+    // Under keyframe sync an op goes out stamped with the time it was applied at here.
+    let t = p.sim_a.time();
+    p.a.share_topology(&[own], t, Some(Duration::from_millis(40)));
     let sent: Vec<Transmit> = drain(&mut p.a);
+    let stamped = proto::TopologyOp {
+        sim_time: t,
+        ..op.clone()
+    };
     assert!(
         sent.iter()
-            .any(|t| matches!(t, Transmit::Control(Message::Topology(m)) if *m == op)),
+            .any(|x| matches!(x, Transmit::Control(Message::Topology(m)) if *m == stamped)),
         "{sent:?}"
     );
     assert!(p.a.stats().topology_bytes_sent > 0);
+}
+
+/// Under hybrid sync a site schedules its own cut a little ahead (the round trip and a
+/// margin), for the others and for itself, and applies it when its clock gets there.
+#[test]
+fn under_hybrid_an_own_cut_is_scheduled_ahead_and_applied_at_its_time() {
+    let mut p = pair_with(SyncStrategy::Hybrid);
+    let op = cut_message(&p.sim_a, 0);
+    let own = sim_core::cut::TopologyOp::Cut(sim_core::cut::CutOp {
+        id: sim_core::cut::OpId { site: 1, seq: 0 },
+        triangles: match &op.kind {
+            proto::TopologyKind::Cut { triangles } => triangles.clone(),
+            proto::TopologyKind::Release { .. } => unreachable!("cut_message makes a cut"),
+        },
+    });
+    drain(&mut p.a);
+    let t = p.sim_a.time();
+    let rtt = Duration::from_millis(40);
+    p.a.share_topology(&[own], t, Some(rtt));
+    let at = t + super::topology_lead(Some(rtt));
+    assert!(at >= t + 0.05 - 1e-12 && at <= t + 0.5, "lead {}", at - t);
+    let scheduled = proto::TopologyOp {
+        sim_time: at,
+        ..op.clone()
+    };
+    let sent: Vec<Transmit> = drain(&mut p.a);
+    assert!(
+        sent.iter()
+            .any(|x| matches!(x, Transmit::Control(Message::Topology(m)) if *m == scheduled)),
+        "{sent:?}"
+    );
+    let before = p.sim_a.topology().epoch();
+    p.a.apply_due(&mut p.sim_a).unwrap();
+    assert_eq!(
+        p.sim_a.topology().epoch(),
+        before,
+        "own cut applied before its time"
+    );
+    assert!(!p.a.take_own_cut_applied());
+    p.sim_a.set_time(at);
+    p.a.apply_due(&mut p.sim_a).unwrap();
+    assert_eq!(
+        p.sim_a.topology().epoch(),
+        before + 1,
+        "own cut not applied at its time"
+    );
+    assert!(
+        p.a.take_own_cut_applied(),
+        "the driver is not told to claim the cut"
+    );
 }
 
 fn pose(site: SiteId, t: f64) -> proto::ToolPose {
@@ -803,13 +863,13 @@ fn hybrid_input_datagrams_repeat_samples_so_a_loss_costs_nothing() {
     assert_eq!(heard, want);
 }
 
-/// A cut made by a site whose clock is ahead of ours waits for our clock to reach the
-/// simulated time it was made at (so that the tissue parts at the same simulated moment
+/// Under hybrid sync, a cut made by a site whose clock is ahead of ours waits for our
+/// clock to reach the simulated time it was made at (so that the tissue parts at the same simulated moment
 /// everywhere); a keyframe made after it is kept meanwhile, not dropped as one of an
 /// unreached topology.
 #[test]
 fn a_topology_op_from_ahead_waits_for_its_simulated_time() {
-    let mut p = pair();
+    let mut p = pair_with(SyncStrategy::Hybrid);
     let t0 = p.sim_b.time();
     let mut op = cut_message(&p.sim_b, 0);
     op.sim_time = t0 + 0.5;

@@ -297,16 +297,22 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         }
         let mut touched = tools.before_step(&mut sim, local, &session)?;
         let ops = tools.take_topology_ops();
-        if ops
-            .iter()
-            .any(|op| matches!(op, sim_core::cut::TopologyOp::Cut(_)))
-        {
+        let own_cut = session.take_own_cut_applied()
+            || (!session.times_topology()
+                && ops
+                    .iter()
+                    .any(|op| matches!(op, sim_core::cut::TopologyOp::Cut(_))));
+        if own_cut {
             // The regions our cut separated are ours until they are at rest: the others
-            // made their copies of the new (virtual) nodes when the op reached them, at
-            // another simulated time, and our keyframes correct them to ours.
+            // made their copies of the new (virtual) nodes on their own, and our keyframes
+            // correct them to ours.
             touched.extend(session.regions_of_cut(&sim));
         }
-        session.share_topology(&ops, sim.time());
+        let rtt = link
+            .as_ref()
+            .and_then(|l| l.clock().rtt_us)
+            .map(Duration::from_micros);
+        session.share_topology(&ops, sim.time(), rtt);
         report.max_tool_force_n = report.max_tool_force_n.max(tools.local_force().norm());
         if let Some(h) = &haptic {
             h.publish(&tools, t);

@@ -52,6 +52,10 @@ pub struct BladeStrokes {
     /// Which tools may cut here (default: every blade). A networked site lets only the
     /// blade it drives cut: the others' cuts arrive as their ops.
     pub enabled: Vec<bool>,
+    /// Whether a committed cut is applied here at once (default). A networked site turns
+    /// this off and applies its own cuts a little later, at a simulated time it shares
+    /// with the op, so that every site parts the tissue at the same moment.
+    pub apply_own: bool,
 }
 
 impl BladeStrokes {
@@ -65,11 +69,12 @@ impl BladeStrokes {
             spacing: 0.25 * sim.lattice().params().cell,
             made: Vec::new(),
             enabled: vec![true; tools.tools.len()],
+            apply_own: true,
         }
     }
 
-    /// Follows every blade for one step; commits and applies the strokes that ended.
-    /// Returns how many cuts were applied.
+    /// Follows every blade for one step; commits the strokes that ended and applies them
+    /// (unless [`Self::apply_own`] is off). Returns how many cuts were applied.
     pub fn update(&mut self, sim: &mut Simulation, tools: &ToolSet) -> Result<usize, SimError> {
         let mut applied = 0;
         self.strokes.resize(tools.tools.len(), Stroke::default());
@@ -138,9 +143,11 @@ impl BladeStrokes {
                             "blade stroke committed as a cut"
                         );
                         let op = TopologyOp::Cut(op);
-                        sim.apply_topology_op(op.clone())?;
+                        if self.apply_own {
+                            sim.apply_topology_op(op.clone())?;
+                            applied += 1;
+                        }
                         self.made.push(op);
-                        applied += 1;
                     }
                 }
                 stroke.edges.clear();
