@@ -592,9 +592,9 @@ fn hybrid_follows_under(preset: &str) {
          delay {delay:.0} ms (path {path_ms:.0} ms, target lag at the end {target:.0} ms)"
     );
     // Display delay is printed, not asserted: the goal (≤ path + 50 ms) is not met. The
-    // followers' lag covers the inputs' real arrival (jitter without reordering queues
-    // packets behind the slowest, and loss recovery adds its interval); the release-build
-    // figures are in `cosurg bench sync` (docs/RESULTS.md).
+    // followers' lag covers the inputs' real arrival, which is well above the preset's
+    // mean delay (why is not established); the release-build figures are in `cosurg
+    // bench sync` (docs/RESULTS.md).
     assert!(
         max < HYBRID_MOTION_BOUND_MM,
         "divergence {max} mm under {preset} while the tools moved"

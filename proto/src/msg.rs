@@ -399,10 +399,11 @@ pub struct TopologyOp {
     pub site: SiteId,
     /// That site's sequence number (from 0); (site, seq) identifies and orders the op.
     pub seq: u32,
-    /// Simulated time (s) at which its site applied it: a site whose clock is behind
-    /// holds it until its own clock reaches that time (as it does keyframes), so that a
-    /// cut parts the tissue at the same simulated moment on every site. Not finite or
-    /// already past: applied on arrival.
+    /// Simulated time (s) at which its site applies it. Under hybrid and input-only sync a
+    /// site whose clock is behind holds it until its own clock reaches that time (as it
+    /// does keyframes), so that a cut parts the tissue at the same simulated moment on
+    /// every site; not finite, already past, or under keyframe and full-state sync:
+    /// applied on arrival.
     pub sim_time: f64,
     pub kind: TopologyKind,
 }

@@ -58,8 +58,8 @@ const INPUT_HEADROOM: f64 = HYBRID_INPUT_INTERVAL + 0.004;
 /// Under hybrid: how fast (s of lag per wall s) the lag floor set by input shortfalls
 /// comes back down while the inputs arrive in time.
 const INPUT_FLOOR_DECAY: f64 = 0.01;
-/// Under hybrid: a shortfall larger than this (s) is a tool that stopped sending, not a
-/// late input.
+/// Under hybrid: a sample later than this (s) is not taken as a measure of the path (the
+/// first samples after an outage or a reconnection).
 const MAX_INPUT_SHORTFALL: f64 = 0.5;
 /// Slowest and fastest step rate while slewing towards the target lag (× real time).
 pub const MIN_RATE: f64 = 0.8;
@@ -211,12 +211,12 @@ impl PeerClocks {
         }
     }
 
-    /// Under hybrid, a follower about to step to simulation time `at` (s) at wall time
-    /// `now` (s) found the newest input sample of a remote tool it simulates `shortfall`
-    /// seconds older than `at` (negative: that much in hand). A positive shortfall means
-    /// the lag was too short for the inputs' real path, whatever the delay estimate says
-    /// (it rests on clock synchronisation, which assumes a symmetric path; a loaded
-    /// downlink is not): the lag must grow by the shortfall and a margin. The floor this
+    /// Under hybrid, a new input sample of a remote tool this follower simulates arrived
+    /// `shortfall` seconds after its time (`at`, s: the simulated time the follower is
+    /// about to step to, minus the sample's; negative: that much early) at wall time
+    /// `now` (s). A positive shortfall means the lag was too short for the inputs' real
+    /// path, whatever the delay estimate from the time stamps says (measured: 50–170 ms
+    /// short under `poor`): the lag must grow by the shortfall and a margin. The floor this
     /// sets rises at once and decays slowly ([`INPUT_FLOOR_DECAY`]) while the inputs are
     /// in time.
     pub fn input_shortfall(&mut self, shortfall: f64, at: f64, now: f64) {
@@ -607,9 +607,8 @@ mod tests {
         assert_eq!(pace.rate, HYBRID_MAX_RATE);
     }
 
-    /// The inputs' real path is longer than the stamps' transit says (an asymmetric
-    /// path fools the clock synchronisation): inputs arrive after the follower passed
-    /// their time. The lag grows at once to cover the shortfall, stays there while the
+    /// The inputs' real path is longer than the stamps' transit says: inputs arrive
+    /// after the follower passed their time. The lag grows at once to cover the shortfall, stays there while the
     /// inputs stay late, and comes back down slowly once they arrive in time; early
     /// inputs, other strategies and a tool that stopped sending change nothing.
     #[test]
@@ -650,7 +649,7 @@ mod tests {
         );
         c.input_shortfall(-0.1, at + 100.0, now + 100.0);
         assert_eq!(c.target_lag(), base);
-        // A tool that stopped sending (older than any late input) is no shortfall.
+        // A sample later than any path (after an outage) is no measure of the path.
         c.input_shortfall(MAX_INPUT_SHORTFALL + 0.1, at + 100.0, now + 100.0);
         assert_eq!(c.target_lag(), base);
         // Under the keyframe strategy the inputs do not pace the site.

@@ -146,8 +146,8 @@ impl Tools {
             })
             .collect();
         self.interaction.blades.site = session.site_id().map_or(0, u32::from);
-        // Linked, our cuts are applied when the session schedules them (see
-        // `SiteSession::share_topology`).
+        // Under hybrid and input-only sync our cuts are applied when the session schedules
+        // them (see `SiteSession::share_topology`).
         self.interaction.blades.apply_own = !session.times_topology();
         self.interaction.hooks.site = self.interaction.blades.site;
         self.interaction.before_step(sim, &inputs)?;

@@ -52,9 +52,10 @@ pub struct BladeStrokes {
     /// Which tools may cut here (default: every blade). A networked site lets only the
     /// blade it drives cut: the others' cuts arrive as their ops.
     pub enabled: Vec<bool>,
-    /// Whether a committed cut is applied here at once (default). A networked site turns
-    /// this off and applies its own cuts a little later, at a simulated time it shares
-    /// with the op, so that every site parts the tissue at the same moment.
+    /// Whether a committed cut is applied here at once (default). A site under hybrid or
+    /// input-only sync turns this off and applies its own cuts a little later, at a
+    /// simulated time it shares with the op, so that every site parts the tissue at the
+    /// same moment.
     pub apply_own: bool,
 }
 
