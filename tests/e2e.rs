@@ -114,6 +114,14 @@ fn join_base(server: &Server, site: &str, role: &str) -> Command {
         .args(["--dt", "0.004", "--no-haptics", "--vtu-interval", "0"])
         // never a window, whatever the environment's DISPLAY
         .arg("--headless")
+        // the one-body scene (the server's scene hash) and keyframe sync, unless a test
+        // asks for another (clap takes the last of a repeated option)
+        .args([
+            "--scene",
+            "builtin:cholecystectomy",
+            "--strategy",
+            "keyframe",
+        ])
         .env_remove("COSURG_TOKEN")
         .env_remove("COSURG_INVITE");
     c
@@ -806,6 +814,7 @@ fn demo_scene_reset_keeps_the_sites_together() {
     let out = tempfile::tempdir().unwrap();
     let mut cmd = cosurg();
     cmd.args(["demo", "--seconds", "12", "--reset-at", "4", "--json"])
+        .args(["--scene", "cholecystectomy", "--strategy", "keyframe"])
         .args(["--vtu-interval", "100"])
         .arg("--out")
         .arg(out.path())

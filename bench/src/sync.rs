@@ -172,8 +172,8 @@ pub struct SyncBench {
 /// B on the slowed machine in the unequal-machines row).
 fn cast(slowdown: f64, receiver_cg: Option<usize>) -> Vec<DemoSite> {
     let mut c = cosurg::demo::cast(3, slowdown);
-    c[1].tool = None;
-    c[2].tool = None;
+    c[1].tools.clear();
+    c[2].tools.clear();
     if let Some(n) = receiver_cg {
         c[2].extra = vec!["--cg-iterations".into(), n.to_string()];
     }

@@ -21,6 +21,8 @@ pub enum Command {
     /// The multi-site demo: a coordinator and N sites on loopback over QUIC/TLS.
     Demo(cosurg::demo::DemoArgs),
     /// Join a session as one site.
+    // A repeated option: the last one wins (scripts and tests append to a base command).
+    #[command(args_override_self = true)]
     Join(Box<cosurg::join::JoinArgs>),
     /// Mint an invitation through a running coordinator (instructor token); prints it.
     Invite(cosurg::invite::InviteArgs),

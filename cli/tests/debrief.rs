@@ -168,6 +168,8 @@ fn demo_sites_record_and_the_summary_scores_trainee_a() {
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_cosurg"));
     cmd.env("COSURG_LOG", "warn")
         .args(["demo", "--seconds", "8", "--json", "--vtu-interval", "100"])
+        // the one-body scene, where trainee A repeats the instructor's lift
+        .args(["--scene", "cholecystectomy", "--strategy", "keyframe"])
         .arg("--out")
         .arg(out)
         .args(["--", "--no-haptics"]);

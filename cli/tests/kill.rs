@@ -59,6 +59,13 @@ fn join(
         .args(["--role", role, "--site", site, "--pin", fingerprint])
         .args([credential.0, credential.1])
         .args(["--dt", "0.004", "--no-haptics", "--vtu-interval", "0"])
+        // the one-body scene and keyframe sync this test's timings were set for
+        .args([
+            "--scene",
+            "builtin:cholecystectomy",
+            "--strategy",
+            "keyframe",
+        ])
         .args(["--expect-sites", "2", "--seconds", &SECONDS.to_string()])
         .args([
             "--tool",

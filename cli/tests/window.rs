@@ -28,7 +28,14 @@ fn start_xvfb() -> Xvfb {
 fn screenshot(x: &Xvfb, dir: &Path, name: &str, extra: &[&str]) -> (u32, u32, Vec<u8>) {
     let path = dir.join(name);
     let out = Command::new(env!("CARGO_BIN_EXE_cosurg"))
-        .args(["run", "--size", "1280x720", "--screenshot"])
+        // the one-body scene: its colours and lift are what the checks below expect
+        .args([
+            "run",
+            "builtin:cholecystectomy",
+            "--size",
+            "1280x720",
+            "--screenshot",
+        ])
         .arg(&path)
         .args(extra)
         .env("DISPLAY", &x.display)
@@ -198,6 +205,13 @@ fn join(server: &Server, site: &str, role: &str) -> Command {
         .args(["--server", &server.addr, "--session", SESSION])
         .args(["--role", role, "--site", site, "--pin", &server.fingerprint])
         .args(["--dt", "0.004", "--no-haptics", "--vtu-interval", "0"])
+        // the one-body scene (the server's scene hash) and keyframe sync
+        .args([
+            "--scene",
+            "builtin:cholecystectomy",
+            "--strategy",
+            "keyframe",
+        ])
         .args(["--expect-sites", "2"])
         .env("COSURG_LOG", "warn")
         .env_remove("COSURG_TOKEN")
@@ -327,6 +341,7 @@ fn demo_view_opens_one_window_per_site() {
     let out = dir.path().join("demo");
     let child = Command::new(env!("CARGO_BIN_EXE_cosurg"))
         .args(["demo", "--view", "--sites", "2", "--seconds", "4", "--json"])
+        .args(["--scene", "cholecystectomy", "--strategy", "keyframe"])
         .args(["--vtu-interval", "100"])
         .arg("--out")
         .arg(&out)

@@ -117,7 +117,8 @@ fn x_events_in_the_window_move_the_forceps_grasp_and_lift_the_gallbladder() {
     let dir = tempfile::tempdir().unwrap();
     let stats_path = dir.path().join("stats.json");
     let mut child = Command::new(env!("CARGO_BIN_EXE_cosurg"))
-        .args(["run", "--size", "1280x720", "--seconds", RUN_SECONDS])
+        .args(["run", "builtin:cholecystectomy", "--size", "1280x720"])
+        .args(["--seconds", RUN_SECONDS])
         .arg("--stats-json")
         .arg(&stats_path)
         .env("DISPLAY", &x.display)

@@ -1,12 +1,19 @@
 //! `cosurg demo`: a coordinator and N sites on loopback, real QUIC with TLS between real
-//! processes, playing the built-in cholecystectomy script.
+//! processes, playing a built-in scene's scripts.
 //!
-//! Timeline (simulated seconds), one operator at a time as in a teaching session: the
-//! instructor's forceps grasps the gallbladder fundus and lifts it (0.5–6.5 s); trainee B
-//! works around the gallbladder neck with a probe (7–12 s); trainee A repeats the lift
-//! (12.5–18.5 s). Every site records its embedded
-//! surface every 50 ms of simulated time; afterwards the demo compares every site with
-//! the site that owned the region at that time, vertex by vertex.
+//! Timeline of the default scene, `cholecystectomy-bodies` (simulated seconds; see
+//! [`cast_for`]): the instructor's forceps grasps the gallbladder fundus, lifts it and
+//! holds it (0.5–3.5 s, then on); trainee B's hook dissects the bed (3–9.5 s); the
+//! instructor takes the clip applier and clips the cystic duct on the hilum's side
+//! (11–13.5 s); trainee A takes the applier and clips it on the gallbladder's side
+//! (13.5–16 s); the instructor divides the duct between the clips with the blade
+//! (16–17.5 s). Timeline of `cholecystectomy` (one body, [`cast`]): the instructor's
+//! forceps lifts the fundus (0.5–6.5 s); trainee B works around the neck with a probe
+//! (7–12 s); trainee A repeats the lift (12.5–18.5 s).
+//!
+//! Every site records its embedded surface every 50 ms of simulated time; afterwards the
+//! demo compares every site with the site that owned the region at that time, vertex by
+//! vertex.
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -38,10 +45,10 @@ pub struct DemoArgs {
     /// Output folder (default out/demo-<timestamp>).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Sync strategy: keyframe (owners' keyframes), hybrid (every site
-    /// simulates every tool from repeated input samples; owners' keyframes correct, blended),
+    /// Sync strategy: hybrid (every site simulates every tool from repeated input samples;
+    /// owners' keyframes correct, blended), keyframe (owners' keyframes),
     /// full-state[:K] (every K steps), input-only.
-    #[arg(long, default_value = "keyframe")]
+    #[arg(long, default_value = "hybrid")]
     pub strategy: SyncStrategy,
     /// Network impairment preset applied to every site's link (netem presets: lan,
     /// metro, good, intercontinental, average, poor, burst (Gilbert–Elliott loss), outage
@@ -68,10 +75,11 @@ pub struct DemoArgs {
     /// Without it every site runs headless.
     #[arg(long)]
     pub view: bool,
-    /// Built-in scene: `cholecystectomy` (forceps lift, probe, trainee A repeats the lift)
-    /// or `cholecystectomy-bodies` (the instructor's forceps lifts the gallbladder, trainee
-    /// B's hook dissects the bed, trainee A's blade cuts the cystic duct at the end).
-    #[arg(long, default_value = "cholecystectomy")]
+    /// Built-in scene: `cholecystectomy-bodies` (the instructor's forceps lifts the
+    /// gallbladder, trainee B's hook dissects the bed, the instructor and trainee A clip the
+    /// cystic duct and the instructor divides it) or `cholecystectomy` (one body: forceps
+    /// lift, probe, trainee A repeats the lift).
+    #[arg(long, default_value = "cholecystectomy-bodies")]
     pub scene: String,
     /// Extra arguments passed to every site's `cosurg join` (after `--`).
     #[arg(last = true)]
@@ -83,7 +91,11 @@ pub struct DemoArgs {
 pub struct DemoSite {
     pub name: String,
     pub role: &'static str,
-    pub tool: Option<&'static str>,
+    /// The scene tools the site drives, the one in hand at the start first (empty: none).
+    pub tools: Vec<&'static str>,
+    /// A built-in scene file (path under `scenes/`) the site plays instead of the scene's
+    /// own scripts for its tools.
+    pub script_file: Option<&'static str>,
     pub script_start: f64,
     pub slowdown: f64,
     /// Further `cosurg join` arguments for this site only (e.g. its own solver budget).
@@ -97,7 +109,8 @@ pub fn cast(n: usize, slowdown: f64) -> Vec<DemoSite> {
             0 => DemoSite {
                 name: "instructor".into(),
                 role: "instructor",
-                tool: Some("forceps"),
+                tools: vec!["forceps"],
+                script_file: None,
                 script_start: 0.5,
                 slowdown: 1.0,
                 extra: Vec::new(),
@@ -105,7 +118,8 @@ pub fn cast(n: usize, slowdown: f64) -> Vec<DemoSite> {
             1 => DemoSite {
                 name: "trainee-a".into(),
                 role: "trainee",
-                tool: Some("forceps"),
+                tools: vec!["forceps"],
+                script_file: None,
                 script_start: 12.5,
                 slowdown: 1.0,
                 extra: Vec::new(),
@@ -113,7 +127,8 @@ pub fn cast(n: usize, slowdown: f64) -> Vec<DemoSite> {
             2 => DemoSite {
                 name: "trainee-b".into(),
                 role: "trainee",
-                tool: Some("probe"),
+                tools: vec!["probe"],
+                script_file: None,
                 script_start: 7.0,
                 slowdown,
                 extra: Vec::new(),
@@ -121,7 +136,8 @@ pub fn cast(n: usize, slowdown: f64) -> Vec<DemoSite> {
             k => DemoSite {
                 name: format!("observer-{}", k - 2),
                 role: "observer",
-                tool: None,
+                tools: Vec::new(),
+                script_file: None,
                 script_start: 0.0,
                 slowdown: 1.0,
                 extra: Vec::new(),
@@ -131,21 +147,27 @@ pub fn cast(n: usize, slowdown: f64) -> Vec<DemoSite> {
 }
 
 /// The demo's cast for `n` sites of the built-in scene `scene`: [`cast`] for the
-/// cholecystectomy; for `cholecystectomy-bodies` the instructor lifts the gallbladder with
-/// the forceps, trainee B dissects the bed with the hook and trainee A cuts the cystic duct
-/// with the blade at the end (every script from 0.5 s: the scene's scripts carry the
-/// timeline, lift 2.5–3.5 s, dissection 3–9.5 s, cut 11–12 s).
+/// cholecystectomy; for `cholecystectomy-bodies` (every script from 0.5 s: the scene's
+/// scripts carry the timeline, see `sim_scene::builtin::bodies`) the instructor lifts the
+/// gallbladder with the forceps and holds it, trainee B dissects the bed with the hook
+/// (3–9.5 s), the instructor exchanges the forceps for the clip applier and clips the
+/// cystic duct on the hilum's side (11–13.5 s), trainee A takes the applier and clips it
+/// on the gallbladder's side (13.5–16 s), and the instructor divides the duct between the
+/// clips with the blade (16–17.5 s).
 pub fn cast_for(scene: &str, n: usize, slowdown: f64) -> Vec<DemoSite> {
     let mut c = cast(n, slowdown);
     if scene == "cholecystectomy-bodies" {
         for site in &mut c {
             site.script_start = 0.5;
-            site.tool = match site.name.as_str() {
-                "instructor" => Some("forceps"),
-                "trainee-a" => Some("blade"),
-                "trainee-b" => Some("hook"),
-                _ => site.tool,
-            };
+            match site.name.as_str() {
+                "instructor" => site.tools = vec!["forceps", "clip applier", "blade"],
+                "trainee-a" => {
+                    site.tools = vec!["clip applier"];
+                    site.script_file = Some("scripts/bodies_second_clip.toml");
+                }
+                "trainee-b" => site.tools = vec!["hook"],
+                _ => {}
+            }
         }
     }
     c
@@ -180,6 +202,10 @@ pub struct SiteRow {
     /// site with the same cuts).
     pub topology_epoch: u32,
     pub topology_digest: String,
+    /// Cuts, clips and attachment springs released in that topology.
+    pub cuts: u32,
+    pub clips: u32,
+    pub springs_released: u32,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -322,11 +348,21 @@ pub fn run_session_on(
             )?;
             cmd.env("COSURG_INVITE", issued.invitation);
         }
-        // The demo's tools play the scene's canned scripts.
-        match site.tool {
-            Some(t) => cmd.args(["--tool", t, "--script"]),
-            None => cmd.arg("--no-tool"),
-        };
+        // The demo's tools play the scene's canned scripts (or the built-in script file
+        // the cast gives the site).
+        if site.tools.is_empty() {
+            cmd.arg("--no-tool");
+        } else {
+            cmd.args(["--tool", &site.tools.join(",")]).arg("--script");
+            if let Some(rel) = site.script_file {
+                let text = sim_core::sim_scene::builtin::embedded_file(rel)
+                    .with_context(|| format!("built-in script {rel} is missing"))?;
+                let path = run.out.join(format!("{}-script.toml", site.name));
+                std::fs::write(&path, text)
+                    .with_context(|| format!("writing {}", path.display()))?;
+                cmd.arg(&path);
+            }
+        }
         if !run.view {
             cmd.arg("--headless");
         }
@@ -464,6 +500,9 @@ pub fn demo(args: DemoArgs) -> Result<()> {
             epoch: r.epoch,
             topology_epoch: r.topology_epoch,
             topology_digest: r.topology_digest.clone(),
+            cuts: r.cuts,
+            clips: r.clips,
+            springs_released: r.springs_released,
         })
         .collect();
     write_plots(&out, &series, &reports)?;
@@ -556,6 +595,18 @@ fn print_table(s: &DemoSummary) {
             opt(r.guide_force_mean_n, 3),
             opt(r.playback_distance_mm, 2)
         );
+    }
+    if s.sites.iter().any(|r| r.topology_epoch > 0) {
+        println!(
+            "\n{:<12} {:>6} {:>18} {:>5} {:>6} {:>16}",
+            "site", "epoch", "topology digest", "cuts", "clips", "springs released"
+        );
+        for r in &s.sites {
+            println!(
+                "{:<12} {:>6} {:>18} {:>5} {:>6} {:>16}",
+                r.name, r.topology_epoch, r.topology_digest, r.cuts, r.clips, r.springs_released
+            );
+        }
     }
     if let Some(sc) = &s.scores {
         println!(

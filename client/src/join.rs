@@ -66,8 +66,11 @@ pub struct JoinArgs {
     #[arg(long)]
     pub scene: Option<String>,
     /// Tool this site drives (scene tool name); default: the script's or the first tool.
-    #[arg(long)]
-    pub tool: Option<String>,
+    /// Several (`--tool "forceps,clip applier,blade"`): the site exchanges the
+    /// instrument in hand as the script's tracks for them begin, the first in hand at the
+    /// start.
+    #[arg(long, value_delimiter = ',')]
+    pub tool: Vec<String>,
     /// Drive no tool (a trainee who only watches and feels).
     #[arg(long, conflicts_with = "tool")]
     pub no_tool: bool,
@@ -90,10 +93,11 @@ pub struct JoinArgs {
     /// Print the summary as JSON.
     #[arg(long)]
     pub json: bool,
-    /// How sites share the interaction: keyframe (owners' keyframes), hybrid (every site
-    /// simulates every tool from repeated input samples; owners' keyframes correct, blended),
-    /// full-state[:K] (every K steps), input-only.
-    #[arg(long, default_value = "keyframe")]
+    /// How sites share the interaction: hybrid (every site simulates every tool from
+    /// repeated input samples; owners' keyframes correct, blended), keyframe (owners'
+    /// keyframes), full-state[:K] (every K steps), input-only. Every site of a session
+    /// should use the same.
+    #[arg(long, default_value = "hybrid")]
     pub strategy: SyncStrategy,
     /// Slow this site's simulation by a factor (real extra CPU per step).
     #[arg(long, default_value_t = 1.0)]
@@ -182,39 +186,63 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
         }
         _ => None,
     };
-    let tool = match (&args.tool, RoleArg::Observer == args.role || args.no_tool) {
-        (_, true) => None,
-        (Some(t), _) => Some(t.clone()),
-        (None, _) => script
+    let tools: Vec<String> = match (
+        args.tool.is_empty(),
+        RoleArg::Observer == args.role || args.no_tool,
+    ) {
+        (_, true) => Vec::new(),
+        (false, _) => args.tool.clone(),
+        (true, _) => script
             .as_ref()
             .and_then(|s| s.tools().next().map(String::from))
-            .or_else(|| scene.scene.tools.first().map(|t| t.name.clone())),
+            .or_else(|| scene.scene.tools.first().map(|t| t.name.clone()))
+            .into_iter()
+            .collect(),
     };
-    if let Some(t) = &tool
-        && !scene.scene.tools.iter().any(|s| &s.name == t)
-    {
-        bail!(
-            "tool {t:?} is not in the scene (tools: {:?})",
-            scene
-                .scene
-                .tools
-                .iter()
-                .map(|t| &t.name)
-                .collect::<Vec<_>>()
-        );
+    for t in &tools {
+        if !scene.scene.tools.iter().any(|s| &s.name == t) {
+            bail!(
+                "tool {t:?} is not in the scene (tools: {:?})",
+                scene
+                    .scene
+                    .tools
+                    .iter()
+                    .map(|t| &t.name)
+                    .collect::<Vec<_>>()
+            );
+        }
     }
-    // `--script` without a file: the scene's script for the tool.
+    if let Some(t) = tools
+        .iter()
+        .enumerate()
+        .find_map(|(i, t)| tools[..i].contains(t).then_some(t))
+    {
+        bail!("--tool {t:?} is given twice");
+    }
+    // `--script` without a file: the scene's scripts for the tools, one track each.
     if matches!(args.script, Some(None)) {
-        let Some(t) = &tool else {
+        if tools.is_empty() {
             bail!("--script: this site drives no tool");
-        };
-        script = Some(
-            scene
+        }
+        let mut merged = sim_core::sim_scene::ToolScript::default();
+        for t in &tools {
+            let s = scene
                 .scripts
                 .get(t)
-                .cloned()
-                .with_context(|| format!("--script: the scene has no script for tool {t:?}"))?,
-        );
+                .with_context(|| format!("--script: the scene has no script for tool {t:?}"))?;
+            let track = s
+                .tracks
+                .get(t)
+                .or_else(|| s.tracks.values().next())
+                .with_context(|| format!("--script: the scene's script for {t:?} is empty"))?;
+            merged.tracks.insert(t.clone(), track.clone());
+            merged.commands.extend(s.commands.iter().cloned());
+            if merged.title.is_none() {
+                merged.title = s.title.clone();
+            }
+        }
+        merged.commands.sort_by(|a, b| a.t.total_cmp(&b.t));
+        script = Some(merged);
     }
     let view = view_of(args)?;
     let seconds = match (&view, args.seconds) {
@@ -293,7 +321,7 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
         name: args.site.clone(),
         role: args.role.into(),
         options,
-        tool,
+        tools,
         script,
         script_start: args.script_start,
         seconds,

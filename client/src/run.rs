@@ -18,7 +18,7 @@ use crate::stats::percentile;
 
 #[derive(Debug, Args)]
 pub struct RunArgs {
-    /// Scene file (TOML) or builtin:NAME; default: the built-in cholecystectomy scene.
+    /// Scene file (TOML) or builtin:NAME; default: the built-in cholecystectomy-bodies scene.
     pub scene: Option<String>,
     /// Simulated time (s): headless and `--bench-window` runs (default 2), the screenshot's
     /// default `--at`; with a window, stop after it (default: when the window closes).

@@ -31,6 +31,8 @@ fn config(extra: &[&str]) -> SiteConfig {
         "t",
         "--tool",
         "forceps",
+        "--scene",
+        "builtin:cholecystectomy",
         "--headless",
         "--no-haptics",
         "--no-realtime",

@@ -27,7 +27,7 @@ fn site(scene: &LoadedScene, name: &str, role: Role, tool: &str, seconds: f64) -
         role,
         scene: scene.clone(),
         options,
-        tool: Some(tool.into()),
+        tools: vec![tool.into()],
         script: None,
         script_start: 0.0,
         seconds,

@@ -51,7 +51,7 @@ fn follow(lag: usize) {
     options.dt = 0.004;
     let mut owner = Simulation::new(scene.clone(), options.clone()).unwrap();
     let mut recv = Simulation::new(scene.clone(), options.clone()).unwrap();
-    let mut tools = Tools::new(&owner, Some("forceps"), SyncStrategy::Keyframe).unwrap();
+    let mut tools = Tools::new(&owner, &["forceps".into()], SyncStrategy::Keyframe).unwrap();
     let config = |role| SessionConfig {
         role,
         strategy: SyncStrategy::Keyframe,

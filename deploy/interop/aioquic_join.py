@@ -37,8 +37,8 @@ import struct
 import sys
 import time
 
-WIRE_TAG = 5
-PROTOCOL_VERSION = 5
+WIRE_TAG = 6
+PROTOCOL_VERSION = 6
 ALPN = "cosurg/1"
 
 # proto::Message variant indices (append-only within a protocol version).

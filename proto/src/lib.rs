@@ -47,7 +47,8 @@ pub mod streams;
 /// Version 4: attachment releases (`TopologyKind::Release`, hook dissection).
 /// Version 5: a topology operation carries the simulated time it was made at
 /// (`TopologyOp::sim_time`), so that every site applies it at that time.
-pub const PROTOCOL_VERSION: u16 = 5;
+/// Version 6: clips (`TopologyKind::Clip`, the clip applier).
+pub const PROTOCOL_VERSION: u16 = 6;
 
 /// A keyframe stream is reset in favour of a newer keyframe of the same region only after
 /// it has been in flight this long. Resetting younger streams starves paths whose round

@@ -417,6 +417,9 @@ pub enum TopologyKind {
     /// A release of attachment springs (dissection): springs of one attachment layer of
     /// the scene, by index (ascending). Released springs stay released.
     Release { layer: u32, springs: Vec<u32> },
+    /// A clip: the segment of a clip applier's closed jaws (its two ends), in rest
+    /// coordinates (m; exact `f64`, like a cut's triangles).
+    Clip { ends: [[f64; 3]; 2] },
 }
 
 /// One timed tool sample of a teaching trajectory.

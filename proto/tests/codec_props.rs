@@ -98,22 +98,28 @@ fn topology_op() -> impl Strategy<Value = TopologyOp> {
         vec(vec(-1.0e3f64..1.0e3, 9), 0..4),
         proptest::option::of((any::<u32>(), vec(any::<u32>(), 0..8))),
         any::<f64>(),
+        proptest::option::of(vec(any::<f64>(), 6)),
     )
-        .prop_map(|(epoch, site, seq, tris, release, sim_time)| TopologyOp {
-            epoch,
-            site,
-            seq,
-            sim_time,
-            kind: match release {
-                Some((layer, springs)) => TopologyKind::Release { layer, springs },
-                None => TopologyKind::Cut {
-                    triangles: tris
-                        .into_iter()
-                        .map(|t| std::array::from_fn(|i| std::array::from_fn(|k| t[3 * i + k])))
-                        .collect(),
+        .prop_map(
+            |(epoch, site, seq, tris, release, sim_time, clip)| TopologyOp {
+                epoch,
+                site,
+                seq,
+                sim_time,
+                kind: match (release, clip) {
+                    (_, Some(e)) => TopologyKind::Clip {
+                        ends: std::array::from_fn(|i| std::array::from_fn(|k| e[3 * i + k])),
+                    },
+                    (Some((layer, springs)), None) => TopologyKind::Release { layer, springs },
+                    (None, None) => TopologyKind::Cut {
+                        triangles: tris
+                            .into_iter()
+                            .map(|t| std::array::from_fn(|i| std::array::from_fn(|k| t[3 * i + k])))
+                            .collect(),
+                    },
                 },
             },
-        })
+        )
 }
 fn sample() -> impl Strategy<Value = ToolSample> {
     (simt(), f3(), f4(), -1.0f32..1.0).prop_map(|(t_s, position, orientation, jaw_rad)| {

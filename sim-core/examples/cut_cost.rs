@@ -96,7 +96,7 @@ fn main() {
         log.ops()
             .map(|o| match o {
                 cosurg_sim_core::cut::TopologyOp::Cut(c) => c.triangles.len(),
-                cosurg_sim_core::cut::TopologyOp::Release(_) => 0,
+                _ => 0,
             })
             .sum::<usize>()
     );

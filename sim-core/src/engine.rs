@@ -131,6 +131,8 @@ pub struct Simulation {
     cut: Option<cutting::CutState>,
     /// Connective layers between bodies (attachment springs) and what is released.
     attachments: Attachments,
+    /// Clips placed on the tissue (embedded ends).
+    clips: crate::clip::Clips,
 }
 
 impl Simulation {
@@ -319,6 +321,7 @@ impl Simulation {
             topology: TopologyLog::default(),
             cut: None,
             attachments,
+            clips: crate::clip::Clips::default(),
             scene,
         };
         sim.select_nodes()?;
@@ -601,6 +604,7 @@ impl Simulation {
         }
         self.probes.update(&self.lattice);
         self.attachments.update(&self.lattice);
+        self.clips.update(&self.lattice);
         self.prescribed.retain(|n, _| self.lattice.node_alive(*n));
         self.assign_materials();
         self.select_nodes()?;

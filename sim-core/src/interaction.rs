@@ -27,6 +27,8 @@ pub struct InteractionReport {
     pub cuts: usize,
     /// Attachment springs a hook released (and applied) in this pass.
     pub released: usize,
+    /// Clips a clip applier placed (and applied) in this pass.
+    pub clips: usize,
 }
 
 /// Tools, contact and tool-following adaptivity of one simulation.
@@ -42,6 +44,8 @@ pub struct Interaction {
     pub blades: BladeStrokes,
     /// The hooks' dissection (releases of attachment springs); ops in `hooks.made`.
     pub hooks: HookDissection,
+    /// The clip appliers' clips; ops in `clips.made`.
+    pub clips: crate::clip::ClipApplication,
 }
 
 impl Interaction {
@@ -62,6 +66,7 @@ impl Interaction {
             adapt: Adaptivity::new(sim, adapt),
             blades: BladeStrokes::new(sim, &tools, 0),
             hooks: HookDissection::new(&tools, 0),
+            clips: crate::clip::ClipApplication::new(&tools, 0),
             tools,
         }
     }
@@ -85,6 +90,7 @@ impl Interaction {
         }
         let cuts = self.blades.update(sim, &self.tools)?;
         let released = self.hooks.update(sim, &self.tools)?;
+        let clips = self.clips.update(sim, &self.tools)?;
         let focus = self.contact.focus_points();
         let adapt = self.adapt.update(sim, &focus)?;
         let before = self.contact.state().stats;
@@ -98,6 +104,7 @@ impl Interaction {
             adapt,
             cuts,
             released,
+            clips,
         })
     }
 

@@ -14,6 +14,7 @@
 //!   as topology operations shared across sites ([`Simulation::apply_topology_op`]).
 //! * [`attach`] — connective layers tying two bodies (attachment springs) and their
 //!   release by a hook (dissection), releases being topology operations like cuts.
+//! * [`clip`] — clips a clip applier leaves on a vessel, topology operations like cuts.
 //! * [`Interaction`] — the scene's tools ([`tools`]), tool–tissue contact and grasping
 //!   ([`contact`]) and refinement following the tools ([`adapt`]): call
 //!   [`Interaction::before_step`] with the tool inputs before every [`Simulation::step`].
@@ -26,6 +27,7 @@
 
 pub mod adapt;
 pub mod attach;
+pub mod clip;
 pub mod contact;
 pub mod cut;
 mod engine;

@@ -126,8 +126,11 @@ impl Tool {
                     samples.push((p, ToolPart::Body))
                 });
             }
-            // A blade cuts (crate::cut::blade) and does not push: no contact samples.
-            ToolKind::Blade => {}
+            // A blade cuts (`crate::cut::blade`) and a clip applier clips (`crate::clip`);
+            // neither pushes: no contact samples. (An applier's jaws closing on a vessel
+            // would squeeze it between two penalty contacts, and which way it slips out is
+            // a bifurcation that sites decide differently.)
+            ToolKind::Blade | ToolKind::ClipApplier => {}
             ToolKind::Forceps => {
                 capsule_samples(
                     V3::new(0.0, 0.0, r),
@@ -227,6 +230,23 @@ impl Tool {
         self.kind == ToolKind::Forceps && self.jaw < self.grasp.close
     }
     /// Whether a forceps holding tissue must let go.
+    /// Whether this tool is a clip applier whose jaws are closed enough to leave a clip
+    /// (the forceps' grasp threshold).
+    pub fn jaws_closed(&self) -> bool {
+        self.kind == ToolKind::ClipApplier && self.jaw < self.grasp.close
+    }
+
+    /// The clip a clip applier's closed jaws would leave, world coordinates (m): tip →
+    /// `length` along the shaft; `None` for other kinds.
+    pub fn clip_segment(&self) -> Option<(V3, V3)> {
+        (self.kind == ToolKind::ClipApplier).then(|| {
+            (
+                self.tip(),
+                (self.pose * nalgebra::Point3::new(0.0, 0.0, self.length)).coords,
+            )
+        })
+    }
+
     pub fn wants_release(&self) -> bool {
         self.kind != ToolKind::Forceps || self.jaw > self.grasp.open
     }
@@ -257,7 +277,7 @@ impl Tool {
     pub fn segments(&self) -> Vec<(V3, V3)> {
         let hinge = V3::new(0.0, 0.0, self.length);
         match self.kind {
-            ToolKind::Forceps => [ToolPart::JawPlus, ToolPart::JawMinus]
+            ToolKind::Forceps | ToolKind::ClipApplier => [ToolPart::JawPlus, ToolPart::JawMinus]
                 .iter()
                 .map(|&part| {
                     let m = self.part_matrix(part);

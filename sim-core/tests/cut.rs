@@ -275,3 +275,47 @@ fn keyframes_carry_the_virtual_nodes_of_a_cut() {
     // simulation had them: centimetres away.)
     assert!(worst < 1e-9, "surfaces differ by {worst} m after the frame");
 }
+
+/// A cut of the bodies scene's cystic duct (a sheet across it, at rest) leaves every
+/// surface it does not cross exactly where it was, and the duct's vertices away from the
+/// sheet too: re-hosting the vertices on the element copies must not move them.
+#[test]
+fn a_cut_moves_no_surface_vertex_it_does_not_cross() {
+    let scene = cosurg_sim_core::sim_scene::builtin::cholecystectomy_bodies();
+    let options = SimOptions::from_scene(&scene.scene);
+    let mut sim = Simulation::new(scene, options).unwrap();
+    let before: Vec<Vec<V3>> = sim.surfaces().iter().map(|s| s.deformed.clone()).collect();
+    // The duct runs from (0.0276, -0.0019, -0.0526) to the hilum (0, 0.05, -0.054): a
+    // square sheet 2 cm wide across it at half way, normal to its axis.
+    let (a, b) = (V3::new(0.0276, -0.0019, -0.0526), V3::new(0.0, 0.05, -0.054));
+    let mid = 0.5 * (a + b);
+    let along = (b - a).normalize();
+    let u = along.cross(&V3::z()).normalize();
+    let w = along.cross(&u);
+    let p = |s: f64, t: f64| {
+        let q = mid + u * s + w * t;
+        [q.x, q.y, q.z]
+    };
+    let op = cosurg_sim_core::cut::TopologyOp::Cut(cosurg_sim_core::cut::CutOp {
+        id: cosurg_sim_core::cut::OpId { site: 1, seq: 0 },
+        triangles: vec![
+            [p(-0.01, -0.01), p(0.01, -0.01), p(0.01, 0.01)],
+            [p(-0.01, -0.01), p(0.01, 0.01), p(-0.01, 0.01)],
+        ],
+    });
+    sim.apply_topology_op(op).unwrap();
+    for (s, b) in sim.surfaces().iter().zip(&before) {
+        if s.name == "cystic duct" {
+            continue;
+        }
+        assert_eq!(s.deformed.len(), b.len(), "{}", s.name);
+        let worst = s
+            .deformed
+            .iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).norm())
+            .fold(0.0, f64::max);
+        assert!(worst < 1e-9, "{}: a vertex moved {worst:.3e} m", s.name);
+    }
+}
+

@@ -74,13 +74,33 @@ const BODIES_FILES: &[(&str, &str)] = &[
         include_str!("../../scenes/scripts/bodies_hook_dissect.toml"),
     ),
     (
+        "scripts/bodies_clip_duct.toml",
+        include_str!("../../scenes/scripts/bodies_clip_duct.toml"),
+    ),
+    (
+        "scripts/bodies_second_clip.toml",
+        include_str!("../../scenes/scripts/bodies_second_clip.toml"),
+    ),
+    (
         "scripts/bodies_cut_duct.toml",
         include_str!("../../scenes/scripts/bodies_cut_duct.toml"),
     ),
 ];
 
 /// Names accepted by [`by_name`]; the first is the default scene.
-pub const NAMES: &[&str] = &["cholecystectomy", "cantilever", "cholecystectomy-bodies"];
+pub const NAMES: &[&str] = &["cholecystectomy-bodies", "cholecystectomy", "cantilever"];
+
+/// The default scene ([`NAMES`]`[0]`): the cholecystectomy with separate bodies, where the
+/// gallbladder is lifted, dissected from the liver, clipped and divided.
+pub fn default_scene() -> LoadedScene {
+    cholecystectomy_bodies()
+}
+
+/// A built-in scene's file by its path relative to `scenes/` (meshes, scripts), e.g.
+/// `scripts/bodies_second_clip.toml`.
+pub fn embedded_file(rel: &str) -> Option<&'static str> {
+    embedded(Path::new(rel))
+}
 
 /// Embedded files by their path relative to `scenes/`.
 fn embedded(rel: &Path) -> Option<&'static str> {
@@ -110,7 +130,9 @@ fn load_embedded(name: &str, text: &str) -> LoadedScene {
     .unwrap_or_else(|e| panic!("built-in scene {name} is invalid: {e}"))
 }
 
-/// The default scene: a liver with gallbladder, vessels, two tools (see module docs).
+/// The one-body cholecystectomy: a liver with the gallbladder as a softer inclusion,
+/// vessels, two tools (see module docs). The default scene before the bodies scene; the
+/// sync benchmarks and the haptics figures are measured on it.
 pub fn cholecystectomy() -> LoadedScene {
     load_embedded("cholecystectomy", CHOLECYSTECTOMY_TOML)
 }
@@ -607,10 +629,15 @@ pub fn generated_files() -> Vec<(PathBuf, String)> {
             ),
         ));
     }
-    let (f, h, b) = bodies::scripts();
-    files.push(("scripts/bodies_grasp_lift.toml".into(), f.to_toml()));
-    files.push(("scripts/bodies_hook_dissect.toml".into(), h.to_toml()));
-    files.push(("scripts/bodies_cut_duct.toml".into(), b.to_toml()));
+    let s = bodies::scripts();
+    files.push(("scripts/bodies_grasp_lift.toml".into(), s.forceps.to_toml()));
+    files.push(("scripts/bodies_hook_dissect.toml".into(), s.hook.to_toml()));
+    files.push(("scripts/bodies_clip_duct.toml".into(), s.clip.to_toml()));
+    files.push((
+        "scripts/bodies_second_clip.toml".into(),
+        s.second_clip.to_toml(),
+    ));
+    files.push(("scripts/bodies_cut_duct.toml".into(), s.blade.to_toml()));
     files
 }
 

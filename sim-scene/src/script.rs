@@ -314,6 +314,12 @@ impl ToolScript {
         self.tracks.keys().map(String::as_str)
     }
 
+    /// First and last waypoint time of `tool`'s track (s), if it has one.
+    pub fn track_span(&self, tool: &str) -> Option<(f64, f64)> {
+        let w = self.tracks.get(tool)?;
+        Some((w.first()?.t, w.last()?.t))
+    }
+
     /// Time of the last pose over all tools, s.
     pub fn duration(&self) -> f64 {
         self.tracks

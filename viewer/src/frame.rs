@@ -12,7 +12,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
 use nalgebra::{Isometry3, Point3, Vector3};
-use sim_core::sim_scene::{InclusionShape, LoadedScene, ToolKind};
+use sim_core::sim_scene::{BodyShape, InclusionShape, LoadedScene, ToolKind};
 use sim_core::{Interaction, Simulation};
 use sim_lattice::Embedding;
 
@@ -172,6 +172,8 @@ pub struct ViewFrame {
     pub positions: Vec<V3>,
     /// Deformed vessel centre segments with their radius (m).
     pub vessels: Vec<(Segment, f64)>,
+    /// Clips on the tissue, where the tissue has carried them (m).
+    pub clips: Vec<Segment>,
     /// Lattice wireframe (only when asked for: building it costs the simulation thread).
     pub lattice: Option<Vec<LatticeEdge>>,
     /// Local and remote tools.
@@ -397,6 +399,11 @@ impl FrameBuilder {
             .iter()
             .map(|&(a, b, r)| (Segment { a: vp[a], b: vp[b] }, r))
             .collect();
+        let clips = sim
+            .clip_positions()
+            .into_iter()
+            .map(|[a, b]| Segment { a, b })
+            .collect();
         let lattice = with_lattice.then(|| lattice_edges(sim));
         let mut tools = Vec::new();
         let mut forces = Vec::new();
@@ -422,6 +429,7 @@ impl FrameBuilder {
             topology: self.topology.clone(),
             positions,
             vessels,
+            clips,
             lattice,
             tools,
             guide: Vec::new(),
@@ -497,7 +505,19 @@ pub fn lattice_edges(sim: &Simulation) -> Vec<LatticeEdge> {
 /// Tissue at a rest-space point: the last inclusion containing it (as the simulation
 /// assigns materials), else parenchyma.
 pub fn tissue_at(scene: &LoadedScene, p: &V3) -> TissueKind {
+    // The body holding the point (the last in scene order, where bodies overlap: the
+    // vessels start inside the gallbladder's neck) gives the base tissue, by its name and
+    // material (a scene of separate bodies); its inclusions override it.
     let mut kind = TissueKind::Parenchyma;
+    for body in &scene.scene.bodies {
+        let inside = match body.shape() {
+            BodyShape::Box(b) => b.contains(p),
+            BodyShape::Mesh(path) => scene.mesh(path).is_some_and(|m| m.contains(p)),
+        };
+        if inside {
+            kind = tissue_of_inclusion(Some(&body.name), &body.material, false);
+        }
+    }
     for body in &scene.scene.bodies {
         for inc in &body.inclusions {
             let inside = match inc.shape() {

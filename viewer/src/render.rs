@@ -38,6 +38,10 @@ const TOOL_COLOUR: [u8; 3] = [190, 192, 200];
 const ACTIVE_TOOL_COLOUR: [u8; 3] = [235, 225, 150];
 const GUIDE_COLOUR: [u8; 3] = [40, 220, 230];
 const FORCE_COLOUR: [u8; 3] = [255, 220, 0];
+/// Clips: titanium grey with a blue tint, distinct from the tools' steel.
+const CLIP_COLOUR: [u8; 3] = [150, 165, 205];
+/// Tube radius of a clip (m): a medium-large ligation clip is about 1.5 mm thick.
+const CLIP_RADIUS: f64 = 0.0008;
 /// Arrow length per newton (m/N).
 pub const FORCE_SCALE: f64 = 0.02;
 /// Drawn radius of lattice edges (m).
@@ -190,6 +194,9 @@ impl Renderer {
         let mut solid = TubeList::default();
         for (seg, r) in &frame.vessels {
             solid.push(seg, *r, srgba(tissue_colour(TissueKind::Vessel), 255));
+        }
+        for clip in &frame.clips {
+            solid.push(clip, CLIP_RADIUS, srgba(CLIP_COLOUR, 255));
         }
         let mut ghosts = TubeList::default();
         for (i, tool) in frame.tools.iter().enumerate() {

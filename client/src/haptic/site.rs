@@ -457,14 +457,21 @@ impl Teaching {
         }
     }
 
-    /// Instructor, every step: records `local` (the input the simulation gives the local
-    /// tool at simulated time `t`). Returns the trajectory to send when an act ended.
-    pub fn record(&mut self, t: f64, local: Option<&sim_core::ToolInput>) -> Option<Message> {
+    /// Instructor, every step: records `local` (the input the simulation gives the tool
+    /// in hand, `held`, at simulated time `t`). Only the tool teaching was set up with is
+    /// recorded: another instrument in hand ends its act. Returns the trajectory to send
+    /// when an act ended.
+    pub fn record(
+        &mut self,
+        t: f64,
+        held: Option<usize>,
+        local: Option<&sim_core::ToolInput>,
+    ) -> Option<Message> {
         if self.role != Role::Instructor {
             return None;
         }
-        let (_, name) = self.tool.as_ref()?;
-        match local {
+        let (index, name) = self.tool.as_ref()?;
+        match local.filter(|_| held == Some(*index)) {
             Some(input) => {
                 let rec = self.recorder.get_or_insert_with(|| {
                     debug!(t, "teaching: recording the instructor's act");
@@ -714,8 +721,8 @@ mod tests {
     fn instructor_act_to_trajectory_to_trainee_playback() {
         let scene = builtin::cholecystectomy();
         let sim = Simulation::new(scene.clone(), SimOptions::from_scene(&scene.scene)).unwrap();
-        let forceps = Tools::new(&sim, Some("forceps"), SyncStrategy::Keyframe).unwrap();
-        let probe = Tools::new(&sim, Some("probe"), SyncStrategy::Keyframe).unwrap();
+        let forceps = Tools::new(&sim, &["forceps".into()], SyncStrategy::Keyframe).unwrap();
+        let probe = Tools::new(&sim, &["probe".into()], SyncStrategy::Keyframe).unwrap();
         let dt = 0.004;
 
         // Instructor: idle, then an act moving 1 cm/s along x for 1 s, then idle.
@@ -724,7 +731,7 @@ mod tests {
         for k in 0..400 {
             let t = k as f64 * dt;
             let local = (0.2..=1.2).contains(&t).then(|| input(0.01 * (t - 0.2)));
-            sent.extend(prof.record(t, local.as_ref()));
+            sent.extend(prof.record(t, forceps.local_index(), local.as_ref()));
         }
         assert!(prof.finish().is_none(), "the act was already sent");
         let [Message::Teaching(tr)] = &sent[..] else {

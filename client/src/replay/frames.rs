@@ -8,7 +8,7 @@
 //! first chosen site's recorded surface (the latest frame at or before the time: surfaces
 //! are recorded every 0.5 s by default, so the surface moves in steps; a coordinator's
 //! recording has none, and the organ is drawn at rest from another recording's
-//! declaration); vessels are not recorded and are not drawn. Tools are every chosen
+//! declaration); vessels and clips are not recorded and are not drawn. Tools are every chosen
 //! site's own tools at their latest recorded sample (250 Hz by default; a coordinator's
 //! recording: every pose relayed), the first site's in the local colour and the others'
 //! in the remote colour (overlay), with their recorded contact plus grasp force as an
@@ -205,6 +205,7 @@ fn base_frame(scene: &LoadedScene, decls: &[SurfaceDecl]) -> ViewFrame {
         }),
         positions,
         vessels: Vec::new(),
+        clips: Vec::new(),
         lattice: None,
         tools: Vec::new(),
         guide: Vec::new(),

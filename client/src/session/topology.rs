@@ -1,4 +1,4 @@
-//! Topology operations (cuts, releases of attachment springs) between sim-core and the wire, and their handling in the
+//! Topology operations (cuts, releases of attachment springs, clips) between sim-core and the wire, and their handling in the
 //! session: ops made here go to the coordinator on the control stream (reliable, ordered)
 //! and are relayed to every other site; the coordinator keeps them for late joiners' snapshots.
 //! Every site applies every op it receives (duplicates are no-ops, the order does not
@@ -8,6 +8,7 @@
 //! reached, and the owner's next keyframe replaces it.
 
 use proto::{Epoch, SiteId};
+use sim_core::clip::ClipOp;
 use sim_core::cut::{CutOp, OpId, ReleaseOp, TopologyOp};
 
 /// An op of ours, applied at simulated time `sim_time` (s), as the wire message of scene
@@ -33,6 +34,13 @@ pub fn topology_to_wire(op: &TopologyOp, epoch: Epoch, sim_time: f64) -> proto::
                 springs: r.springs.clone(),
             },
         },
+        TopologyOp::Clip(c) => proto::TopologyOp {
+            epoch,
+            site: c.id.site as SiteId,
+            seq: c.id.seq,
+            sim_time,
+            kind: proto::TopologyKind::Clip { ends: c.ends },
+        },
     }
 }
 
@@ -53,6 +61,13 @@ pub fn topology_from_wire(op: &proto::TopologyOp) -> TopologyOp {
             },
             layer: *layer,
             springs: springs.clone(),
+        }),
+        proto::TopologyKind::Clip { ends } => TopologyOp::Clip(ClipOp {
+            id: OpId {
+                site: u32::from(op.site),
+                seq: op.seq,
+            },
+            ends: *ends,
         }),
     }
 }

@@ -23,8 +23,10 @@ pub struct SiteConfig {
     pub role: Role,
     pub scene: LoadedScene,
     pub options: SimOptions,
-    /// The scene tool this site drives (by name); `None`: no local tool (observer).
-    pub tool: Option<String>,
+    /// The scene tools this site drives (by name), the one in hand at the start first; a
+    /// script with tracks for several exchanges them as its tracks begin. Empty: no local
+    /// tool (observer).
+    pub tools: Vec<String>,
     /// Trajectory of the local tool, played in simulation time from `script_start`.
     pub script: Option<ToolScript>,
     pub script_start: f64,
@@ -81,6 +83,13 @@ pub struct SiteReport {
     pub topology_epoch: u32,
     #[serde(default)]
     pub topology_digest: String,
+    /// What the topology holds at the end: cuts, clips and attachment springs released.
+    #[serde(default)]
+    pub cuts: u32,
+    #[serde(default)]
+    pub clips: u32,
+    #[serde(default)]
+    pub springs_released: u32,
     #[serde(default)]
     pub topology_ops_received: u64,
     #[serde(default)]

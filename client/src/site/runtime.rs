@@ -33,7 +33,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     let dt = cfg.options.dt;
     let steps = (cfg.seconds / dt).round().max(1.0) as u64;
     let mut sim = Simulation::new(cfg.scene.clone(), cfg.options.clone())?;
-    let mut tools = Tools::new(&sim, cfg.tool.as_deref(), cfg.strategy)?;
+    let mut tools = Tools::new(&sim, &cfg.tools, cfg.strategy)?;
     let mut recorder = Recorder::new(&sim, RECORD_INTERVAL);
     let writer = match (&cfg.out, cfg.vtu_interval) {
         (Some(dir), Some(_)) => Some(VtuThread::start(SeriesWriter::new(&dir.join("vtu"))?)),
@@ -292,7 +292,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
             };
             r.teaching(local.is_some(), detail, &sim)?;
         }
-        if let Some(m) = teaching.record(t, local.as_ref()) {
+        if let Some(m) = teaching.record(t, tools.local_index(), local.as_ref()) {
             session.send_control(m);
         }
         let mut touched = tools.before_step(&mut sim, local, &session)?;
@@ -458,6 +458,15 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     report.resets = stats.resets;
     report.topology_epoch = sim.topology().epoch();
     report.topology_digest = format!("{:016x}", sim.topology().digest());
+    for op in sim.topology().ops() {
+        match op {
+            sim_core::cut::TopologyOp::Cut(_) => report.cuts += 1,
+            sim_core::cut::TopologyOp::Clip(_) => report.clips += 1,
+            sim_core::cut::TopologyOp::Release(r) => {
+                report.springs_released += r.springs.len() as u32
+            }
+        }
+    }
     report.topology_ops_received = stats.topology_applied;
     report.topology_apply_us_mean = if stats.topology_applied == 0 {
         0.0

@@ -22,7 +22,12 @@ type V3 = Vector3<f64>;
 /// they are only drawn (their effect arrives with the keyframes).
 pub struct Tools {
     interaction: Interaction,
+    /// The tool in this site's hand now (scene index).
     local: Option<usize>,
+    /// Every tool this site drives, the one in hand at the start first: a script with
+    /// tracks for several of them exchanges the instrument in hand as its tracks begin
+    /// (one instrument at a time, as through one port).
+    instruments: Vec<usize>,
     remote_contact: bool,
     /// Poses of each tool from other sites, by their simulation time.
     remote_track: Vec<PoseTrack>,
@@ -38,32 +43,27 @@ pub struct Tools {
 }
 
 impl Tools {
-    pub fn new(sim: &Simulation, local: Option<&str>, strategy: SyncStrategy) -> Result<Self> {
+    /// The scene's tools; this site drives `instruments` (scene tool names, the one in
+    /// hand at the start first; empty: none).
+    pub fn new(sim: &Simulation, instruments: &[String], strategy: SyncStrategy) -> Result<Self> {
         let mut interaction = Interaction::new(sim);
-        let local = match local {
-            Some(name) => Some(
+        let instruments = instruments
+            .iter()
+            .map(|name| {
                 interaction
                     .tools
                     .index(name)
-                    .with_context(|| format!("tool {name:?} is not in the scene"))?,
-            ),
-            None => None,
-        };
-        // Only the blade (hook) this site drives cuts (dissects) here; the others' cuts
-        // and releases arrive as ops.
-        interaction.blades.enabled = (0..interaction.tools.len())
-            .map(|i| Some(i) == local)
-            .collect();
-        interaction.hooks.enabled = interaction.blades.enabled.clone();
-        // Likewise only the tool this site drives tears its grasp loose: a remote tool
-        // lets go when its site opens the jaws (see `ContactPipeline::grasp_tears`).
-        interaction.contact.grasp_tears = interaction.blades.enabled.clone();
+                    .with_context(|| format!("tool {name:?} is not in the scene"))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Self::enable_own(&mut interaction, &instruments);
         Ok(Tools {
             remote: vec![None; interaction.tools.len()],
             remote_site: vec![None; interaction.tools.len()],
             remote_track: vec![PoseTrack::default(); interaction.tools.len()],
             interaction,
-            local,
+            local: instruments.first().copied(),
+            instruments,
             remote_contact: strategy.simulates_remote_tools(),
             local_active: false,
             touch_radius: 2.0 * sim.lattice().params().cell,
@@ -75,32 +75,64 @@ impl Tools {
     pub fn take_topology_ops(&mut self) -> Vec<sim_core::cut::TopologyOp> {
         let mut ops = std::mem::take(&mut self.interaction.blades.made);
         ops.append(&mut self.interaction.hooks.made);
+        ops.append(&mut self.interaction.clips.made);
         ops
+    }
+
+    /// Only the tools this site drives tear their grasp loose: a remote tool lets go when
+    /// its site opens the jaws (see `ContactPipeline::grasp_tears`). Cutting, dissecting
+    /// and clipping are enabled step by step in [`Tools::before_step`]: the others' cuts,
+    /// releases and clips arrive as ops.
+    fn enable_own(interaction: &mut Interaction, instruments: &[usize]) {
+        let own: Vec<bool> = (0..interaction.tools.len())
+            .map(|i| instruments.contains(&i))
+            .collect();
+        let none = vec![false; own.len()];
+        interaction.blades.enabled = none.clone();
+        interaction.hooks.enabled = none.clone();
+        interaction.clips.enabled = none;
+        interaction.contact.grasp_tears = own;
     }
 
     /// After a scene reset: contact starts again on the rebuilt simulation (grasps and
     /// contact state of the old one are gone); remote tool tracks are kept.
     pub fn reset(&mut self, sim: &Simulation) {
         self.interaction = Interaction::new(sim);
-        self.interaction.blades.enabled = (0..self.interaction.tools.len())
-            .map(|i| Some(i) == self.local)
-            .collect();
-        self.interaction.hooks.enabled = self.interaction.blades.enabled.clone();
-        self.interaction.contact.grasp_tears = self.interaction.blades.enabled.clone();
+        Self::enable_own(&mut self.interaction, &self.instruments);
+        self.local = self.instruments.first().copied();
         self.touch_radius = 2.0 * sim.lattice().params().cell;
     }
 
     /// The local tool's input at script time `t` (s), while the script runs.
-    pub fn local_input(&self, script: Option<&ToolScript>, t: f64) -> Option<ToolInput> {
-        let tool = &self.interaction.tools.tools[self.local?];
+    ///
+    /// With several instruments, the one whose track spans `t` is taken in hand (the first
+    /// in instrument order if tracks overlap); between tracks none is driven and the last
+    /// one stays in hand.
+    pub fn local_input(&mut self, script: Option<&ToolScript>, t: f64) -> Option<ToolInput> {
         let s = script?;
         if t < 0.0 || t > s.duration() {
             return None;
         }
+        if self.instruments.len() > 1 {
+            let tools = &self.interaction.tools.tools;
+            let (i, pose) = self.instruments.iter().find_map(|&i| {
+                let name = &tools[i].name;
+                let (start, end) = s.track_span(name)?;
+                (start <= t && t <= end).then(|| s.sample(name, t).map(|p| (i, p)))?
+            })?;
+            self.local = Some(i);
+            return Some(ToolInput::from(&pose));
+        }
+        let tool = &self.interaction.tools.tools[self.local?];
         // A script with one track drives whichever tool it is given to.
         s.sample(&tool.name, t)
             .or_else(|| s.tools().next().and_then(|n| s.sample(n, t)))
             .map(|p| ToolInput::from(&p))
+    }
+
+    /// Every tool this site drives (scene indices), the one in hand at the start first.
+    pub fn instruments(&self) -> &[usize] {
+        &self.instruments
     }
 
     /// Sets every tool's input, runs contact (and tool-following adaptivity) before the
@@ -130,14 +162,12 @@ impl Tools {
                     pose: *tool.pose(),
                     jaw: tool.jaw(),
                 };
-                if Some(i) == self.local {
-                    // Between its own acts, a site's tool follows whoever else drives it
-                    // (input-only: every site simulates every tool).
-                    match (local, self.remote_contact) {
-                        (Some(l), _) => l,
-                        (None, true) => self.remote[i].unwrap_or(keep),
-                        (None, false) => keep,
-                    }
+                // Between its own acts, a site's tool follows whoever else drives it
+                // (hybrid and input-only: every site simulates every tool).
+                if Some(i) == self.local
+                    && let Some(l) = local
+                {
+                    l
                 } else if self.remote_contact {
                     self.remote[i].unwrap_or(keep)
                 } else {
@@ -145,11 +175,21 @@ impl Tools {
                 }
             })
             .collect();
+        // Only the instrument in hand, while this site drives it, cuts, dissects and
+        // clips: a site that simulates another site's act with a tool it also drives at
+        // other times would otherwise make the same cut twice.
+        let driven: Vec<bool> = (0..inputs.len())
+            .map(|i| Some(i) == self.local && local.is_some())
+            .collect();
+        self.interaction.blades.enabled = driven.clone();
+        self.interaction.hooks.enabled = driven.clone();
+        self.interaction.clips.enabled = driven;
         self.interaction.blades.site = session.site_id().map_or(0, u32::from);
         // Under hybrid and input-only sync our cuts are applied when the session schedules
         // them (see `SiteSession::share_topology`).
         self.interaction.blades.apply_own = !session.times_topology();
         self.interaction.hooks.site = self.interaction.blades.site;
+        self.interaction.clips.site = self.interaction.blades.site;
         self.interaction.before_step(sim, &inputs)?;
         let Some(i) = self.local else {
             return Ok(Vec::new());

@@ -454,7 +454,7 @@ mod tests {
         let sim = Simulation::new(scene, options).unwrap();
         let tools = Tools::new(
             &sim,
-            Some("forceps"),
+            &["forceps".into()],
             sim_core::sync::SyncStrategy::Keyframe,
         )
         .unwrap();

@@ -112,13 +112,15 @@ impl ReleaseOp {
     }
 }
 
-/// A topology operation: a cut, or a release of attachment springs.
+/// A topology operation: a cut, a release of attachment springs, or a clip.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum TopologyOp {
     /// A blade's cut.
     Cut(CutOp),
     /// A hook's release of attachment springs.
     Release(ReleaseOp),
+    /// A clip applier's clip ([`crate::clip`]).
+    Clip(crate::clip::ClipOp),
 }
 
 impl TopologyOp {
@@ -127,6 +129,7 @@ impl TopologyOp {
         match self {
             TopologyOp::Cut(c) => c.id,
             TopologyOp::Release(r) => r.id,
+            TopologyOp::Clip(c) => c.id,
         }
     }
     /// Bytes of the op as carried.
@@ -134,6 +137,7 @@ impl TopologyOp {
         match self {
             TopologyOp::Cut(c) => c.wire_bytes(),
             TopologyOp::Release(r) => r.wire_bytes(),
+            TopologyOp::Clip(c) => c.wire_bytes(),
         }
     }
 }
@@ -176,17 +180,29 @@ impl TopologyLog {
                 .values()
                 .flat_map(|o| match o {
                     TopologyOp::Cut(c) => c.sheet_triangles().collect::<Vec<_>>(),
-                    TopologyOp::Release(_) => Vec::new(),
+                    TopologyOp::Release(_) | TopologyOp::Clip(_) => Vec::new(),
                 })
                 .collect(),
         )
+    }
+    /// Every clip's rest ends, in canonical order (ends `2 i`, `2 i + 1` of clip `i`).
+    pub(crate) fn clip_ends(&self) -> Vec<V3> {
+        self.ops
+            .values()
+            .filter_map(|o| match o {
+                TopologyOp::Clip(c) => Some(c.end_points()),
+                _ => None,
+            })
+            .flatten()
+            .collect()
     }
     /// Whether any applied op is a cut.
     pub fn has_cut(&self) -> bool {
         self.ops.values().any(|o| matches!(o, TopologyOp::Cut(_)))
     }
     /// Recomputes the digest: SHA-256 (first 8 bytes, little endian) over every op (id
-    /// and the bits of its coordinates, or its layer and spring indices), every crossed
+    /// and the bits of its coordinates, or its layer and spring indices, or its clip's
+    /// ends), every crossed
     /// leaf's copies (tree root, heap index, component mask, volume-fraction bits) and
     /// every attachment layer's released springs. Lattice node ids are not hashed: they
     /// differ between sites.
@@ -213,6 +229,14 @@ impl TopologyLog {
                     h.update(r.layer.to_le_bytes());
                     for s in &r.springs {
                         h.update(s.to_le_bytes());
+                    }
+                }
+                TopologyOp::Clip(c) => {
+                    h.update(b"clip");
+                    h.update(c.id.site.to_le_bytes());
+                    h.update(c.id.seq.to_le_bytes());
+                    for v in c.ends.iter().flatten() {
+                        h.update(v.to_bits().to_le_bytes());
                     }
                 }
             }

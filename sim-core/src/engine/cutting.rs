@@ -31,10 +31,15 @@ pub(crate) struct CutState {
 }
 
 impl CutState {
-    /// The degrees of freedom that a point embedded in leaf `t` (corner nodes `nodes`) at
-    /// rest position `p` (m) follows: the copy of the leaf holding the nearest corner that
-    /// `p` reaches without crossing the sheet (exact test); the lattice nodes themselves
-    /// when the leaf is not crossed.
+    /// The degrees of freedom that a point embedded in leaf `t` (corner nodes `nodes`, in
+    /// the order its weights use: an [`sim_lattice::Embedding`]'s bisection order) at rest
+    /// position `p` (m) follows, in that same order: the copy of the leaf holding the
+    /// nearest corner that `p` reaches without crossing the sheet (exact test); the
+    /// lattice nodes themselves when the leaf is not crossed.
+    ///
+    /// A copy lists its corners in [`sim_lattice::Lattice::tet_nodes`] order (oriented),
+    /// which differs from the bisection order by a swap in half of the leaves: the copy's
+    /// degrees of freedom are permuted back to `nodes`' order.
     pub(crate) fn copy_dofs(
         &self,
         lat: &sim_lattice::Lattice,
@@ -43,18 +48,28 @@ impl CutState {
         p: &V3,
     ) -> [usize; 4] {
         let copies = self.separation.copies_of(t);
-        match copies.len() {
-            0 => nodes.map(|n| n.0 as usize),
-            1 => copies[0].dofs,
+        if copies.is_empty() {
+            return nodes.map(|n| n.0 as usize);
+        }
+        let oriented = lat.tet_nodes(t);
+        // perm[j]: the copy's corner index of `nodes[j]`.
+        let perm = nodes.map(|n| {
+            oriented
+                .iter()
+                .position(|&m| m == n)
+                .expect("an embedding's nodes are its host leaf's corners")
+        });
+        let copy = match copies.len() {
+            1 => &copies[0],
             _ => {
                 let mut order: Vec<(f64, usize)> = (0..4)
-                    .map(|k| ((lat.node_rest(nodes[k]) - p).norm_squared(), k))
+                    .map(|k| ((lat.node_rest(oriented[k]) - p).norm_squared(), k))
                     .collect();
                 order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
                 let corner = order
                     .iter()
                     .map(|o| o.1)
-                    .find(|&k| self.sheet.crossing(p, &lat.node_rest(nodes[k])).is_none());
+                    .find(|&k| self.sheet.crossing(p, &lat.node_rest(oriented[k])).is_none());
                 corner
                     .and_then(|k| copies.iter().find(|c| c.mask & (1 << k) != 0))
                     .unwrap_or_else(|| {
@@ -63,9 +78,9 @@ impl CutState {
                             .max_by(|a, b| a.fraction.total_cmp(&b.fraction))
                             .expect("two or more copies")
                     })
-                    .dofs
             }
-        }
+        };
+        perm.map(|k| copy.dofs[k])
     }
 }
 
@@ -92,6 +107,25 @@ impl Simulation {
         match &op {
             TopologyOp::Cut(c) => c.validate().map_err(SimError::Topology)?,
             TopologyOp::Release(r) => self.attachments.validate(r).map_err(SimError::Topology)?,
+            TopologyOp::Clip(c) => c.validate().map_err(SimError::Topology)?,
+        }
+        if let TopologyOp::Clip(_) = &op {
+            if !self.topology.insert(op) {
+                return Ok(TopologyChange::default());
+            }
+            self.clips
+                .rebuild(&self.lattice, self.topology.clip_ends())?;
+            self.clips_follow_cut();
+            self.update_topology_digest();
+            let (crossed, virtual_nodes) = self.cut.as_ref().map_or((0, 0), |c| {
+                (c.separation.crossed.len(), c.separation.virtual_nodes.len())
+            });
+            return Ok(TopologyChange {
+                applied: true,
+                crossed,
+                virtual_nodes,
+                ..TopologyChange::default()
+            });
         }
         if let TopologyOp::Release(r) = &op {
             if !self.topology.insert(op.clone()) {
@@ -300,6 +334,30 @@ impl Simulation {
         let cut = &*cut;
         self.attachments
             .follow_cut(|t, nodes, p| cut.copy_dofs(lat, t, nodes, p));
+        self.clips
+            .follow_cut(|t, nodes, p| cut.copy_dofs(lat, t, nodes, p));
+    }
+
+    /// After a clip is embedded anew: its ends follow the element copies on their side of
+    /// any cut.
+    fn clips_follow_cut(&mut self) {
+        if let Some(cut) = &self.cut {
+            let lat = &self.lattice;
+            self.clips
+                .follow_cut(|t, nodes, p| cut.copy_dofs(lat, t, nodes, p));
+        }
+    }
+
+    /// The clips placed on the tissue ([`crate::clip`]).
+    pub fn clips(&self) -> &crate::clip::Clips {
+        &self.clips
+    }
+
+    /// Every clip's two ends where the tissue has carried them (m, world).
+    pub fn clip_positions(&self) -> Vec<[V3; 2]> {
+        (0..self.clips.len())
+            .map(|i| self.clips.ends(&self.x, i))
+            .collect()
     }
 
     /// The elements of the FEM system when a cut exists: (degrees of freedom, leaf,

@@ -10,9 +10,11 @@
 //! cells overlap the gallbladder's: they are joined to it elastically) and end at the hilum,
 //! whose nodes are fixed, also below z = −0.04 m.
 //!
-//! Tool scripts: the forceps grasps the fundus and lifts it 2 cm (0–10.5 s), the hook
-//! sweeps along the bed from the fundus to the neck between the two bodies (2.5–9 s),
-//! and the blade cuts the cystic duct near the hilum (10–12 s).
+//! Tool scripts ([`Scripts`]): the forceps grasps the fundus, lifts it 2 cm and holds it,
+//! the hook sweeps along the bed from the fundus to the neck between the two bodies
+//! (2.5–9 s), the clip applier clips the cystic duct on the hilum's side (10.5–13 s) and
+//! again on the gallbladder's side (13–15.5 s), and the blade divides the duct between
+//! the clips (15.5–17 s).
 
 use nalgebra::{UnitQuaternion, Vector3};
 
@@ -130,21 +132,80 @@ pub fn meshes() -> [TriMesh; 4] {
     ]
 }
 
-/// The tool scripts: (forceps `bodies_grasp_lift`, hook `bodies_hook_dissect`, blade
-/// `bodies_cut_duct`).
-pub fn scripts() -> (ToolScript, ToolScript, ToolScript) {
+/// The scene's tool scripts, and the trainee's second clip.
+#[derive(Clone, Debug)]
+pub struct Scripts {
+    /// `bodies_grasp_lift`: the instructor's forceps lifts the fundus (0–3 s) and holds it
+    /// (to 10.5 s, then parked closed: it keeps holding).
+    pub forceps: ToolScript,
+    /// `bodies_hook_dissect`: trainee B's hook dissects the bed (2.5–9 s).
+    pub hook: ToolScript,
+    /// `bodies_clip_duct`: the instructor's clip applier clips the duct on the hilum's
+    /// side ([`CLIP_HILUM`] along it, 10.5–13 s).
+    pub clip: ToolScript,
+    /// `bodies_second_clip`: trainee A takes the clip applier and clips the duct on the
+    /// gallbladder's side ([`CLIP_NECK`], 13–15.5 s). Not a scene script: `cosurg demo`
+    /// gives it to trainee A.
+    pub second_clip: ToolScript,
+    /// `bodies_cut_duct`: the instructor's blade divides the duct between the clips
+    /// ([`CUT_AT`], 15.5–17 s).
+    pub blade: ToolScript,
+}
+
+/// Where the clips and the cut are, as fractions of the duct's length from the neck.
+pub const CLIP_HILUM: f64 = 0.75;
+/// See [`CLIP_HILUM`].
+pub const CLIP_NECK: f64 = 0.35;
+/// See [`CLIP_HILUM`].
+pub const CUT_AT: f64 = 0.55;
+
+/// Where the duct's axis hangs once the bed is dissected and the forceps holds the
+/// gallbladder up (from 9.5 s on the demo's clock; static until the cut), as offsets from
+/// its rest position (m) at [`CLIP_NECK`], [`CUT_AT`] and [`CLIP_HILUM`]: measured with
+/// `cosurg run` (scene probes on the duct's axis at those fractions, dt 2 ms, at 10 and
+/// 11 s: equal to 1 µm). The clips and the blade aim there, as a surgeon aims at the
+/// duct where it is; the demo's end-to-end test checks that both clips and the cut land.
+const DUCT_SAG: [(f64, [f64; 3]); 3] = [
+    (CLIP_NECK, [-0.00026, 0.00047, -0.01757]),
+    (CUT_AT, [-0.00084, 0.00096, -0.01263]),
+    (CLIP_HILUM, [-0.00001, 0.00114, -0.00880]),
+];
+
+/// A point of the duct's axis at `f` (fraction from the neck) where it hangs after the
+/// dissection ([`DUCT_SAG`]; rest position for other fractions).
+fn hanging_duct(f: f64) -> V3 {
+    let duct = cystic_duct();
+    let sag = DUCT_SAG
+        .iter()
+        .find(|(g, _)| *g == f)
+        .map_or(V3::zeros(), |(_, d)| V3::from(*d));
+    duct.a + (duct.b - duct.a) * f + sag
+}
+
+/// A tool lying across the duct, horizontal, its tip on the artery's side: the shaft
+/// (tool +z, tip → hinge) along `across`, jaws opening up and down (tool ±y along world
+/// z), so that the duct runs between the jaws (tool x).
+fn across_duct(across: &V3) -> UnitQuaternion<f64> {
+    let z = across.normalize();
+    let x = V3::z().cross(&z).normalize();
+    // z × x is world up for a horizontal z: (x, up, z) is right-handed.
+    let m = nalgebra::Matrix3::from_columns(&[x, z.cross(&x), z]);
+    UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(m))
+}
+
+/// The tool scripts ([`Scripts`]).
+pub fn scripts() -> Scripts {
     let gb = gallbladder();
     let u = gb.axis();
     // Forceps: along the gallbladder's axis to the fundus, close 6 mm inside, lift 2 cm,
-    // hold while the bed is dissected, release, withdraw.
+    // and hold: while the bed is dissected, and on (the instrument parked with its jaws
+    // closed) while the duct is clipped and divided.
     let q = pointing(&u);
     let grasp = gb.fundus + u * 0.006;
     let start = gb.fundus - u * 0.04;
     let lift = V3::new(0.0, 0.0, 0.02);
     let mut forceps = ToolScript {
-        title: Some(
-            "forceps grasps the fundus, lifts it 2 cm, holds it while the bed is dissected".into(),
-        ),
+        title: Some("forceps grasps the fundus, lifts it 2 cm and holds it".into()),
         ..Default::default()
     };
     forceps.tracks.insert(
@@ -160,9 +221,13 @@ pub fn scripts() -> (ToolScript, ToolScript, ToolScript) {
             waypoint(1.5, grasp, q, JAW_OPEN, ""),
             waypoint(2.0, grasp, q, 0.0, "close the jaws on the fundus"),
             waypoint(3.0, grasp + lift, q, 0.0, "lift 2 cm"),
-            waypoint(9.5, grasp + lift, q, 0.0, "hold"),
-            waypoint(10.0, grasp + lift, q, JAW_OPEN, "release"),
-            waypoint(10.5, start + lift, q, JAW_OPEN, "withdraw"),
+            waypoint(
+                10.5,
+                grasp + lift,
+                q,
+                0.0,
+                "hold (the forceps keeps the gallbladder up while the duct is clipped and cut)",
+            ),
         ],
     );
     // Hook: from the front into the gap between the liver's floor and the gallbladder, at
@@ -208,30 +273,89 @@ pub fn scripts() -> (ToolScript, ToolScript, ToolScript) {
         "withdraw",
     ));
     hook.tracks.insert("hook".into(), track);
-    // Blade: vertical edge, swept horizontally across the duct at 70 % of its length.
+    // The clip applier and the blade lie across the duct (horizontal, tip towards the
+    // artery, which runs 9 mm away on that side).
     let duct = cystic_duct();
     let along = (duct.b - duct.a).normalize();
     let across = along.cross(&V3::z()).normalize();
-    let at = duct.a + (duct.b - duct.a) * 0.7;
-    let low = V3::new(0.0, 0.0, -0.025);
-    let qb = UnitQuaternion::identity();
+    let at = hanging_duct;
+    let qa = across_duct(&across);
+    // Clip: from 3.5 cm out, jaws open, advance until the tip is 4 mm past the duct's
+    // axis (the 12 mm jaws straddle it), close (the clip is placed), open, withdraw.
+    let clip_track = |p: V3, t0: f64, who: &str| {
+        let out = p + across * 0.035;
+        vec![
+            waypoint(t0, out, qa, 0.0, &format!("{who} takes the clip applier")),
+            waypoint(t0 + 0.5, p + across * 0.03, qa, JAW_OPEN, "open the jaws"),
+            waypoint(
+                t0 + 1.3,
+                p - across * 0.004,
+                qa,
+                JAW_OPEN,
+                "jaws around the duct",
+            ),
+            waypoint(
+                t0 + 1.6,
+                p - across * 0.004,
+                qa,
+                0.0,
+                "close: the clip is placed",
+            ),
+            waypoint(t0 + 1.8, p - across * 0.004, qa, JAW_OPEN, "open"),
+            waypoint(t0 + 2.4, out, qa, JAW_OPEN, "withdraw"),
+            waypoint(t0 + 2.5, out, qa, 0.0, ""),
+        ]
+    };
+    let mut clip = ToolScript {
+        title: Some("clip applier clips the cystic duct on the hilum's side".into()),
+        ..Default::default()
+    };
+    clip.tracks.insert(
+        "clip applier".into(),
+        clip_track(at(CLIP_HILUM), 10.5, "the instructor"),
+    );
+    let mut second_clip = ToolScript {
+        title: Some("clip applier clips the cystic duct on the gallbladder's side".into()),
+        ..Default::default()
+    };
+    let mut second = clip_track(at(CLIP_NECK), 13.0, "trainee A");
+    // Trainee A takes the applier where the instructor left it.
+    second[0].pose.position = at(CLIP_HILUM) + across * 0.035;
+    second_clip.tracks.insert("clip applier".into(), second);
+    // Blade: its edge lies across the duct from 6 mm on the artery's side of the duct's
+    // axis (between duct and artery) outwards, parked 1 cm below the duct, and is swept
+    // up through it: the cut plane is perpendicular to the duct and stops short of the
+    // artery.
+    let cut = at(CUT_AT) - across * 0.006;
     let mut blade = ToolScript {
-        title: Some("blade cuts the cystic duct near the hilum".into()),
+        title: Some("blade divides the cystic duct between the clips".into()),
         ..Default::default()
     };
     blade.tracks.insert(
         "blade".into(),
         vec![
             waypoint(
+                15.5,
+                cut - V3::new(0.0, 0.0, 0.01),
+                qa,
                 0.0,
-                at + low - across * 0.035,
-                qb,
-                0.0,
-                "wait beside the duct",
+                "under the duct, between the clips",
             ),
-            waypoint(10.5, at + low - across * 0.035, qb, 0.0, ""),
-            waypoint(11.5, at + low + across * 0.035, qb, 0.0, "through the duct"),
+            waypoint(15.8, cut - V3::new(0.0, 0.0, 0.01), qa, 0.0, ""),
+            waypoint(
+                16.8,
+                cut + V3::new(0.0, 0.0, 0.025),
+                qa,
+                0.0,
+                "up through the duct",
+            ),
         ],
     );
-    (forceps, hook, blade)
+    Scripts {
+        forceps,
+        hook,
+        clip,
+        second_clip,
+        blade,
+    }
 }

@@ -360,6 +360,9 @@ pub enum ToolKind {
     /// Blade (scalpel or scissors closing): its cutting edge runs along the shaft from the
     /// tip to `length`; the surface it sweeps through a body is cut. No contact.
     Blade,
+    /// Clip applier: two jaws like the forceps, no contact; closing them on tissue leaves
+    /// a clip along the closed jaws, embedded in that tissue.
+    ClipApplier,
 }
 
 fn default_orientation() -> [f64; 4] {

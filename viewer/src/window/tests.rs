@@ -30,6 +30,7 @@ fn frame() -> ViewFrame {
         }),
         positions: vec![],
         vessels: vec![],
+        clips: vec![],
         lattice: None,
         tools: vec![
             tool("forceps", Vector3::new(0.04, -0.1, -0.04), None),
