@@ -15,7 +15,8 @@ const SECONDS: f64 = 5.6;
 fn record_both(dir: &Path) {
     for (site, role, delay) in [("instructor", "instructor", 0.0), ("A", "trainee", 0.25)] {
         let run = record_scripted(
-            None,
+            // the one-body scene this file's figures were measured on
+            Some("builtin:cholecystectomy"),
             SECONDS,
             site,
             role,

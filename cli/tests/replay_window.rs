@@ -62,7 +62,8 @@ fn replay_screenshots_show_the_recording_and_change_with_time() {
     std::fs::create_dir_all(dir).unwrap();
     for (site, delay) in [("instructor", 0.0), ("A", 0.25)] {
         record_scripted(
-            None,
+            // the one-body scene this file's figures were measured on
+            Some("builtin:cholecystectomy"),
             4.0,
             site,
             "trainee",

@@ -24,7 +24,8 @@ fn main() -> Result<()> {
     for (site, role, d) in [("instructor", "instructor", 0.0), ("A", "trainee", delay)] {
         let path = dir.join(format!("{site}.cosrec"));
         let run = record_scripted(
-            None,
+            // the one-body scene this file's figures were measured on
+            Some("builtin:cholecystectomy"),
             seconds,
             site,
             role,

@@ -287,7 +287,10 @@ fn a_cut_moves_no_surface_vertex_it_does_not_cross() {
     let before: Vec<Vec<V3>> = sim.surfaces().iter().map(|s| s.deformed.clone()).collect();
     // The duct runs from (0.0276, -0.0019, -0.0526) to the hilum (0, 0.05, -0.054): a
     // square sheet 2 cm wide across it at half way, normal to its axis.
-    let (a, b) = (V3::new(0.0276, -0.0019, -0.0526), V3::new(0.0, 0.05, -0.054));
+    let (a, b) = (
+        V3::new(0.0276, -0.0019, -0.0526),
+        V3::new(0.0, 0.05, -0.054),
+    );
     let mid = 0.5 * (a + b);
     let along = (b - a).normalize();
     let u = along.cross(&V3::z()).normalize();
@@ -318,4 +321,3 @@ fn a_cut_moves_no_surface_vertex_it_does_not_cross() {
         assert!(worst < 1e-9, "{}: a vertex moved {worst:.3e} m", s.name);
     }
 }
-

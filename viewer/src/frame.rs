@@ -347,6 +347,11 @@ impl FrameBuilder {
         let mut points = Vec::new();
         let mut vessel_segments = Vec::new();
         for body in &scene.scene.bodies {
+            // A vessel that is a body of its own has its own surface: a tube along its
+            // inclusion would only bridge a cut through it.
+            if tissue_of_inclusion(Some(&body.name), &body.material, false) == TissueKind::Vessel {
+                continue;
+            }
             for inc in &body.inclusions {
                 if let InclusionShape::Capsules(caps) = inc.shape() {
                     for c in caps {

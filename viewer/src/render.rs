@@ -38,10 +38,11 @@ const TOOL_COLOUR: [u8; 3] = [190, 192, 200];
 const ACTIVE_TOOL_COLOUR: [u8; 3] = [235, 225, 150];
 const GUIDE_COLOUR: [u8; 3] = [40, 220, 230];
 const FORCE_COLOUR: [u8; 3] = [255, 220, 0];
-/// Clips: titanium grey with a blue tint, distinct from the tools' steel.
-const CLIP_COLOUR: [u8; 3] = [150, 165, 205];
-/// Tube radius of a clip (m): a medium-large ligation clip is about 1.5 mm thick.
-const CLIP_RADIUS: f64 = 0.0008;
+/// Clips: bright titanium, lighter than the tools' steel so that they stand out on the
+/// vessel.
+const CLIP_COLOUR: [u8; 3] = [236, 236, 248];
+/// Tube radius of a clip (m): a medium-large ligation clip is about 2 mm across, closed.
+const CLIP_RADIUS: f64 = 0.001;
 /// Arrow length per newton (m/N).
 pub const FORCE_SCALE: f64 = 0.02;
 /// Drawn radius of lattice edges (m).

@@ -66,10 +66,11 @@ impl CutState {
                     .map(|k| ((lat.node_rest(oriented[k]) - p).norm_squared(), k))
                     .collect();
                 order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-                let corner = order
-                    .iter()
-                    .map(|o| o.1)
-                    .find(|&k| self.sheet.crossing(p, &lat.node_rest(oriented[k])).is_none());
+                let corner = order.iter().map(|o| o.1).find(|&k| {
+                    self.sheet
+                        .crossing(p, &lat.node_rest(oriented[k]))
+                        .is_none()
+                });
                 corner
                     .and_then(|k| copies.iter().find(|c| c.mask & (1 << k) != 0))
                     .unwrap_or_else(|| {
