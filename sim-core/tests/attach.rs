@@ -266,6 +266,55 @@ position = [0.02, 0.02, 0.025]
     assert_eq!(released, 0);
 }
 
+/// A hook whose site schedules its releases (`apply_own` off, as under hybrid sync) makes
+/// the same releases as one that applies them at once, but applies none itself, and never
+/// puts a spring it released into a second op while the first is pending.
+#[test]
+fn a_scheduling_hook_releases_each_spring_once_and_applies_nothing_itself() {
+    let hook = r#"
+[[tool]]
+name = "hook"
+kind = "hook"
+position = [0.02, 0.02, 0.025]
+"#;
+    let text =
+        two_blocks_with(true, hook).replace("release_radius = 0.01", "release_radius = 0.015");
+    let mut sim = sim_of(&text).expect("scene");
+    let mut interaction = Interaction::new(&sim);
+    interaction.hooks.apply_own = false;
+    for _ in 0..100 {
+        let inputs = interaction.scripted_inputs(&sim, sim.time());
+        let report = interaction.before_step(&mut sim, &inputs).expect("hook");
+        assert_eq!(report.released, 0, "nothing applied by the hook itself");
+        sim.step().expect("step");
+    }
+    assert_eq!(sim.topology().epoch(), 0);
+    let mut springs: Vec<u32> = interaction
+        .hooks
+        .made
+        .iter()
+        .flat_map(|op| match op {
+            TopologyOp::Release(r) => r.springs.clone(),
+            other => panic!("a hook made {other:?}"),
+        })
+        .collect();
+    let n = springs.len();
+    springs.sort_unstable();
+    springs.dedup();
+    assert_eq!(springs.len(), n, "a spring in two ops: {springs:?}");
+    // The nine within reach, as when applied at once (the test above).
+    assert_eq!(n, 9);
+    // Applied later (by the session, at the op's time): the same springs go.
+    for op in interaction.hooks.made.clone() {
+        sim.apply_topology_op(op).expect("release");
+    }
+    let layer = &sim.attachments().layers[0];
+    for (i, s) in layer.springs.iter().enumerate() {
+        let off = ((s.attached.x - 0.02).powi(2) + (s.attached.y - 0.02).powi(2)).sqrt();
+        assert_eq!(layer.is_released(i), off < 0.015, "spring {i} at {off} m");
+    }
+}
+
 /// A blade cuts the tied block in two (a vertical sheet at x = 20.1 mm, through the
 /// hanging block only): every spring then pulls on the part on its own side of the cut,
 /// and both parts keep hanging from the layer.

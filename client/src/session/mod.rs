@@ -176,7 +176,7 @@ pub struct SessionSnapshot {
     pub divergence_m: Option<f64>,
 }
 
-/// How far ahead (s of simulated time) a site schedules its own cuts: the path of the op
+/// How far ahead (s of simulated time) a site schedules its own cuts and releases: the path of the op
 /// to the other sites that lead (owners and tool drivers run level, at most
 /// `pacing::MAX_LEAD` apart) is one round trip to the coordinator (two hops), plus that
 /// lead and a margin; at least 50 ms, at most 0.5 s (on longer paths a leader applies
@@ -731,12 +731,13 @@ impl SiteSession {
     }
 
     /// Sends the topology ops our own tools made at simulated time `t` (s) to the others.
-    /// Releases of attachment springs were applied here at `t` already (they are gradual).
-    /// A cut is not (the blade's `apply_own` is off on a linked site): it is scheduled
-    /// [`topology_lead`] ahead, for every site, this one included, so that the tissue
-    /// parts at the same simulated moment everywhere — also on the sites that lead like
-    /// us and would otherwise receive it after its time. `rtt`: the round trip to the
-    /// coordinator, when known.
+    /// Under hybrid and input-only sync, cuts and releases of attachment springs were not
+    /// applied here (the blade's and the hook's `apply_own` are off on a linked site): they
+    /// are scheduled [`topology_lead`] ahead, for every site, this one included, so that
+    /// the tissue parts or lets go at the same simulated moment everywhere — also on the
+    /// sites that lead like us and would otherwise receive them after their time. Clips
+    /// (which move nothing), and every op under keyframe and full-state sync, were applied
+    /// here at `t`. `rtt`: the round trip to the coordinator, when known.
     pub fn share_topology(
         &mut self,
         ops: &[sim_core::cut::TopologyOp],
@@ -748,7 +749,9 @@ impl SiteSession {
         }
         for op in ops {
             let at = match op {
-                sim_core::cut::TopologyOp::Cut(_) if self.times_topology() => {
+                sim_core::cut::TopologyOp::Cut(_) | sim_core::cut::TopologyOp::Release(_)
+                    if self.times_topology() =>
+                {
                     t + topology_lead(rtt)
                 }
                 _ => t,

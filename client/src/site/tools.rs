@@ -185,9 +185,10 @@ impl Tools {
         self.interaction.hooks.enabled = driven.clone();
         self.interaction.clips.enabled = driven;
         self.interaction.blades.site = session.site_id().map_or(0, u32::from);
-        // Under hybrid and input-only sync our cuts are applied when the session schedules
-        // them (see `SiteSession::share_topology`).
+        // Under hybrid and input-only sync our cuts and releases are applied when the
+        // session schedules them (see `SiteSession::share_topology`).
         self.interaction.blades.apply_own = !session.times_topology();
+        self.interaction.hooks.apply_own = !session.times_topology();
         self.interaction.hooks.site = self.interaction.blades.site;
         self.interaction.clips.site = self.interaction.blades.site;
         self.interaction.before_step(sim, &inputs)?;

@@ -37,6 +37,14 @@ pub struct HookDissection {
     /// Which tools may release here (default: every hook). A networked site lets only the
     /// hook it drives dissect: the others' releases arrive as their ops.
     pub enabled: Vec<bool>,
+    /// Whether a release is applied here at once (default). A site under hybrid or
+    /// input-only sync turns this off and applies its own releases a little later, at a
+    /// simulated time it shares with the op (as it does its cuts), so that every site lets
+    /// the tissue go at the same moment; meanwhile the springs stay candidates of no
+    /// other release (`pending`).
+    pub apply_own: bool,
+    /// Springs released by an op made here and not applied yet, per layer.
+    pending: Vec<std::collections::BTreeSet<u32>>,
 }
 
 impl HookDissection {
@@ -48,16 +56,19 @@ impl HookDissection {
             gained: vec![Vec::new(); tools.tools.len()],
             made: Vec::new(),
             enabled: vec![true; tools.tools.len()],
+            apply_own: true,
+            pending: Vec::new(),
         }
     }
 
-    /// One step of every enabled hook; applies the releases it makes and returns how many
-    /// springs were released.
+    /// One step of every enabled hook; applies the releases it makes (unless
+    /// [`Self::apply_own`] is off) and returns how many springs were released here.
     pub fn update(&mut self, sim: &mut Simulation, tools: &ToolSet) -> Result<usize, SimError> {
         let dt = sim.options().dt;
         let layers = sim.attachments().layers.len();
         self.gained.resize(tools.tools.len(), Vec::new());
         self.enabled.resize(tools.tools.len(), true);
+        self.pending.resize(layers, Default::default());
         let mut released = 0;
         for (ti, tool) in tools.tools.iter().enumerate() {
             if tool.kind != ToolKind::Hook || !self.enabled[ti] {
@@ -69,8 +80,9 @@ impl HookDissection {
                 let layer = &sim.attachments().layers[li];
                 let gained = &mut self.gained[ti][li];
                 *gained += layer.release_rate * dt;
+                let pending = &self.pending[li];
                 let mut candidates: Vec<(f64, u32)> = (0..layer.springs.len())
-                    .filter(|&i| !layer.is_released(i))
+                    .filter(|&i| !layer.is_released(i) && !pending.contains(&(i as u32)))
                     .filter_map(|i| {
                         let st = layer.state(sim.positions(), i);
                         let d = (st.midpoint - tip).norm();
@@ -99,8 +111,11 @@ impl HookDissection {
                     springs,
                 });
                 self.next_seq += 1;
-                let change = sim.apply_topology_op(op.clone())?;
-                released += change.released;
+                if self.apply_own {
+                    released += sim.apply_topology_op(op.clone())?.released;
+                } else if let TopologyOp::Release(r) = &op {
+                    self.pending[li].extend(&r.springs);
+                }
                 tracing::debug!(tool = %tool.name, springs = n, "hook released springs");
                 self.made.push(op);
             }
