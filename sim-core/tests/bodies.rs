@@ -128,23 +128,27 @@ fn released_gallbladder_hangs_from_duct_and_artery() {
     assert!(free_mean > 4.0 * tied_max);
 }
 
-/// The scene's scripts on one site: the forceps lifts the fundus, the hook sweeps along
-/// the bed and releases every spring (each release an op of the topology log), the
-/// gallbladder drops once the forceps lets go, and the blade cuts the duct.
+/// The scene's scripts on one site: the forceps lifts the fundus and holds it, the hook
+/// sweeps along the bed and releases every spring (each release an op of the topology
+/// log), the clip applier leaves one clip on the duct, and the blade divides the duct
+/// beside it (one cut).
 #[test]
-fn scripted_dissection_releases_the_whole_bed() {
+fn scripted_dissection_releases_the_whole_bed_then_clips_and_divides_the_duct() {
     use cosurg_sim_core::Interaction;
     let mut sim = bodies_scene();
     let mut interaction = Interaction::new(&sim);
     let n = sim.attachments().layers[0].springs.len();
     let c0 = centroid(&sim, GALLBLADDER);
-    let (mut released, mut cuts, mut ops) = (0, 0, 0);
+    let (mut released, mut cuts, mut clips, mut ops) = (0, 0, 0, 0);
     let mut lifted: f64 = 0.0;
-    for _ in 0..6000 {
+    // The blade's stroke ends at 16.8 s.
+    let steps = (17.2 / sim.options().dt).round() as usize;
+    for _ in 0..steps {
         let inputs = interaction.scripted_inputs(&sim, sim.time());
         let r = interaction.before_step(&mut sim, &inputs).expect("tools");
         released += r.released;
         cuts += r.cuts;
+        clips += r.clips;
         sim.step().expect("step");
         if sim.time() < 9.0 {
             lifted = lifted.max(centroid(&sim, GALLBLADDER).z - c0.z);
@@ -156,19 +160,29 @@ fn scripted_dissection_releases_the_whole_bed() {
     }
     assert_eq!(released, n, "the hook's sweep reaches the whole bed");
     assert_eq!(sim.attachments().layers[0].holding(), 0);
-    assert!(cuts >= 1, "the blade cut the duct");
+    assert_eq!(clips, 1, "the clip applier clips the duct once");
+    assert_eq!(sim.clips().len(), 1);
+    assert_eq!(cuts, 1, "the blade divides the duct in one stroke");
+    assert!(
+        sim.surface_cut_errors().iter().all(Option::is_none),
+        "every surface the blade crossed is cut and capped: {:?}",
+        sim.surface_cut_errors()
+    );
     assert_eq!(
         sim.topology().epoch() as usize,
-        ops + interaction.blades.made.len()
+        ops + interaction.blades.made.len() + interaction.clips.made.len()
     );
     assert!(
         lifted > 0.001,
         "the lift raised the gallbladder by {lifted} m"
     );
-    let drop = c0.z - centroid(&sim, GALLBLADDER).z;
+    // The clip stays on the duct: its ends are finite and it is as long as the jaws
+    // (12 mm) within what the duct's stretch allows.
+    let [a, b] = sim.clip_positions()[0];
     assert!(
-        drop > 0.04,
-        "after the release the gallbladder hangs {drop} m lower"
+        ((a - b).norm() - 0.012).abs() < 0.004,
+        "the clip is {} m long",
+        (a - b).norm()
     );
     assert!(
         sim.positions()
