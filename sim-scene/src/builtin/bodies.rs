@@ -11,8 +11,8 @@
 //! whose nodes are fixed, also below z = −0.04 m.
 //!
 //! Tool scripts ([`Scripts`]): the forceps grasps the fundus, lifts it 2 cm and holds it,
-//! the hook sweeps along the bed from the fundus to the neck between the two bodies
-//! (2.5–9 s), the clip applier clips the cystic duct on the hilum's side (10.5–13 s) and
+//! the hook sweeps along the bed from the fundus to the neck between the two bodies and
+//! back out (2.5–9.5 s), the clip applier clips the cystic duct on the hilum's side (10.5–13 s) and
 //! again on the gallbladder's side (13–15.5 s), and the blade divides the duct between
 //! the clips (15.5–17 s).
 
@@ -138,7 +138,7 @@ pub struct Scripts {
     /// `bodies_grasp_lift`: the instructor's forceps lifts the fundus (0–3 s) and holds it
     /// (to 10.5 s, then parked closed: it keeps holding).
     pub forceps: ToolScript,
-    /// `bodies_hook_dissect`: trainee B's hook dissects the bed (2.5–9 s).
+    /// `bodies_hook_dissect`: trainee B's hook dissects the bed (2.5–9.5 s).
     pub hook: ToolScript,
     /// `bodies_clip_duct`: the instructor's clip applier clips the duct on the hilum's
     /// side ([`CLIP_HILUM`] along it, 10.5–13 s).
@@ -166,9 +166,9 @@ pub const CUT_AT: f64 = 0.55;
 /// 11 s: equal to 1 µm). The clips and the blade aim there, as a surgeon aims at the
 /// duct where it is; the demo's end-to-end test checks that both clips and the cut land.
 const DUCT_SAG: [(f64, [f64; 3]); 3] = [
-    (CLIP_NECK, [-0.00026, 0.00047, -0.01757]),
-    (CUT_AT, [-0.00084, 0.00096, -0.01263]),
-    (CLIP_HILUM, [-0.00001, 0.00114, -0.00880]),
+    (CLIP_NECK, [-0.00044, 0.00068, -0.00784]),
+    (CUT_AT, [-0.00078, 0.00030, -0.00617]),
+    (CLIP_HILUM, [-0.00037, 0.00043, -0.00432]),
 ];
 
 /// A point of the duct's axis at `f` (fraction from the neck) where it hangs after the
@@ -265,12 +265,14 @@ pub fn scripts() -> Scripts {
             },
         ));
     }
+    // Out the way it came, along the (released) bed: straight down from the neck would
+    // plough through the gallbladder.
     track.push(waypoint(
-        9.0,
-        bed(1.0) - V3::new(0.0, 0.0, 0.03),
+        9.5,
+        bed(0.0) - V3::new(0.0, 0.05, 0.0),
         qh,
         0.0,
-        "withdraw",
+        "withdraw along the bed",
     ));
     hook.tracks.insert("hook".into(), track);
     // The clip applier and the blade lie across the duct (horizontal, tip towards the
