@@ -1,7 +1,8 @@
-//! What dissecting costs, on `scenes/cholecystectomy-bodies.toml` (or the scene given), all
-//! its tool scripts on one site: step times (tools + FEM step) before the hook reaches the
-//! bed, while it releases springs, and after; the time a second simulation takes to apply
-//! each release op it receives; the ops' bytes; the two digests.
+//! What dissecting and cutting cost, on `scenes/cholecystectomy-bodies.toml` (the default
+//! scene; or the scene given), all its tool scripts on one site: step times (tools + FEM
+//! step) before the hook reaches the bed, while it releases springs, after, and the step
+//! that commits a cut; the time a second simulation takes to apply each release, clip and
+//! cut it receives; the ops' bytes; the two digests.
 //!
 //! `cargo run --release -p cosurg-sim-core --example dissect_cost [-- SCENE [SECONDS]]`
 
@@ -40,7 +41,8 @@ fn main() {
     let path = given.map(PathBuf::from).unwrap_or_else(|| {
         PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../scenes/cholecystectomy-bodies.toml")
     });
-    let seconds: f64 = args.next().map_or(12.5, |s| s.parse().expect("seconds"));
+    // The scripts end with the blade's stroke through the duct at 16.8 s.
+    let seconds: f64 = args.next().map_or(17.2, |s| s.parse().expect("seconds"));
     let scene = Scene::load(&path).expect("scene");
     let options = SimOptions::from_scene(&scene.scene);
     let mut sim = Simulation::new(scene.clone(), options.clone()).expect("simulation");
@@ -57,6 +59,7 @@ fn main() {
     let (mut apply_ms, mut release_bytes, mut release_ops, mut released) =
         (Vec::new(), 0usize, 0usize, 0usize);
     let mut cut_steps = Vec::new();
+    let (mut clip_apply_ms, mut cut_apply_ms) = (Vec::new(), Vec::new());
     let steps = (seconds / dt).round() as usize;
     for _ in 0..steps {
         let t0 = Instant::now();
@@ -81,6 +84,7 @@ fn main() {
             .made
             .drain(..)
             .chain(interaction.blades.made.drain(..))
+            .chain(interaction.clips.made.drain(..))
             .collect();
         for op in made {
             if let TopologyOp::Release(_) = &op {
@@ -90,7 +94,15 @@ fn main() {
                 receiver.apply_topology_op(op).expect("apply");
                 apply_ms.push(t.elapsed().as_secs_f64() * 1e3);
             } else {
-                receiver.apply_topology_op(op).expect("apply cut");
+                let is_cut = matches!(op, TopologyOp::Cut(_));
+                let t = Instant::now();
+                receiver.apply_topology_op(op).expect("apply clip or cut");
+                let ms = t.elapsed().as_secs_f64() * 1e3;
+                if is_cut {
+                    cut_apply_ms.push(ms);
+                } else {
+                    clip_apply_ms.push(ms);
+                }
             }
         }
     }
@@ -112,6 +124,17 @@ fn main() {
         percentile(&apply_ms, 50.0),
         percentile(&apply_ms, 99.0),
         percentile(&apply_ms, 100.0)
+    );
+    println!(
+        "applying a received clip: {:?} ms; a received cut: {:?} ms",
+        clip_apply_ms
+            .iter()
+            .map(|v| (v * 1e3).round() / 1e3)
+            .collect::<Vec<_>>(),
+        cut_apply_ms
+            .iter()
+            .map(|v| (v * 10.0).round() / 10.0)
+            .collect::<Vec<_>>()
     );
     println!(
         "topology epoch {} / {}, digest {:016x} / {:016x} (cutting site / receiver)",
