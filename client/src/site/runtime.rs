@@ -177,6 +177,11 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                             )
                         }
                     },
+                    ViewRequest::NextInstrument => {
+                        if let Some(name) = tools.next_instrument() {
+                            info!(site = %cfg.name, t, tool = name, "instrument exchanged");
+                        }
+                    }
                     ViewRequest::TeachingStop => {
                         if let Some(id) = replaying.take() {
                             session.send_control(proto::Message::Command(

@@ -135,6 +135,23 @@ impl Tools {
         &self.instruments
     }
 
+    /// Takes the next instrument in hand (the window's `T`): the next of this site's tools
+    /// in scene order after the one in hand, wrapping round. Returns its name; `None` when
+    /// the site has fewer than two instruments.
+    pub fn next_instrument(&mut self) -> Option<&str> {
+        if self.instruments.len() < 2 {
+            return None;
+        }
+        let mut order = self.instruments.clone();
+        order.sort_unstable();
+        let pos = self
+            .local
+            .and_then(|l| order.iter().position(|&i| i == l))
+            .map_or(0, |p| (p + 1) % order.len());
+        self.local = Some(order[pos]);
+        Some(self.interaction.tools.tools[order[pos]].name.as_str())
+    }
+
     /// Sets every tool's input, runs contact (and tool-following adaptivity) before the
     /// step, and returns the regions the local tool touches.
     pub fn before_step(
@@ -442,6 +459,65 @@ mod tests {
             nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, x),
             jaw,
         )
+    }
+
+    /// The bodies scene's instructor: forceps, clip applier and blade, one hand. The
+    /// instrument in hand follows the script's tracks (each taken as its track begins,
+    /// the last kept between tracks); the window's `T` cycles them in scene order; only the
+    /// instrument in hand is sent to the others.
+    #[test]
+    fn instruments_are_exchanged_as_their_tracks_begin() {
+        let scene = sim_core::sim_scene::builtin::cholecystectomy_bodies();
+        let options = sim_core::SimOptions::from_scene(&scene.scene);
+        let sim = Simulation::new(scene.clone(), options).unwrap();
+        let names = ["forceps", "clip applier", "blade"].map(String::from);
+        let mut tools = Tools::new(&sim, &names, SyncStrategy::Hybrid).unwrap();
+        let index = |n: &str| tools.interaction.tools.index(n).unwrap();
+        let (forceps, applier, blade) = (index("forceps"), index("clip applier"), index("blade"));
+        let mut script = ToolScript::default();
+        for n in &names {
+            script
+                .tracks
+                .insert(n.clone(), scene.scripts[n].tracks[n].clone());
+        }
+        assert_eq!(
+            tools.local_index(),
+            Some(forceps),
+            "the first in hand at the start"
+        );
+        let held = |tools: &mut Tools, t: f64| {
+            let input = tools.local_input(Some(&script), t);
+            (tools.local_index(), input.is_some())
+        };
+        assert_eq!(held(&mut tools, 1.0), (Some(forceps), true));
+        assert_eq!(held(&mut tools, 11.0), (Some(applier), true));
+        // Between the applier's track (to 13 s) and the blade's (from 15.5 s): nothing
+        // driven, the applier stays in hand.
+        assert_eq!(held(&mut tools, 14.0), (Some(applier), false));
+        assert_eq!(held(&mut tools, 16.0), (Some(blade), true));
+        // The input is the track of the tool in hand, not another's.
+        let at = tools.local_input(Some(&script), 16.0).unwrap();
+        let expect = script.sample("blade", 16.0).unwrap();
+        assert!((at.pose.translation.vector - expect.position).norm() < 1e-12);
+        // `T` in scene order: forceps (0) → clip applier → blade → forceps.
+        let mut order = vec![forceps, applier, blade];
+        order.sort_unstable();
+        tools.local = Some(order[0]);
+        let cycled: Vec<usize> = (0..3)
+            .map(|_| {
+                tools.next_instrument().unwrap();
+                tools.local_index().unwrap()
+            })
+            .collect();
+        assert_eq!(cycled, vec![order[1], order[2], order[0]]);
+        // One instrument: nothing to exchange.
+        let mut one = Tools::new(&sim, &names[..1], SyncStrategy::Hybrid).unwrap();
+        assert!(one.next_instrument().is_none());
+        // An unknown tool is refused with its name.
+        let err = Tools::new(&sim, &["scalpel".into()], SyncStrategy::Hybrid)
+            .err()
+            .unwrap();
+        assert!(err.to_string().contains("scalpel"), "{err}");
     }
 
     #[test]

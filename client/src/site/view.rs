@@ -61,6 +61,8 @@ pub enum ViewRequest {
     TeachingStop,
     /// The window was closed: the site leaves.
     Closed,
+    /// The hands take the site's next instrument (`T`): see [`Tools::next_instrument`].
+    NextInstrument,
 }
 
 /// The local tool under the window's hands.
@@ -72,13 +74,16 @@ pub struct SiteHands {
 }
 
 impl SiteHands {
-    /// Takes one tool command at simulated time `t`; `NextTool` is ignored (a site drives
-    /// one tool).
+    /// Takes one tool command at simulated time `t`. `NextTool` (an instrument exchange,
+    /// made by the driver) leaves the hands at rest until they move the new instrument.
     pub fn command(&mut self, c: ToolCommand, t: f64) {
         match c {
             ToolCommand::MoveTo(p) => self.hold.target = Some(p),
             ToolCommand::Jaw(closed) => self.hold.jaw_closed = closed,
-            ToolCommand::NextTool => return,
+            ToolCommand::NextTool => {
+                *self = SiteHands::default();
+                return;
+            }
         }
         self.last_command = Some(t);
     }
@@ -254,6 +259,9 @@ impl SiteViewer {
                 ViewerCommand::Tool(c) => {
                     if let Some(h) = self.hands.as_mut() {
                         h.command(c, t);
+                        if c == ToolCommand::NextTool {
+                            out.push(ViewRequest::NextInstrument);
+                        }
                     }
                 }
                 ViewerCommand::Session(SessionCommand::Reset) => out.push(ViewRequest::Reset),
@@ -374,9 +382,11 @@ impl SiteViewer {
             self.builder
                 .build(ctx.sim, Some(ctx.tools.interaction()), with_lattice, hud);
         let drawn = ctx.tools.frames();
-        let local = ctx.tools.local_index();
+        // Every instrument of this site is the window's (its hands cycle through them with
+        // `T`, in scene order, as `Tools::next_instrument` does).
+        let own = ctx.tools.instruments();
         for (i, view) in frame.tools.iter_mut().enumerate() {
-            if Some(i) == local {
+            if own.contains(&i) {
                 continue;
             }
             view.site = Some(
