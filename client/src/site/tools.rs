@@ -500,7 +500,7 @@ mod tests {
         let expect = script.sample("blade", 16.0).unwrap();
         assert!((at.pose.translation.vector - expect.position).norm() < 1e-12);
         // `T` in scene order: forceps (0) → clip applier → blade → forceps.
-        let mut order = vec![forceps, applier, blade];
+        let mut order = [forceps, applier, blade];
         order.sort_unstable();
         tools.local = Some(order[0]);
         let cycled: Vec<usize> = (0..3)
