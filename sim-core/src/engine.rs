@@ -544,9 +544,14 @@ impl Simulation {
     /// Adds a stiffness block `K = −∂f/∂x` (N/m, symmetric positive semi-definite) on a
     /// node for the next step only: the implicit step treats the matching force added with
     /// [`Simulation::add_force`] as `f − K (x_{n+1} − x_n)` (stiff contact stays stable).
+    ///
+    /// Once a cut exists `node` may also be a virtual node's slot (a degree of freedom past
+    /// the lattice's capacity, as [`Simulation::surface_vertex_host`] returns).
     pub fn add_stiffness(&mut self, node: NodeId, k: nalgebra::Matrix3<f64>) {
-        if self.lattice.node_alive(node) {
-            self.k_extra.push((node.0 as usize, k));
+        let d = node.0 as usize;
+        let virtual_slot = d >= self.lattice.node_capacity() && d < self.x.len();
+        if virtual_slot || self.lattice.node_alive(node) {
+            self.k_extra.push((d, k));
         }
     }
 

@@ -321,3 +321,75 @@ fn a_cut_moves_no_surface_vertex_it_does_not_cross() {
         assert!(worst < 1e-9, "{}: a vertex moved {worst:.3e} m", s.name);
     }
 }
+
+/// Contact after a cut: once the cut block's halves have swung apart (the cut face's
+/// vertices then lie 5+ mm from where the lattice's own nodes would put them), a probe
+/// pressed 2 mm into the cut face of the left half touches it. (Contact now reads the
+/// vertices from the copies they are drawn from, `Simulation::surface_vertex_host`; this
+/// test also passes with the lattice's nodes, whose error the neighbouring uncut triangles
+/// hide here: it checks contact on a cut face, not that change.)
+#[test]
+fn contact_after_a_cut_touches_the_cut_face_where_it_is_drawn() {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../scenes");
+    let text = std::fs::read_to_string(dir.join("cut-block.toml"))
+        .unwrap()
+        .replace("contact = false", "contact = true")
+        + r#"
+[[tool]]
+name = "probe"
+kind = "probe"
+position = [0.3, 0.3, 0.3]
+radius = 0.002
+length = 0.02
+"#;
+    let scene = Scene::from_str(&text, &dir, "cut-block+probe.toml").unwrap();
+    let options = SimOptions::from_scene(&scene.scene);
+    let mut sim = Simulation::new(scene, options).unwrap();
+    let mut interaction = Interaction::new(&sim);
+    let probe = interaction.tools.index("probe").unwrap();
+    // The blade's script cuts at 0.65 s; the halves swing for 0.5 s more (the probe is
+    // parked far away).
+    for _ in 0..((1.15 / sim.options().dt).round() as usize) {
+        let inputs = interaction.scripted_inputs(&sim, sim.time());
+        interaction.before_step(&mut sim, &inputs).unwrap();
+        sim.step().unwrap();
+    }
+    assert!(sim.separation().is_some(), "the block is cut");
+    let s = &sim.surfaces()[0];
+    let lattice_point = |v: usize| -> V3 {
+        let (_, w, n) = s.embedding.host(v);
+        (0..4)
+            .map(|k| w[k] * sim.positions()[n[k].0 as usize])
+            .sum()
+    };
+    // The cap vertex of the left half (rest normal +x) farthest from where the lattice's
+    // nodes would put it.
+    let rest_normals = s.rest.vertex_normals();
+    let (v, gap) = (0..s.rest.vertices.len())
+        .filter(|&v| (s.rest.vertices[v].x - 0.0613).abs() < 1e-6 && rest_normals[v].x > 0.9)
+        .map(|v| (v, (s.deformed[v] - lattice_point(v)).norm()))
+        .max_by(|a, b| a.1.total_cmp(&b.1))
+        .expect("cap vertices on the left half");
+    assert!(
+        gap > 0.005,
+        "the halves swung apart: {gap} m between copy and lattice"
+    );
+    let deformed = TriMesh {
+        vertices: s.deformed.clone(),
+        triangles: s.rest.triangles.clone(),
+    };
+    let normal = deformed.vertex_normals()[v];
+    let p = s.deformed[v];
+    // The probe along the face's outward normal, its tip 2 mm inside.
+    let shaft = nalgebra::UnitQuaternion::rotation_between(&V3::z(), &normal).unwrap();
+    let mut inputs = interaction.scripted_inputs(&sim, sim.time());
+    inputs[probe] = cosurg_sim_core::ToolInput::new(p - normal * 0.002, shaft, 0.0);
+    let report = interaction.before_step(&mut sim, &inputs).unwrap();
+    let touched = &interaction.state().tools[probe];
+    assert!(
+        report.contacts > 0 && touched.max_depth > 0.001,
+        "the probe 2 mm into the cut face: {} contacts, depth {} m",
+        report.contacts,
+        touched.max_depth
+    );
+}

@@ -230,11 +230,10 @@ impl ContactPipeline {
         tri.map(|v| {
             let g = (base + v) as usize;
             if self.vert_stamp[g] != self.pass {
-                let (_, w, n) = surf.embedding.host(v as usize);
-                self.vert_pos[g] = x[n[0].0 as usize] * w[0]
-                    + x[n[1].0 as usize] * w[1]
-                    + x[n[2].0 as usize] * w[2]
-                    + x[n[3].0 as usize] * w[3];
+                // After a cut: the copy on the vertex's side (virtual nodes included).
+                let (n, w) = sim.surface_vertex_host(s as usize, v as usize);
+                self.vert_pos[g] =
+                    x[n[0]] * w[0] + x[n[1]] * w[1] + x[n[2]] * w[2] + x[n[3]] * w[3];
                 self.vert_stamp[g] = self.pass;
             }
             self.vert_pos[g]
@@ -254,9 +253,9 @@ impl ContactPipeline {
         let surf = &sim.surfaces()[s as usize];
         let tri = surf.rest.triangles[k as usize];
         for (v, b) in tri.iter().zip(bary) {
-            let (_, w, n) = surf.embedding.host(*v as usize);
+            let (n, w) = sim.surface_vertex_host(s as usize, *v as usize);
             for j in 0..4 {
-                out.push((n[j].0, b * w[j]));
+                out.push((n[j] as u32, b * w[j]));
             }
         }
     }

@@ -469,7 +469,8 @@ impl ContactPipeline {
             self.vert_stamp.iter_mut().for_each(|s| *s = 0);
             self.pass = 1;
         }
-        let cap = sim.lattice().node_capacity();
+        // Node slots: the lattice's, then (after a cut) the virtual nodes'.
+        let cap = sim.positions().len();
         if self.state.node_force.len() != cap {
             self.state.node_force.resize(cap, V3::zeros());
             self.node_k.resize(cap, Matrix3::zeros());

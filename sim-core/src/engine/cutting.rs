@@ -349,6 +349,22 @@ impl Simulation {
         }
     }
 
+    /// The degrees of freedom (node slots) and weights that vertex `v` of surface `s`
+    /// follows: its host leaf's lattice nodes, or once a cut exists the nodes of the leaf's
+    /// copy on its side (virtual nodes included). What contact pushes and reads.
+    pub fn surface_vertex_host(&self, s: usize, v: usize) -> ([usize; 4], [f64; 4]) {
+        if let Some(h) = self
+            .cut
+            .as_ref()
+            .and_then(|c| c.hosts.get(s))
+            .and_then(|h| h.get(v))
+        {
+            return *h;
+        }
+        let (_, w, n) = self.surfaces[s].embedding.host(v);
+        (n.map(|n| n.0 as usize), w)
+    }
+
     /// The clips placed on the tissue ([`crate::clip`]).
     pub fn clips(&self) -> &crate::clip::Clips {
         &self.clips
