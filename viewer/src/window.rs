@@ -350,6 +350,11 @@ pub fn run_window(
             let size_px = (input.viewport.width as f64, input.viewport.height as f64);
             let dpr = input.device_pixel_ratio as f64;
             let frame = slot.latest();
+            // The site says which tool is in hand (its script, or an instrument exchange,
+            // may change it): the HUD's tool line and the highlight follow it.
+            if let Some(i) = in_hand(&frame) {
+                hands.active_tool = Some(i);
+            }
             let mut session = Vec::new();
             gui.update(
                 &mut input.events,
@@ -484,9 +489,10 @@ pub fn render_picture(frame: &ViewFrame, size: (u32, u32)) -> Result<Picture, Vi
         DepthTexture2D::new::<f32>(&context, w, h, Wrapping::ClampToEdge, Wrapping::ClampToEdge);
     let viewport = Viewport::new_at_origo(w, h);
     let renderer = Renderer::new(&context);
-    // the hands hold the first of the site's own tools (remote tools are not theirs)
+    // the hands hold the site's tool in hand, else the first of its own tools (remote
+    // tools are not theirs)
     let hands = Hands {
-        active_tool: frame.tools.iter().position(|t| t.site.is_none()),
+        active_tool: in_hand(frame).or_else(|| frame.tools.iter().position(|t| t.site.is_none())),
         ..Hands::default()
     };
     let target = RenderTarget::new(color.as_color_target(None), depth.as_depth_target());
@@ -577,3 +583,10 @@ pub fn screenshot(
 
 #[cfg(test)]
 mod tests;
+
+/// Index of the tool the frame's site has in hand (its HUD's `active_tool`), if it is
+/// one of the frame's tools.
+fn in_hand(frame: &ViewFrame) -> Option<usize> {
+    let name = frame.hud.active_tool.as_ref()?;
+    frame.tools.iter().position(|t| &t.name == name)
+}
