@@ -219,20 +219,24 @@ fn bad_releases_and_touching_bodies_are_rejected() {
     assert!(e.contains("share lattice nodes"), "{e}");
 }
 
-/// A hook held still in the middle of the layer releases the springs within its radius at
-/// the layer's rate, nearest first, and only those carrying at least the threshold force.
-#[test]
-fn hook_releases_springs_near_its_tip_at_the_rate() {
+/// The tied blocks with a hook held still in the middle of the layer; its release radius
+/// widened from 0.01 to 0.015 m: the 3 x 3 springs around the centre (midpoints 0, 0.01
+/// and 0.0141 m away) are within reach.
+fn hook_over_the_centre() -> String {
     let hook = r#"
 [[tool]]
 name = "hook"
 kind = "hook"
 position = [0.02, 0.02, 0.025]
 "#;
-    // release_radius 0.01 m in the scene; widen to 0.015 m: the 3 x 3 springs around the
-    // centre (midpoints 0, 0.01 and 0.0141 m away).
-    let text =
-        two_blocks_with(true, hook).replace("release_radius = 0.01", "release_radius = 0.015");
+    two_blocks_with(true, hook).replace("release_radius = 0.01", "release_radius = 0.015")
+}
+
+/// A hook held still in the middle of the layer releases the springs within its radius at
+/// the layer's rate, nearest first, and only those carrying at least the threshold force.
+#[test]
+fn hook_releases_springs_near_its_tip_at_the_rate() {
+    let text = hook_over_the_centre();
     let run = |text: &str, steps: usize| {
         let mut sim = sim_of(text).expect("scene");
         let mut interaction = Interaction::new(&sim);
@@ -271,14 +275,7 @@ position = [0.02, 0.02, 0.025]
 /// puts a spring it released into a second op while the first is pending.
 #[test]
 fn a_scheduling_hook_releases_each_spring_once_and_applies_nothing_itself() {
-    let hook = r#"
-[[tool]]
-name = "hook"
-kind = "hook"
-position = [0.02, 0.02, 0.025]
-"#;
-    let text =
-        two_blocks_with(true, hook).replace("release_radius = 0.01", "release_radius = 0.015");
+    let text = hook_over_the_centre();
     let mut sim = sim_of(&text).expect("scene");
     let mut interaction = Interaction::new(&sim);
     interaction.hooks.apply_own = false;

@@ -195,12 +195,13 @@ impl Tools {
         // Only the instrument in hand, while this site drives it, cuts, dissects and
         // clips: a site that simulates another site's act with a tool it also drives at
         // other times would otherwise make the same cut twice.
-        let driven: Vec<bool> = (0..inputs.len())
-            .map(|i| Some(i) == self.local && local.is_some())
-            .collect();
-        self.interaction.blades.enabled = driven.clone();
-        self.interaction.hooks.enabled = driven.clone();
-        self.interaction.clips.enabled = driven;
+        let inter = &mut self.interaction;
+        for i in 0..inputs.len() {
+            let driven = Some(i) == self.local && local.is_some();
+            inter.blades.enabled[i] = driven;
+            inter.hooks.enabled[i] = driven;
+            inter.clips.enabled[i] = driven;
+        }
         self.interaction.blades.site = session.site_id().map_or(0, u32::from);
         // Under hybrid and input-only sync our cuts and releases are applied when the
         // session schedules them (see `SiteSession::share_topology`).

@@ -204,19 +204,18 @@ impl ClipApplication {
             else {
                 continue;
             };
-            let op = TopologyOp::Clip(ClipOp {
+            let clip = ClipOp {
                 id: OpId {
                     site: self.site,
                     seq: CLIP_SEQ_BASE.wrapping_add(self.next_seq),
                 },
                 ends: [ra.into(), rb.into()],
-            });
-            if let TopologyOp::Clip(c) = &op
-                && let Err(e) = c.validate()
-            {
+            };
+            if let Err(e) = clip.validate() {
                 tracing::warn!(tool = %tool.name, error = %e, "clip not placed");
                 continue;
             }
+            let op = TopologyOp::Clip(clip);
             self.next_seq += 1;
             sim.apply_topology_op(op.clone())?;
             tracing::info!(tool = %tool.name, "clip placed");

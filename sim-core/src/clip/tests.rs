@@ -2,46 +2,27 @@
 //! affine motion of the lattice exactly, a clip that stays with its side of a cut, and
 //! clip and cut ops that commute.
 
-use std::path::Path;
-
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
-use sim_scene::Scene;
 
 use super::*;
+use crate::Simulation;
 use crate::cut::CutOp;
 use crate::tools::ToolInput;
-use crate::{SimOptions, Simulation};
 
 type V3 = Vector3<f64>;
 
 /// The 8 × 4 × 4 cm block of the cut tests (fixed at x = 0) with a clip applier whose
 /// closed jaws are 1 cm long, pointing down.
 fn block_with_applier() -> Simulation {
-    let text = r#"
-[material.soft]
-young = 2.0e4
-poisson = 0.4
-density = 1000.0
-
-[[body]]
-name = "block"
-box = { min = [0.0, 0.0, 0.0], max = [0.08, 0.04, 0.04] }
-cell = 0.02
-max_depth = 3
-material = "soft"
-
-[[fix]]
-box = { min = [-0.001, -1.0, -1.0], max = [0.001, 1.0, 1.0] }
-
+    crate::cut::tests::block_scene(
+        r#"
 [[tool]]
 name = "clip applier"
 kind = "clip-applier"
 position = [0.06, 0.02, 0.1]
 length = 0.01
-"#;
-    let scene = Scene::from_str(text, Path::new("."), "block.toml").expect("scene");
-    let options = SimOptions::from_scene(&scene.scene);
-    Simulation::new(scene, options).expect("simulation")
+"#,
+    )
 }
 
 fn drive(

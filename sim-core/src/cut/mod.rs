@@ -26,7 +26,7 @@ pub mod separate;
 pub mod sheet;
 pub mod surface;
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;
 
 use std::collections::BTreeMap;
 

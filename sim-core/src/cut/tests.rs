@@ -127,7 +127,9 @@ fn volume_fractions_match_sampled_volumes_and_sum_to_one() {
     }
 }
 
-fn block_scene(extra: &str) -> Simulation {
+/// The 8 × 4 × 4 cm block on a 2 cm lattice (max depth 3), fixed at x = 0, with `extra`
+/// scene text appended (also the clip tests' scene).
+pub(crate) fn block_scene(extra: &str) -> Simulation {
     let text = format!(
         r#"
 [material.soft]

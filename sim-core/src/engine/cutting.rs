@@ -110,29 +110,20 @@ impl Simulation {
             TopologyOp::Release(r) => self.attachments.validate(r).map_err(SimError::Topology)?,
             TopologyOp::Clip(c) => c.validate().map_err(SimError::Topology)?,
         }
-        if let TopologyOp::Clip(_) = &op {
-            if !self.topology.insert(op) {
-                return Ok(TopologyChange::default());
-            }
-            self.clips
-                .rebuild(&self.lattice, self.topology.clip_ends())?;
-            self.clips_follow_cut();
-            self.update_topology_digest();
-            let (crossed, virtual_nodes) = self.cut.as_ref().map_or((0, 0), |c| {
-                (c.separation.crossed.len(), c.separation.virtual_nodes.len())
-            });
-            return Ok(TopologyChange {
-                applied: true,
-                crossed,
-                virtual_nodes,
-                ..TopologyChange::default()
-            });
-        }
-        if let TopologyOp::Release(r) = &op {
+        // Releases and clips leave the lattice and its separation as they are.
+        if !matches!(op, TopologyOp::Cut(_)) {
             if !self.topology.insert(op.clone()) {
                 return Ok(TopologyChange::default());
             }
-            let released = self.attachments.release(r);
+            let released = match &op {
+                TopologyOp::Release(r) => self.attachments.release(r),
+                _ => {
+                    self.clips
+                        .rebuild(&self.lattice, self.topology.clip_ends())?;
+                    self.clips_follow_cut();
+                    0
+                }
+            };
             self.update_topology_digest();
             let (crossed, virtual_nodes) = self.cut.as_ref().map_or((0, 0), |c| {
                 (c.separation.crossed.len(), c.separation.virtual_nodes.len())
