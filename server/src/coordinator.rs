@@ -479,9 +479,11 @@ async fn status_loop(shared: Arc<Shared>, interval: Duration) {
         let (mut up_total, mut down_total) = (0.0, 0.0);
         for s in st.session.sites() {
             let id = s.entry.site;
+            let mut cwnd_kb = 0.0;
             let (up, down) = match st.peers.get_mut(&id) {
                 Some(p) => {
                     let stats = p.conn.stats();
+                    cwnd_kb = stats.path.cwnd as f64 / 1000.0;
                     let (rx, tx) = (stats.udp_rx.bytes, stats.udp_tx.bytes);
                     let r = (
                         (rx - p.last_bytes.0.min(rx)) as f64 / dt,
@@ -495,7 +497,7 @@ async fn status_loop(shared: Arc<Shared>, interval: Duration) {
             up_total += up;
             down_total += down;
             parts.push(format!(
-                "#{id} {} ({}) sim {:.3} s lag {:.3} s rtt {:.1} ms up {:.1} kB/s down {:.1} kB/s",
+                "#{id} {} ({}) sim {:.3} s lag {:.3} s rtt {:.1} ms cwnd {cwnd_kb:.1} kB up {:.1} kB/s down {:.1} kB/s",
                 s.entry.name,
                 s.entry.role,
                 s.sim_time_s,

@@ -432,6 +432,7 @@ impl<'a> ConnectionLoop<'a> {
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         let mut next_ping = tokio::time::Instant::now();
         let mut fast_pings = FAST_PINGS;
+        let mut next_path_log = tokio::time::Instant::now();
         let close = self.shared.outbox().close.clone();
         if let Some(reason) = close {
             return self.leave(reason).await;
@@ -490,6 +491,18 @@ impl<'a> ConnectionLoop<'a> {
                         liveness.on_heard(now);
                     }
                     self.update_udp_stats();
+                    if tokio::time::Instant::now() >= next_path_log {
+                        next_path_log += std::time::Duration::from_secs(1);
+                        let p = self.conn.stats().path;
+                        debug!(
+                            rtt_ms = p.rtt.as_secs_f64() * 1e3,
+                            cwnd = p.cwnd,
+                            congestion_events = p.congestion_events,
+                            lost_packets = p.lost_packets,
+                            sent_packets = p.sent_packets,
+                            "QUIC path to the coordinator"
+                        );
+                    }
                     match liveness.poll(now) {
                         Some(LivenessEvent::SendHeartbeat) => self.heartbeat(),
                         Some(LivenessEvent::TimedOut) => {

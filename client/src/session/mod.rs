@@ -335,6 +335,12 @@ impl SiteSession {
     pub fn input_lateness(&mut self, late: f64, at: f64, now: Now) {
         if late > 0.0 {
             self.stats.late_inputs += 1;
+            tracing::trace!(
+                late_ms = late * 1e3,
+                at,
+                target_ms = self.clocks.target_lag() * 1e3,
+                "late input"
+            );
         }
         let wall = self.wall(now.wall);
         self.clocks.input_shortfall(late, at, wall);

@@ -18,7 +18,14 @@
 //!   stamps (they travel like the inputs, as datagrams) plus [`HYBRID_JITTER_DEVS`] mean
 //!   deviations plus one input-datagram interval (a lost datagram's samples come in the
 //!   next one), capped only at [`MAX_HYBRID_LAG`] (a safety stop, not a tuning). Keyframe
-//!   ages, which include stream retransmissions, do not raise it.
+//!   ages, which include stream retransmissions, do not raise it. Inputs that still come
+//!   later than the lag by more than the tools are carried on past their newest sample
+//!   ([`INPUT_EXTRAPOLATION_S`]) raise it ([`PeerClocks::input_shortfall`]).
+//! * The followed sites' current times are estimated from their stamps' *send* times
+//!   (clocks synchronised with the coordinator's), not their arrivals: over a path that
+//!   keeps packet order, stamps arrive bunched behind a delayed one, and a rate taken from
+//!   arrivals put the owner up to 0.4 s ahead of where it was (measured under `poor`:
+//!   the follower then held back twice the path's delay, 1.0–1.1 s).
 //! * The lag is reached and kept by slewing the step rate within
 //!   [`MIN_RATE`]–[`MAX_RATE`] of real time, never by jumps.
 //! * A *leading* site (it owns a region, has claimed one, or its own tool is being driven)
@@ -42,10 +49,13 @@ pub const MAX_AUTO_LAG: f64 = 0.6;
 /// One keyframe interval during motion (s): the owner sends at most every 30 ms
 /// (`SyncConfig::min_interval_s`), and interpolation needs the next keyframe in hand.
 pub const KEYFRAME_INTERVAL: f64 = 0.04;
-/// Under hybrid: jitter margin of the automatic lag, in mean deviations of the delay (a
-/// sample later than the lag leaves the remote tool held at its newest pose for that
-/// step; the owner's keyframes correct what that changes).
-pub const HYBRID_JITTER_DEVS: f64 = 1.5;
+/// Under hybrid: jitter margin of the automatic lag, in mean deviations of the delay. A
+/// sample later than the lag leaves the remote tool carried on at its last rate for up to
+/// [`INPUT_EXTRAPOLATION_S`] (and the owner's keyframes correct what that changes), so
+/// one deviation is enough: measured with `cosurg bench sync` (2026-11-25, two seeds),
+/// 1.5 deviations gave display delays 26–54 ms above the path on good, average and burst
+/// and 123–135 ms on poor; 1.0 gave 23–58 and 94–95 ms, divergence ≤ 0.6 mm either way.
+pub const HYBRID_JITTER_DEVS: f64 = 1.0;
 /// Under hybrid: the interval of the input datagrams (s, `session::POSE_HISTORY_INTERVAL`).
 const HYBRID_INPUT_INTERVAL: f64 = 0.008;
 /// Under hybrid: a follower this far (s) short of its target lag waits instead of slewing.
@@ -55,6 +65,11 @@ pub const MAX_HYBRID_LAG: f64 = 2.0;
 /// Under hybrid: headroom (s) the automatic lag keeps above the largest input shortfall
 /// seen (one input datagram interval and one 4 ms step).
 const INPUT_HEADROOM: f64 = HYBRID_INPUT_INTERVAL + 0.004;
+/// How far (s of simulated time) a remote tool's motion is carried on past its newest
+/// sample (the site's pose tracks). An input later than the follower's clock by less than
+/// this costs little (the tool moved on at its last rate), so the automatic lag only
+/// grows for inputs later than that.
+pub const INPUT_EXTRAPOLATION_S: f64 = 0.04;
 /// Under hybrid: how fast (s of lag per wall s) the lag floor set by input shortfalls
 /// comes back down while the inputs arrive in time.
 const INPUT_FLOOR_DECAY: f64 = 0.01;
@@ -154,6 +169,9 @@ struct PeerClock {
     /// Simulation time of the last stamp (s) and when it was heard (wall s).
     sim_time: f64,
     heard_at: f64,
+    /// When the last stamp left its site (our wall s: heard minus its own measured
+    /// transit), when the clocks are synchronised.
+    sent_at: Option<f64>,
     /// Simulated seconds per wall second.
     rate: f64,
     /// Smoothed one-way transit of its stamps to us (s), when measured.
@@ -226,15 +244,21 @@ impl PeerClocks {
         let elapsed = (now - self.input_floor_at).max(0.0);
         self.input_floor = (self.input_floor - INPUT_FLOOR_DECAY * elapsed).max(0.0);
         self.input_floor_at = now;
-        if shortfall + INPUT_HEADROOM > 0.0 {
+        let uncovered = shortfall - INPUT_EXTRAPOLATION_S;
+        if uncovered + INPUT_HEADROOM > 0.0 {
             let behind = self
                 .followed(now)
                 .into_iter()
                 .filter_map(|s| self.estimate_now(s, now))
                 .reduce(f64::min)
                 .map(|lead| lead - at);
-            if let Some(behind) = behind {
-                let needed = behind + shortfall + INPUT_HEADROOM;
+            // A follower that has not reached its lag yet (the session just started, or a
+            // tool just began to move) is early by construction: its late samples say
+            // nothing of the path. Measured: without this, the first samples of a run
+            // under `poor` set the floor to about 1 s for the rest of it.
+            let settled = |behind: f64| behind >= self.target_lag() - HYBRID_HOLD_BEYOND;
+            if let Some(behind) = behind.filter(|b| settled(*b)) {
+                let needed = behind + uncovered + INPUT_HEADROOM;
                 self.input_floor = self.input_floor.max(needed.min(MAX_HYBRID_LAG));
             }
         }
@@ -258,11 +282,20 @@ impl PeerClocks {
     pub fn heard(&mut self, site: u16, sim_time: f64, now: f64, transit: Option<f64>) {
         let transit = transit.filter(|d| (0.0..MAX_TRANSIT).contains(d));
         let prev = self.peers.get(&site).copied();
+        let sent_at = transit.map(|d| now - d);
+        // The rate is measured between send times where both are known: arrival times
+        // carry the path's jitter (stamps 50 ms apart may arrive together after a
+        // delayed packet), and a rate of 1.6 taken from them put the owner 0.3 s ahead of
+        // where it was over a 0.45 s transit (measured under `poor`).
         let rate = match prev {
-            Some(p) if now > p.heard_at && sim_time > p.sim_time => {
-                let measured = (sim_time - p.sim_time) / (now - p.heard_at);
-                // Smooth: stamps are 50 ms of simulated time apart and arrive with jitter.
-                (0.8 * p.rate + 0.2 * measured).clamp(0.05, 2.0)
+            Some(p) if sim_time > p.sim_time => {
+                let measured = match (p.sent_at, sent_at) {
+                    (Some(a), Some(b)) if b > a => Some((sim_time - p.sim_time) / (b - a)),
+                    (Some(_), Some(_)) => None,
+                    _ => (now > p.heard_at).then(|| (sim_time - p.sim_time) / (now - p.heard_at)),
+                };
+                // Smooth: stamps are 50 ms of simulated time apart.
+                measured.map_or(p.rate, |m| (0.8 * p.rate + 0.2 * m).clamp(0.05, 2.0))
             }
             Some(p) => p.rate,
             None => 1.0,
@@ -279,6 +312,7 @@ impl PeerClocks {
             PeerClock {
                 sim_time,
                 heard_at: now,
+                sent_at,
                 rate,
                 transit: smoothed,
             },
@@ -329,9 +363,13 @@ impl PeerClocks {
     }
 
     /// Estimated current simulation time of `site` (s): its last stamp advanced by its
-    /// rate over the stamp's transit and the time since it was heard.
+    /// rate since the stamp was sent (clocks synchronised), else over the smoothed
+    /// transit and the time since it was heard.
     fn estimate_now(&self, site: u16, now: f64) -> Option<f64> {
         let p = self.peers.get(&site)?;
+        if let Some(sent) = p.sent_at {
+            return Some(p.sim_time + p.rate * (now - sent));
+        }
         let transit = p.transit.or(self.delay.mean).unwrap_or(0.0);
         Some(p.sim_time + p.rate * (now - p.heard_at + transit))
     }
@@ -607,6 +645,29 @@ mod tests {
         assert_eq!(pace.rate, HYBRID_MAX_RATE);
     }
 
+    /// Over a jittery path that keeps packet order (a delayed stamp holds back the next
+    /// ones, which then arrive together), the owner's current time is still known to a
+    /// millisecond: from the stamps' send times, not their arrivals.
+    #[test]
+    fn bunched_stamps_do_not_move_the_owner_estimate() {
+        let mut c = PeerClocks::new(PlayoutLag::Auto);
+        // Owner at rate 1 (sim time = its wall time); stamps every 50 ms; transit 0.45 s
+        // ± a deterministic jitter of up to 0.12 s, released in order.
+        let mut released: f64 = 0.0;
+        let mut worst: f64 = 0.0;
+        for i in 0..400 {
+            let sent = i as f64 * 0.05;
+            let jitter = 0.12 * ((i * 7919) % 13) as f64 / 12.0;
+            released = released.max(sent + 0.45 + jitter);
+            c.heard(1, sent, released, Some(released - sent));
+            if i > 20 {
+                let err = c.estimate_now(1, released).unwrap() - released;
+                worst = worst.max(err.abs());
+            }
+        }
+        assert!(worst < 1e-3, "owner estimate off by {worst} s");
+    }
+
     /// The inputs' real path is longer than the stamps' transit says: inputs arrive
     /// after the follower passed their time. The lag grows at once to cover the shortfall, stays there while the
     /// inputs stay late, and comes back down slowly once they arrive in time; early
@@ -629,15 +690,19 @@ mod tests {
         // At wall 10.2 the owner is at 10.0 + 0.2 = about 10.2 s; we are `base` behind.
         let now = 10.2;
         let at = 10.2 - base;
-        // Early inputs: nothing changes.
+        // Early inputs, and inputs late by no more than the tools are carried on past
+        // their newest sample: nothing changes.
         c.input_shortfall(-0.05, at, now);
         assert_eq!(c.target_lag(), base);
-        // A sample 0.3 s late: the lag must cover it, plus the headroom.
+        c.input_shortfall(INPUT_EXTRAPOLATION_S - INPUT_HEADROOM - 1e-3, at, now);
+        assert_eq!(c.target_lag(), base);
+        // A sample 0.3 s late: the lag must cover what the carrying on does not, plus
+        // the headroom.
         c.input_shortfall(0.3, at, now);
         let raised = c.target_lag();
         let behind = c.estimate_now(1, now).unwrap() - at;
         assert!(
-            (raised - (behind + 0.3 + INPUT_HEADROOM)).abs() < 1e-9,
+            (raised - (behind + 0.3 - INPUT_EXTRAPOLATION_S + INPUT_HEADROOM)).abs() < 1e-9,
             "raised to {raised}, behind {behind}"
         );
         // In time for 10 s: down by the decay rate, not below the transit-based lag.
@@ -652,6 +717,20 @@ mod tests {
         // A sample later than any path (after an outage) is no measure of the path.
         c.input_shortfall(MAX_INPUT_SHORTFALL + 0.1, at + 100.0, now + 100.0);
         assert_eq!(c.target_lag(), base);
+        // A follower still short of its lag (the session just started: it runs level
+        // with the owner) finds every sample late by the path's delay: no measure of
+        // the path, nothing changes.
+        let mut fresh =
+            PeerClocks::new(PlayoutLag::Auto).for_strategy(sim_core::sync::SyncStrategy::Hybrid);
+        for i in 0..20 {
+            let wall = i as f64 * 0.05;
+            fresh.heard(1, wall, wall + 0.2, Some(0.2));
+        }
+        fresh.tool_heard(1, 1.15);
+        let lag = fresh.target_lag();
+        let level = fresh.estimate_now(1, 1.15).unwrap();
+        fresh.input_shortfall(0.2, level, 1.15);
+        assert_eq!(fresh.target_lag(), lag);
         // Under the keyframe strategy the inputs do not pace the site.
         let mut k = PeerClocks::new(PlayoutLag::Auto);
         k.heard(1, 0.0, 0.2, Some(0.2));

@@ -12,6 +12,7 @@ use sim_core::{Interaction, Simulation, ToolInput};
 
 use crate::output::ToolFrame;
 use crate::session::SiteSession;
+use crate::session::pacing::INPUT_EXTRAPOLATION_S;
 
 type V3 = Vector3<f64>;
 
@@ -382,7 +383,15 @@ impl Tools {
 }
 
 /// Poses of one remote tool by simulation time, sampled by linear interpolation (slerp
-/// for the orientation); before the first or after the newest pose, the nearest one.
+/// for the orientation); before the first pose, the first one; after the newest, the
+/// newest one's position and jaw carried on at their last rate for at most
+/// [`INPUT_EXTRAPOLATION_S`] (the orientation held), then held.
+///
+/// Why extrapolate: a sample that arrives after the follower's clock needs it (jitter
+/// beyond the playout lag) would otherwise leave the tool frozen at its newest pose for
+/// those steps, and a jaw frozen just short of its release angle lets go of the tissue
+/// late (the fundus then springs back tens of millimetres on the owner only). Carried on
+/// at its last rate, the jaw crosses the angle within a step of the owner's.
 #[derive(Clone, Debug, Default)]
 struct PoseTrack {
     poses: VecDeque<(f64, ToolInput)>,
@@ -391,6 +400,8 @@ struct PoseTrack {
 impl PoseTrack {
     /// Simulated seconds of poses kept behind the newest (covers any playout lag).
     const KEEP_S: f64 = 2.0;
+    /// The last two samples give the rate to carry on only if they are this close (s).
+    const RATE_FROM_WITHIN_S: f64 = 0.05;
 
     /// Adds a sample; whether it is new (not a repeat carried by a later datagram).
     fn insert(&mut self, t: f64, input: ToolInput) -> bool {
@@ -418,13 +429,34 @@ impl PoseTrack {
         new
     }
 
+    /// The newest pose carried on to `t` (≥ its time); see the type's documentation.
+    fn extrapolate(&self, t: f64) -> ToolInput {
+        let n = self.poses.len();
+        let (t1, b) = self.poses[n - 1];
+        let Some(&(t0, a)) = (n >= 2).then(|| &self.poses[n - 2]) else {
+            return b;
+        };
+        let span = t1 - t0;
+        if !(span > 0.0 && span <= Self::RATE_FROM_WITHIN_S) {
+            return b;
+        }
+        let s = (t - t1).min(INPUT_EXTRAPOLATION_S) / span;
+        let position =
+            b.pose.translation.vector + (b.pose.translation.vector - a.pose.translation.vector) * s;
+        ToolInput {
+            pose: nalgebra::Isometry3::from_parts(position.into(), b.pose.rotation),
+            // Jaw angles are ≥ 0 (closed).
+            jaw: (b.jaw + (b.jaw - a.jaw) * s).max(0.0),
+        }
+    }
+
     fn sample(&self, t: f64) -> Option<ToolInput> {
         let (first, last) = (self.poses.front()?, self.poses.back()?);
         if t <= first.0 {
             return Some(first.1);
         }
         if t >= last.0 {
-            return Some(last.1);
+            return Some(self.extrapolate(t));
         }
         let i = self.poses.partition_point(|(pt, _)| *pt <= t);
         let ((t0, a), (t1, b)) = (self.poses[i - 1], self.poses[i]);
@@ -453,6 +485,7 @@ impl PoseTrack {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::session::pacing::INPUT_EXTRAPOLATION_S;
 
     fn input(x: f64, jaw: f64) -> ToolInput {
         ToolInput::new(
@@ -532,9 +565,28 @@ mod tests {
         assert!((mid.pose.translation.vector.x - 0.15).abs() < 1e-12);
         assert!((mid.jaw - 0.3).abs() < 1e-12);
         assert!((mid.pose.rotation.angle() - 0.15).abs() < 1e-9);
-        // Before the first and after the newest pose: the nearest one (hold).
+        // Before the first pose: the first one (hold).
         assert_eq!(track.sample(0.0).unwrap().jaw, 0.2);
+        // After the newest, when the last two are 0.1 s apart (too far to give a rate):
+        // the newest, held.
         assert_eq!(track.sample(9.0).unwrap().jaw, 0.4);
+        // Per-step samples: carried on at the last rate (x and jaw rise 1 and 2 per s)
+        // for at most INPUT_EXTRAPOLATION_S, the orientation held.
+        let mut steps = PoseTrack::default();
+        steps.insert(0.000, input(0.000, 0.200));
+        steps.insert(0.004, input(0.004, 0.208));
+        let ahead = steps.sample(0.010).unwrap();
+        assert!((ahead.pose.translation.vector.x - 0.010).abs() < 1e-12);
+        assert!((ahead.jaw - 0.220).abs() < 1e-12);
+        assert!((ahead.pose.rotation.angle() - 0.004).abs() < 1e-9);
+        let far = steps.sample(9.0).unwrap();
+        let x_max = 0.004 + INPUT_EXTRAPOLATION_S;
+        assert!((far.pose.translation.vector.x - x_max).abs() < 1e-12);
+        // A closing jaw stops at 0.
+        let mut closing = PoseTrack::default();
+        closing.insert(0.00, input(0.0, 0.02));
+        closing.insert(0.01, input(0.0, 0.01));
+        assert_eq!(closing.sample(0.04).unwrap().jaw, 0.0);
         // Old poses are dropped beyond the kept window.
         track.insert(5.0, input(5.0, 1.0));
         assert_eq!(track.poses.len(), 2);
