@@ -32,7 +32,7 @@ pub mod wire;
 #[cfg(test)]
 mod tests;
 
-use std::collections::VecDeque;
+use std::collections::{BTreeSet, VecDeque};
 use std::time::{Duration, Instant};
 
 use proto::{
@@ -65,6 +65,11 @@ pub const POSE_HISTORY_SAMPLES: usize = 6;
 /// Least and largest simulated time between a reset request and the reset (s).
 pub const RESET_MARGIN: f64 = 0.02;
 pub const MAX_RESET_MARGIN: f64 = 1.0;
+/// Simulated seconds before a lost link is noticed in which our releases may have gone
+/// unheard: the link gives up on a silent coordinator after 2.5 heartbeat intervals
+/// (1.25 s at the default 0.5 s), with margin.
+pub const RELEASES_UNHEARD: f64 = 2.0;
+
 /// A late joiner waits this long after its Welcome for the coordinator's snapshot.
 pub const SNAPSHOT_WAIT: Duration = Duration::from_secs(3);
 
@@ -217,6 +222,8 @@ pub struct SiteSession {
     held_topology: Vec<proto::TopologyOp>,
     /// One of our own cuts was applied since [`Self::take_own_cut_applied`].
     own_cut_applied: bool,
+    /// Regions we owned when the link was lost (see [`SiteSession::handle_disconnected`]).
+    owned_when_cut_off: BTreeSet<RegionId>,
     transmits: VecDeque<Transmit>,
     events: VecDeque<SessionEvent>,
     stats: SessionStats,
@@ -267,6 +274,7 @@ impl SiteSession {
             scheduled_reset: None,
             held_topology: Vec::new(),
             own_cut_applied: false,
+            owned_when_cut_off: BTreeSet::new(),
             transmits: VecDeque::new(),
             events: VecDeque::new(),
             stats: SessionStats::default(),
@@ -420,6 +428,21 @@ impl SiteSession {
         self.welcomed_at = Some(now.wall);
     }
 
+    /// The link to the coordinator was lost at simulated time `t` (it will be tried
+    /// again). The regions we own now, or released in the [`RELEASES_UNHEARD`] before,
+    /// are asked for again once it is back, even if our tool leaves them meanwhile: a
+    /// release while cut off (noticed or not yet) tells nobody, and its final keyframe is
+    /// lost.
+    pub fn handle_disconnected(&mut self, t: f64) {
+        let recent = self
+            .claims
+            .intervals(t)
+            .into_iter()
+            .filter(|&(_, _, to)| to >= t - RELEASES_UNHEARD)
+            .map(|(r, _, _)| r);
+        self.owned_when_cut_off.extend(recent);
+    }
+
     /// We joined again after a loss (the site id may differ). Ownership does not survive
     /// a reconnect: the coordinator released our regions when we dropped.
     pub fn handle_reconnected(&mut self, w: &Welcome, t: f64, now: Now) {
@@ -427,8 +450,26 @@ impl SiteSession {
         self.sites.welcome(w);
         self.welcomed_at = Some(now.wall);
         self.stats.reconnects += 1;
+        // The coordinator dropped our regions with the link. Ask for them again, as if
+        // our tool had just touched them: while we own them we send their keyframes, and
+        // we release them (with a final keyframe) once they are at rest. Without this, a
+        // region whose tool had stopped by the time the link came back was owned by
+        // nobody, and the sites' copies, apart since the outage, stayed apart (measured:
+        // 10 mm a second after the tools stopped, `bench sync` outage row, one seed of 5).
+        let mut owned: BTreeSet<RegionId> = self.claims.owned().collect();
+        owned.append(&mut self.owned_when_cut_off);
         self.claims.clear(t);
         self.baselines.clear();
+        if self.cfg.linked && self.cfg.role != Role::Observer {
+            for region in owned {
+                if self.claims.touch(region, t) {
+                    self.control(Message::OwnershipRequest(proto::OwnershipRequest {
+                        region,
+                        claim_time_us: now.coordinator_us,
+                    }));
+                }
+            }
+        }
     }
 
     /// A message from the coordinator or relayed from another site. Frames whose

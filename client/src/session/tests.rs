@@ -423,6 +423,9 @@ fn acknowledgements_set_the_delta_baseline() {
     );
 }
 
+/// After a reconnect the coordinator has dropped our regions: we ask for them again at
+/// once (our tool may have stopped during the outage, and the sites' copies must be
+/// brought together by our keyframes), under the new id.
 #[test]
 fn reconnect_drops_ownership_and_takes_the_new_id() {
     let mut p = pair();
@@ -431,6 +434,11 @@ fn reconnect_drops_ownership_and_takes_the_new_id() {
     assert_eq!(p.a.snapshot().owned, vec![r]);
     let now = p.clock.now();
     let t = p.sim_a.time();
+    // It released the region (its tool left it) just before the link was found dead:
+    // nobody heard of it.
+    p.a.claims.lost(r, t);
+    drain(&mut p.a);
+    p.a.handle_disconnected(t + 1.0);
     p.a.handle_reconnected(
         &welcome(7, &[(2, Role::Trainee), (7, Role::Instructor)]),
         t,
@@ -441,15 +449,24 @@ fn reconnect_drops_ownership_and_takes_the_new_id() {
     assert!(p.a.snapshot().owned.is_empty());
     assert_eq!(p.a.owned_intervals(t), vec![(r, 0.0, t)]);
     assert_eq!(p.a.baselines.common_baseline(r, [2]), None);
-    // Its next claim and time stamp carry the new id.
+    // The region it owned is asked for again, once, without a touch.
+    let requests = |out: &[Transmit]| {
+        out.iter()
+            .filter(|t| {
+                matches!(
+                    t,
+                    Transmit::Control(Message::OwnershipRequest(q)) if q.region == r
+                )
+            })
+            .count()
+    };
+    assert_eq!(requests(&drain(&mut p.a)), 1);
+    // Its next time stamp carries the new id; touching the region asks nothing more.
     p.sim_a.set_time(t + SIM_TIME_INTERVAL);
     p.a.handle_touched(&p.sim_a, &[r], now);
     p.a.after_step(&p.sim_a, now);
     let out = drain(&mut p.a);
-    assert!(out.iter().any(|t| matches!(
-        t,
-        Transmit::Control(Message::OwnershipRequest(q)) if q.region == r
-    )));
+    assert_eq!(requests(&out), 0);
     assert!(out.iter().any(|t| matches!(
         t,
         Transmit::Datagram(Message::SimTime(s)) if s.site == 7

@@ -204,6 +204,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                     LinkEvent::Reconnected(w) => session.handle_reconnected(&w, sim.time(), now),
                     LinkEvent::Disconnected { reason, .. } => {
                         warn!(site = %cfg.name, %reason, "disconnected");
+                        session.handle_disconnected(sim.time());
                     }
                     other => debug!(?other, "link event"),
                 }
