@@ -125,7 +125,13 @@ async fn connect(
     cfg: &LinkConfig,
     endpoint: &Endpoint,
     shared: &Shared,
+    rejoin: bool,
 ) -> Result<JoinedConnection, AttemptError> {
+    let limit = if rejoin {
+        cfg.connect_timeout.min(REJOIN_ATTEMPT_TIMEOUT)
+    } else {
+        cfg.connect_timeout
+    };
     let attempt = async {
         let connecting = endpoint
             .connect(cfg.server, &cfg.server_name)
@@ -194,14 +200,19 @@ async fn connect(
             }
         }
     };
-    match tokio::time::timeout(cfg.connect_timeout, attempt).await {
+    match tokio::time::timeout(limit, attempt).await {
         Ok(r) => r,
-        Err(_) => Err(AttemptError::Failed(format!(
-            "no Welcome within {:?}",
-            cfg.connect_timeout
-        ))),
+        Err(_) => Err(AttemptError::Failed(format!("no Welcome within {limit:?}"))),
     }
 }
+
+/// Time allowed for one attempt to rejoin after a loss (at most the configured
+/// `connect_timeout`). An attempt made while the path is still down waits for the QUIC
+/// handshake's retransmissions, whose timer doubles each time (0.15, 0.3, 0.6, 1.2, 2.4 s
+/// … from the 50 ms initial round trip): after a 3 s outage one site's attempt was still
+/// waiting 3 s later (`bench sync`, outage row, one run of ten). A fresh attempt starts
+/// with a fresh timer.
+const REJOIN_ATTEMPT_TIMEOUT: Duration = Duration::from_secs(2);
 
 /// Resolves when the site asked to close the link.
 async fn close_requested(shared: &Shared) {
@@ -231,7 +242,7 @@ pub(super) async fn run(
     let mut joined_before = false;
     let stop_reason: String = loop {
         let attempt = tokio::select! {
-            r = connect(&cfg, &endpoint, &shared) => r,
+            r = connect(&cfg, &endpoint, &shared, joined_before) => r,
             _ = close_requested(&shared) => break "closed by the site".into(),
         };
         match attempt {

@@ -232,11 +232,13 @@ impl PeerClocks {
     /// Under hybrid, a new input sample of a remote tool this follower simulates arrived
     /// `shortfall` seconds after its time (`at`, s: the simulated time the follower is
     /// about to step to, minus the sample's; negative: that much early) at wall time
-    /// `now` (s). A positive shortfall means the lag was too short for the inputs' real
-    /// path, whatever the delay estimate from the time stamps says (measured: 50–170 ms
-    /// short under `poor`): the lag must grow by the shortfall and a margin. The floor this
-    /// sets rises at once and decays slowly ([`INPUT_FLOOR_DECAY`]) while the inputs are
-    /// in time.
+    /// `now` (s). A shortfall beyond what the pose tracks carry on
+    /// ([`INPUT_EXTRAPOLATION_S`]) means the lag was too short for the inputs' real path
+    /// (a jitter spike the delay estimate's margin does not cover): the lag must grow by
+    /// the uncovered part and a margin. The floor this sets rises at once and decays
+    /// slowly ([`INPUT_FLOOR_DECAY`]) while the inputs are in time. (The 50–170 ms
+    /// shortfalls measured under `poor` on 2026-11-24 were most likely the owner's time
+    /// misestimated from bunched arrivals, see [`PeerClocks::heard`].)
     pub fn input_shortfall(&mut self, shortfall: f64, at: f64, now: f64) {
         if !self.inputs_only || !shortfall.is_finite() || shortfall > MAX_INPUT_SHORTFALL {
             return;

@@ -8,12 +8,18 @@ use proto::{Role, SiteEntry, SiteId, Welcome};
 #[derive(Debug, Default, Clone)]
 pub struct SiteTable {
     me: Option<SiteId>,
+    /// Our ids before a rejoin: what was sent under them (keyframes kept by the
+    /// coordinator for its snapshot) is still ours, not another site's.
+    former: Vec<SiteId>,
     sites: BTreeMap<SiteId, (String, Role)>,
 }
 
 impl SiteTable {
     /// A Welcome (first join or rejoin): our id and the table as the coordinator has it.
     pub fn welcome(&mut self, w: &Welcome) {
+        if let Some(old) = self.me.filter(|&old| old != w.site) {
+            self.former.push(old);
+        }
         self.me = Some(w.site);
         self.sites = w
             .sites
@@ -37,7 +43,7 @@ impl SiteTable {
 
     /// Whether `site` is another site than ours.
     pub fn is_other(&self, site: SiteId) -> bool {
-        self.me != Some(site)
+        self.me != Some(site) && !self.former.contains(&site)
     }
 
     pub fn is_empty(&self) -> bool {

@@ -438,14 +438,17 @@ fn reconnect_drops_ownership_and_takes_the_new_id() {
     // nobody heard of it.
     p.a.claims.lost(r, t);
     drain(&mut p.a);
-    p.a.handle_disconnected(t + 1.0);
+    p.sim_a.set_time(t + 1.0);
+    p.a.handle_disconnected(&p.sim_a);
     p.a.handle_reconnected(
         &welcome(7, &[(2, Role::Trainee), (7, Role::Instructor)]),
-        t,
+        &p.sim_a,
         now,
     );
     assert_eq!(p.a.site_id(), Some(7));
     assert_eq!(p.a.stats().reconnects, 1);
+    // What it sent under its former id is still its own, not another site's.
+    assert!(!p.a.sites.is_other(1) && !p.a.sites.is_other(7) && p.a.sites.is_other(2));
     assert!(p.a.snapshot().owned.is_empty());
     assert_eq!(p.a.owned_intervals(t), vec![(r, 0.0, t)]);
     assert_eq!(p.a.baselines.common_baseline(r, [2]), None);
@@ -462,7 +465,7 @@ fn reconnect_drops_ownership_and_takes_the_new_id() {
     };
     assert_eq!(requests(&drain(&mut p.a)), 1);
     // Its next time stamp carries the new id; touching the region asks nothing more.
-    p.sim_a.set_time(t + SIM_TIME_INTERVAL);
+    p.sim_a.set_time(t + 1.0 + SIM_TIME_INTERVAL);
     p.a.handle_touched(&p.sim_a, &[r], now);
     p.a.after_step(&p.sim_a, now);
     let out = drain(&mut p.a);
@@ -471,6 +474,66 @@ fn reconnect_drops_ownership_and_takes_the_new_id() {
         t,
         Transmit::Datagram(Message::SimTime(s)) if s.site == 7
     )));
+}
+
+/// A site whose tool acted while it was cut off asks, once back, for every region its
+/// copy moved meanwhile (the others did not see it), besides the one it owned, and not
+/// for the ones that stayed put; a site whose tool did nothing asks for none of them.
+#[test]
+fn reconnect_asks_for_the_regions_its_tool_moved_unseen() {
+    for drove in [true, false] {
+        let mut p = pair();
+        let r = p.region;
+        p.a.handle_disconnected(&p.sim_a);
+        let now = p.clock.now();
+        if drove {
+            p.a.handle_touched(&p.sim_a, &[r], now);
+        }
+        drain(&mut p.a);
+        // A free node of exactly one region, moved 2 mm.
+        let regions =
+            p.a.map
+                .max_speeds(p.sim_a.lattice(), p.sim_a.velocities())
+                .len();
+        let members: Vec<Vec<_>> = (0..regions as RegionId)
+            .map(|g| p.a.map.canonical_nodes(p.sim_a.lattice(), g))
+            .collect();
+        let (moved, node) = members
+            .iter()
+            .enumerate()
+            .flat_map(|(g, nodes)| nodes.iter().map(move |&n| (g as RegionId, n)))
+            .find(|&(g, n)| {
+                g != r
+                    && !p.sim_a.is_fixed(n)
+                    && members.iter().filter(|m| m.contains(&n)).count() == 1
+            })
+            .expect("a node of one region only");
+        let (x, v) = (
+            p.sim_a.positions()[node.0 as usize],
+            p.sim_a.velocities()[node.0 as usize],
+        );
+        p.sim_a
+            .set_node_state(node, x + nalgebra::Vector3::new(0.0, 2e-3, 0.0), v);
+        p.a.handle_reconnected(
+            &welcome(7, &[(2, Role::Trainee), (7, Role::Instructor)]),
+            &p.sim_a,
+            now,
+        );
+        let asked: Vec<RegionId> = drain(&mut p.a)
+            .into_iter()
+            .filter_map(|t| match t {
+                Transmit::Control(Message::OwnershipRequest(q)) => Some(q.region),
+                _ => None,
+            })
+            .collect();
+        // The region it owns (granted at the start) is asked for in any case.
+        let mut want = vec![r];
+        if drove {
+            want.push(moved);
+        }
+        want.sort_unstable();
+        assert_eq!(asked, want);
+    }
 }
 
 #[test]

@@ -201,10 +201,10 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                     LinkEvent::Refused(r) => {
                         return Err(Refused(format!("{:?}: {}", r.reason, r.text)).into());
                     }
-                    LinkEvent::Reconnected(w) => session.handle_reconnected(&w, sim.time(), now),
+                    LinkEvent::Reconnected(w) => session.handle_reconnected(&w, &sim, now),
                     LinkEvent::Disconnected { reason, .. } => {
                         warn!(site = %cfg.name, %reason, "disconnected");
-                        session.handle_disconnected(sim.time());
+                        session.handle_disconnected(&sim);
                     }
                     other => debug!(?other, "link event"),
                 }
