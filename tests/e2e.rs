@@ -549,10 +549,13 @@ fn poor_network_keeps_divergence_bounded_and_settles() {
 /// divergence (a late step shifts the last correction). Before the followers' playout lag
 /// learned from late inputs (`PeerClocks::input_shortfall`), two runs under `poor` gave 10.2
 /// and 28.2 mm here, and the release bench 33 mm (the follower released the grasp 60–120
-/// ms of simulated time after the owner). Display delay is reported, not asserted (see
-/// below).
+/// ms of simulated time after the owner). Display delay: see below.
 const HYBRID_MOTION_BOUND_MM: f64 = 10.0;
 const HYBRID_SETTLED_BOUND_MM: f64 = 0.2;
+/// Display delay above the owner → coordinator → follower path (ms): the release bench's
+/// worst seed under `poor` (148 ms, 2026-11-25) plus 100 ms for a loaded machine
+/// (measured here with test-profile binaries: 112 ms under `poor`, 52 ms under `burst`).
+const HYBRID_DELAY_ABOVE_PATH_MS: f64 = 250.0;
 
 /// An instructor lifting and a trainee watching, both under hybrid sync with `preset` on
 /// their own links (seed 5); checks the hybrid bounds above.
@@ -599,10 +602,16 @@ fn hybrid_follows_under(preset: &str) {
         "hybrid under {preset}: divergence {max:.2} mm, settled {settled:.3} mm, display \
          delay {delay:.0} ms (path {path_ms:.0} ms, target lag at the end {target:.0} ms)"
     );
-    // Display delay is printed, not asserted: the goal (≤ path + 50 ms) is met on six
-    // presets of eight in the release bench, not under `poor` (94 ms above the path at
-    // the median: the inputs' own mean transit is about 40–50 ms above it there) nor in
-    // `average`'s worst seed; the figures are in `cosurg bench sync` (docs/RESULTS.md).
+    // Display delay: the goal (≤ path + 50 ms) is met on six presets of eight in the
+    // release bench, not under `poor` (94 ms above the path at the median, 148 ms in the
+    // worst seed: the inputs' own mean transit is about 40–50 ms above the path there);
+    // see docs/RESULTS.md. Asserted here at the bench's worst plus a margin for a loaded
+    // machine, so that a lag that doubles again (it was 650 ms above the path under
+    // `poor` before the owner's time was taken from the stamps' send times) fails.
+    assert!(
+        delay < path_ms + HYBRID_DELAY_ABOVE_PATH_MS,
+        "display delay {delay:.0} ms under {preset} (path {path_ms:.0} ms)"
+    );
     assert!(
         max < HYBRID_MOTION_BOUND_MM,
         "divergence {max} mm under {preset} while the tools moved"
