@@ -25,6 +25,7 @@
 pub mod claims;
 pub mod inbox;
 pub mod pacing;
+mod reconnect;
 pub mod sites;
 pub mod topology;
 pub mod wire;
@@ -32,7 +33,7 @@ pub mod wire;
 #[cfg(test)]
 mod tests;
 
-use std::collections::{BTreeSet, VecDeque};
+use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use proto::{
@@ -47,6 +48,7 @@ use tracing::{debug, info, warn};
 use claims::Claims;
 use inbox::Inbox;
 pub use pacing::{Pace, PeerClocks, PlayoutLag};
+pub use reconnect::{MOVED_WHILE_CUT_OFF, RELEASES_UNHEARD};
 use sites::SiteTable;
 pub use wire::WireFrame;
 
@@ -65,24 +67,6 @@ pub const POSE_HISTORY_SAMPLES: usize = 6;
 /// Least and largest simulated time between a reset request and the reset (s).
 pub const RESET_MARGIN: f64 = 0.02;
 pub const MAX_RESET_MARGIN: f64 = 1.0;
-/// Simulated seconds before a lost link is noticed in which our releases may have gone
-/// unheard: the link gives up on a silent coordinator after 2.5 heartbeat intervals
-/// (1.25 s at the default 0.5 s), with margin.
-pub const RELEASES_UNHEARD: f64 = 2.0;
-
-/// A region our copy moved by more than this (m) while our tool acted cut off from the
-/// coordinator is asked for when the link is back.
-pub const MOVED_WHILE_CUT_OFF: f64 = 1e-3;
-
-/// Our state when the link was lost, kept until it is back.
-#[derive(Clone, Debug)]
-struct CutOff {
-    /// Node positions (m) when the link was lost.
-    positions: Vec<nalgebra::Vector3<f64>>,
-    /// Whether our tool touched the organ since.
-    drove: bool,
-}
-
 /// A late joiner waits this long after its Welcome for the coordinator's snapshot.
 pub const SNAPSHOT_WAIT: Duration = Duration::from_secs(3);
 
@@ -235,10 +219,8 @@ pub struct SiteSession {
     held_topology: Vec<proto::TopologyOp>,
     /// One of our own cuts was applied since [`Self::take_own_cut_applied`].
     own_cut_applied: bool,
-    /// Regions we owned when the link was lost (see [`SiteSession::handle_disconnected`]).
-    owned_when_cut_off: BTreeSet<RegionId>,
-    /// Set while the link is lost (see [`SiteSession::handle_disconnected`]).
-    cut_off: Option<CutOff>,
+    /// What to ask for again once a lost link is back (see `reconnect`).
+    rejoin: reconnect::Rejoin,
     transmits: VecDeque<Transmit>,
     events: VecDeque<SessionEvent>,
     stats: SessionStats,
@@ -289,8 +271,7 @@ impl SiteSession {
             scheduled_reset: None,
             held_topology: Vec::new(),
             own_cut_applied: false,
-            owned_when_cut_off: BTreeSet::new(),
-            cut_off: None,
+            rejoin: reconnect::Rejoin::default(),
             transmits: VecDeque::new(),
             events: VecDeque::new(),
             stats: SessionStats::default(),
@@ -442,83 +423,6 @@ impl SiteSession {
         info!(site = w.site, sites = w.sites.len(), "welcomed");
         self.sites.welcome(w);
         self.welcomed_at = Some(now.wall);
-    }
-
-    /// The link to the coordinator was lost (it will be tried again). When it is back we
-    /// ask again for the regions we own now or released in the [`RELEASES_UNHEARD`]
-    /// before (a release while cut off, noticed or not yet, tells nobody, and its final
-    /// keyframe is lost), and, if our tool acted while we were cut off, for every region
-    /// our copy moved more than [`MOVED_WHILE_CUT_OFF`] meanwhile: the others did not see
-    /// those motions (a lifted region drags its neighbours, which nobody owns).
-    pub fn handle_disconnected(&mut self, sim: &Simulation) {
-        let t = sim.time();
-        let recent = self
-            .claims
-            .intervals(t)
-            .into_iter()
-            .filter(|&(_, _, to)| to >= t - RELEASES_UNHEARD)
-            .map(|(r, _, _)| r);
-        self.owned_when_cut_off.extend(recent);
-        if self.cut_off.is_none() {
-            self.cut_off = Some(CutOff {
-                positions: sim.positions().to_vec(),
-                drove: false,
-            });
-        }
-    }
-
-    /// The regions to ask for again after a loss (see [`SiteSession::handle_disconnected`]).
-    fn regions_to_reclaim(&mut self, sim: &Simulation) -> BTreeSet<RegionId> {
-        let mut regions: BTreeSet<RegionId> = self.claims.owned().collect();
-        regions.append(&mut self.owned_when_cut_off);
-        if let Some(cut) = self.cut_off.take().filter(|c| c.drove) {
-            let now = sim.positions();
-            let moved: Vec<nalgebra::Vector3<f64>> = if now.len() == cut.positions.len() {
-                now.iter().zip(&cut.positions).map(|(a, b)| a - b).collect()
-            } else {
-                // The lattice changed while cut off: every region counts as moved.
-                vec![nalgebra::Vector3::repeat(f64::INFINITY); now.len()]
-            };
-            let by_region = self.map.max_speeds(sim.lattice(), &moved);
-            regions.extend(
-                by_region
-                    .iter()
-                    .enumerate()
-                    .filter(|&(_, &d)| d > MOVED_WHILE_CUT_OFF)
-                    .map(|(r, _)| r as RegionId),
-            );
-        }
-        regions
-    }
-
-    /// We joined again after a loss (the site id may differ). Ownership does not survive
-    /// a reconnect: the coordinator released our regions when we dropped.
-    pub fn handle_reconnected(&mut self, w: &Welcome, sim: &Simulation, now: Now) {
-        let t = sim.time();
-        info!(site = w.site, "reconnected");
-        self.sites.welcome(w);
-        self.welcomed_at = Some(now.wall);
-        self.stats.reconnects += 1;
-        // The coordinator dropped our regions with the link. Ask for them again (and for
-        // those we moved unseen), as if our tool had just touched them: while we own them
-        // we send their keyframes, and we release them (with a final keyframe) once they
-        // are at rest. Without this, a region whose tool had stopped by the time the link
-        // came back was owned by nobody, and the sites' copies, apart since the outage,
-        // stayed apart (measured: 8–11 mm a second after the tools stopped, `bench sync`
-        // outage row, one to two seeds of five).
-        let reclaim = self.regions_to_reclaim(sim);
-        self.claims.clear(t);
-        self.baselines.clear();
-        if self.cfg.linked && self.cfg.role != Role::Observer {
-            for region in reclaim {
-                if self.claims.touch(region, t) {
-                    self.control(Message::OwnershipRequest(proto::OwnershipRequest {
-                        region,
-                        claim_time_us: now.coordinator_us,
-                    }));
-                }
-            }
-        }
     }
 
     /// A message from the coordinator or relayed from another site. Frames whose
@@ -765,9 +669,7 @@ impl SiteSession {
     /// organ the others are compared with. Observers never claim.
     pub fn handle_touched(&mut self, sim: &Simulation, touched: &[RegionId], now: Now) {
         self.topology_epoch = sim.topology().epoch();
-        if let Some(cut) = self.cut_off.as_mut() {
-            cut.drove |= !touched.is_empty();
-        }
+        self.rejoin.touched(touched);
         if !self.cfg.linked || self.cfg.role == Role::Observer {
             return;
         }

@@ -670,19 +670,26 @@ mod tests {
         assert!(worst < 1e-3, "owner estimate off by {worst} s");
     }
 
-    /// The inputs' real path is longer than the stamps' transit says: inputs arrive
-    /// after the follower passed their time. The lag grows at once to cover the shortfall, stays there while the
-    /// inputs stay late, and comes back down slowly once they arrive in time; early
-    /// inputs, other strategies and a tool that stopped sending change nothing.
-    #[test]
-    fn late_inputs_raise_the_hybrid_lag_which_decays_slowly_once_they_are_in_time() {
+    /// Hybrid clocks that heard `n` stamps of site 1, 50 ms apart at rate 1 with 0.2 s
+    /// of transit.
+    fn hybrid_heard(n: usize) -> PeerClocks {
         let mut c =
             PeerClocks::new(PlayoutLag::Auto).for_strategy(sim_core::sync::SyncStrategy::Hybrid);
-        // Stamps say 0.2 s of transit, steady.
-        for i in 0..200 {
+        for i in 0..n {
             let wall = i as f64 * 0.05;
             c.heard(1, wall, wall + 0.2, Some(0.2));
         }
+        c
+    }
+
+    /// The inputs' real path is longer than the stamps' transit says: inputs arrive
+    /// after the follower passed their time. The lag grows at once to cover the shortfall,
+    /// stays there while the inputs stay late, and comes back down slowly once they arrive in time; early
+    /// inputs, other strategies and a tool that stopped sending change nothing.
+    #[test]
+    fn late_inputs_raise_the_hybrid_lag_which_decays_slowly_once_they_are_in_time() {
+        // Stamps say 0.2 s of transit, steady.
+        let mut c = hybrid_heard(200);
         c.tool_heard(1, 10.0);
         let base = c.target_lag();
         assert!(
@@ -722,12 +729,7 @@ mod tests {
         // A follower still short of its lag (the session just started: it runs level
         // with the owner) finds every sample late by the path's delay: no measure of
         // the path, nothing changes.
-        let mut fresh =
-            PeerClocks::new(PlayoutLag::Auto).for_strategy(sim_core::sync::SyncStrategy::Hybrid);
-        for i in 0..20 {
-            let wall = i as f64 * 0.05;
-            fresh.heard(1, wall, wall + 0.2, Some(0.2));
-        }
+        let mut fresh = hybrid_heard(20);
         fresh.tool_heard(1, 1.15);
         let lag = fresh.target_lag();
         let level = fresh.estimate_now(1, 1.15).unwrap();
