@@ -104,6 +104,11 @@ pub struct SyncRun {
     /// Display delay: receiving sites' mean simulated-time lag behind the owner while
     /// following it (ms).
     pub display_delay_ms: f64,
+    /// The one-way delay the impaired links added to the packets they delivered, as the
+    /// packets experienced it: the sites' mean up-link delay plus their mean down-link
+    /// delay (ms; site → coordinator → site). Above the preset's when it has jitter: the
+    /// presets keep packet order, so a packet waits for the earlier ones.
+    pub measured_path_ms: f64,
 }
 
 /// Median and worst (largest) of one measure over a row's seeds.
@@ -157,6 +162,10 @@ pub struct SyncRow {
     pub display_delay_ms: Spread,
     /// Display delay above the path's one-way delay (ms).
     pub delay_above_path_ms: Spread,
+    /// The path's one-way delay as its packets experienced it ([`SyncRun::measured_path_ms`]),
+    /// and the display delay above that (ms).
+    pub measured_path_ms: Spread,
+    pub delay_above_measured_path_ms: Spread,
     pub runs: Vec<SyncRun>,
 }
 
@@ -331,6 +340,8 @@ fn run_case(
         down_bytes_per_s: reports.iter().map(|r| r.down_bytes_per_s).sum::<f64>() / n,
         keyframes_per_s: reports.iter().map(|r| r.keyframes_sent).sum::<u64>() as f64 / wall,
         display_delay_ms: mean(receivers.iter().map(|r| r.playout_lag_ms)),
+        measured_path_ms: mean(reports.iter().filter_map(|r| r.link_up_delay_ms))
+            + mean(reports.iter().filter_map(|r| r.link_down_delay_ms)),
         apply_us_per_keyframe: if applied == 0 {
             0.0
         } else {
@@ -358,6 +369,8 @@ fn summarise(case: SyncCase, runs: Vec<SyncRun>) -> SyncRow {
         keyframes_per_s: spread(|r| r.keyframes_per_s),
         display_delay_ms: spread(|r| r.display_delay_ms),
         delay_above_path_ms: Spread::of(runs.iter().map(|r| r.display_delay_ms - path_one_way_ms)),
+        measured_path_ms: spread(|r| r.measured_path_ms),
+        delay_above_measured_path_ms: spread(|r| r.display_delay_ms - r.measured_path_ms),
         case,
         runs,
     }
@@ -370,7 +383,7 @@ fn table(bench: &SyncBench) -> String {
     let _ = writeln!(
         t,
         "{} seed(s) per row; each cell median / worst over them\n\
-         {:<11} {:<17} {:>4} {:>4} {:>17} {:>15} {:>15} {:>17} {:>13} {:>6} {:>13}",
+         {:<11} {:<17} {:>4} {:>4} {:>17} {:>15} {:>15} {:>17} {:>13} {:>6} {:>13} {:>9} {:>13}",
         bench.seeds,
         "strategy",
         "preset",
@@ -382,13 +395,15 @@ fn table(bench: &SyncBench) -> String {
         "B/s up+down",
         "delay ms",
         "path",
-        "above path"
+        "above path",
+        "measured",
+        "above it"
     );
     for r in &bench.rows {
         let c = &r.case;
         let _ = writeln!(
             t,
-            "{:<11} {:<17} {:>4} {:>4} {:>8.2} / {:<6.2} {:>6.2} / {:<6.2} {:>6.2} / {:<6.2} {:>8.0} / {:<8.0}{:>5.0} / {:<5.0} {:>6.0} {:>5.0} / {:<5.0}",
+            "{:<11} {:<17} {:>4} {:>4} {:>8.2} / {:<6.2} {:>6.2} / {:<6.2} {:>6.2} / {:<6.2} {:>8.0} / {:<8.0}{:>5.0} / {:<5.0} {:>6.0} {:>5.0} / {:<5.0} {:>9.0} {:>5.0} / {:<5.0}",
             c.strategy,
             c.preset,
             c.slowdown,
@@ -407,6 +422,9 @@ fn table(bench: &SyncBench) -> String {
             r.path_one_way_ms,
             r.delay_above_path_ms.median,
             r.delay_above_path_ms.worst,
+            r.measured_path_ms.median,
+            r.delay_above_measured_path_ms.median,
+            r.delay_above_measured_path_ms.worst,
         );
     }
     t

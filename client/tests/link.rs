@@ -245,6 +245,7 @@ async fn two_sites_exchange_pose_keyframe_and_ack() {
             region: 7,
             keyframe_id: 1,
             site: 0,
+            shows_keyframes: false,
         }));
         match wait_for(&a, Duration::from_secs(5), |e| {
             matches!(e, LinkEvent::Message(Message::KeyframeAck(_)))

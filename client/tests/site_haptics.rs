@@ -40,6 +40,7 @@ fn site(scene: &LoadedScene, name: &str, role: Role, tool: &str, seconds: f64) -
         expect_sites: 1,
         realtime: true,
         playout_lag: PlayoutLag::Auto,
+        shows_keyframes: false,
         haptics: true,
         device: DeviceSpec::Script,
         rt_priority: None,

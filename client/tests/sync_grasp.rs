@@ -60,6 +60,7 @@ fn follow(lag: usize) {
         linked: true,
         playout_lag: PlayoutLag::Fixed(0.0),
         realtime: false,
+        shows_keyframes: false,
     };
     let origin = Instant::now();
     let now = |k: usize| Now {

@@ -48,7 +48,9 @@ pub mod streams;
 /// Version 5: a topology operation carries the simulated time it was made at
 /// (`TopologyOp::sim_time`), so that every site applies it at that time.
 /// Version 6: clips (`TopologyKind::Clip`, the clip applier).
-pub const PROTOCOL_VERSION: u16 = 6;
+/// Version 7: a keyframe acknowledgement says whether its site shows the owner's keyframes
+/// instead of simulating the region (`KeyframeAck::shows_keyframes`).
+pub const PROTOCOL_VERSION: u16 = 7;
 
 /// A keyframe stream is reset in favour of a newer keyframe of the same region only after
 /// it has been in flight this long. Resetting younger streams starves paths whose round

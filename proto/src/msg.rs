@@ -319,6 +319,10 @@ pub struct KeyframeAck {
     pub keyframe_id: KeyframeId,
     /// The acknowledging site (filled in / overwritten by the coordinator).
     pub site: SiteId,
+    /// Under hybrid sync: the acknowledging site shows the owner's keyframes instead of
+    /// simulating the region itself (its own solve is cut short), so the owner also sends
+    /// when the region departs from its dead reckoning, as under keyframe sync.
+    pub shows_keyframes: bool,
 }
 
 /// A site asks to own a region (its tool touches it).

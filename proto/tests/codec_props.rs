@@ -299,13 +299,16 @@ fn message() -> impl Strategy<Value = Message> {
                     }
                 )
             ),
-        (any::<u32>(), any::<u64>(), any::<u16>()).prop_map(|(region, keyframe, site)| {
-            Message::KeyframeAck(KeyframeAck {
-                region,
-                keyframe_id: keyframe,
-                site,
-            })
-        }),
+        (any::<u32>(), any::<u64>(), any::<u16>(), any::<bool>()).prop_map(
+            |(region, keyframe, site, shows_keyframes)| {
+                Message::KeyframeAck(KeyframeAck {
+                    region,
+                    keyframe_id: keyframe,
+                    site,
+                    shows_keyframes,
+                })
+            }
+        ),
         (any::<u32>(), any::<u64>()).prop_map(|(region, claim_time_us)| Message::OwnershipRequest(
             OwnershipRequest {
                 region,

@@ -447,10 +447,10 @@ async fn keyframe_relayed_acked_and_late_joiner_gets_snapshot() {
             m => panic!("{m:?}"),
         }
         // b acknowledges; the ack is routed to a
-        b.send_control(&Message::KeyframeAck(KeyframeAck { region: 7, keyframe_id: 1, site: 0 })).await.unwrap();
+        b.send_control(&Message::KeyframeAck(KeyframeAck { region: 7, keyframe_id: 1, site: 0, shows_keyframes: false })).await.unwrap();
         assert_eq!(
             next_ctrl(&mut a).await,
-            Message::KeyframeAck(KeyframeAck { region: 7, keyframe_id: 1, site: b.welcome.site })
+            Message::KeyframeAck(KeyframeAck { region: 7, keyframe_id: 1, site: b.welcome.site, shows_keyframes: false })
         );
         // a newer keyframe replaces it for late joiners
         let kf2 = keyframe(7, 2, sa, 100);

@@ -6,53 +6,16 @@ use std::collections::VecDeque;
 
 use cosurg_sim_core::sync::*;
 use cosurg_sim_core::{NodeId, SimOptions, Simulation};
-use nalgebra::Vector3;
 use sim_scene::surf::{SurfError, SurfaceRecording};
 
-type V3 = Vector3<f64>;
-
-/// The cantilever (0.4 × 0.1 × 0.1 m, clamped at x = 0) with 5 cm cells: 8 × 2 × 2 cells;
-/// with 2-cell blocks 4 regions along x, the tip region is 3. Stiffer than the shipped
-/// beam and mass-damped so that it settles within a second.
-fn beam() -> Simulation {
-    let mut scene = sim_scene::builtin::cantilever();
-    scene
-        .modify(|sc| {
-            for m in sc.materials.values_mut() {
-                m.young = 5e5;
-                m.rayleigh_mass = 10.0;
-            }
-            for b in &mut sc.bodies {
-                b.cell = 0.05;
-            }
-        })
-        .unwrap();
-    let opts = SimOptions::from_scene(&scene.scene);
-    Simulation::new(scene, opts).unwrap()
-}
-
-const TIP: RegionId = 3;
-
-fn beam_map(sim: &Simulation) -> RegionMap {
-    let map = RegionMap::new(sim.lattice(), 2);
-    assert_eq!(map.len(), 4);
-    assert_eq!(map.block_of(TIP), Some([3, 0, 0]));
-    map
-}
+mod common;
+use common::{TIP, V3, beam, beam_map, tip_nodes};
 
 fn snap() -> SyncConfig {
     SyncConfig {
         blend_window_s: 0.0,
         ..SyncConfig::default()
     }
-}
-
-/// Live nodes of the tip region with rest x above `x`.
-fn tip_nodes(sim: &Simulation, map: &RegionMap, x: f64) -> Vec<NodeId> {
-    map.canonical_nodes(sim.lattice(), TIP)
-        .into_iter()
-        .filter(|&n| sim.lattice().node_rest(n).x > x)
-        .collect()
 }
 
 /// Refines the tip-region leaves whose centroid lies beyond x (one pass).
@@ -958,95 +921,4 @@ proptest::proptest! {
         full.tree_bits = bits;
         let _ = apply_full_state(&mut b, &map, &full);
     }
-}
-
-/// Hybrid: a keyframe of another site's simulation is not taken over at once but spread
-/// over steps, each moving no node by more than `max_step_m`, and ends on the keyframe's
-/// state (here with no physics in between, so the end state is the keyframe's exactly).
-#[test]
-fn hybrid_correction_is_bounded_per_step_and_reaches_the_keyframe() {
-    let mut a = beam();
-    let mut b = beam();
-    let map = beam_map(&a);
-    let loaded = tip_nodes(&a, &map, 0.37);
-    for _ in 0..30 {
-        for &n in &loaded {
-            a.add_force(n, V3::new(0.0, 20.0, 0.0) / loaded.len() as f64);
-        }
-        a.step().unwrap();
-        b.step().unwrap();
-    }
-    let kf = encode_keyframe(&a, &map, TIP, 1).unwrap();
-    let config = HybridConfig {
-        max_step_m: 1e-4,
-        min_steps: 4,
-        ..HybridConfig::default()
-    };
-    let mut region = CorrectedRegion::new(TIP, config);
-    let Correction::Started { steps, max_m } = region.apply_keyframe(&mut b, &map, &kf).unwrap()
-    else {
-        panic!("no correction started");
-    };
-    assert!(
-        max_m > 1e-3,
-        "the load moved a's tip away from b's ({max_m} m)"
-    );
-    assert_eq!(steps, (max_m / 1e-4).ceil() as u32);
-    let nodes = map.canonical_nodes(b.lattice(), TIP);
-    for _ in 0..steps {
-        let before: Vec<V3> = nodes.iter().map(|n| b.positions()[n.0 as usize]).collect();
-        let reported = region.drive(&mut b);
-        assert!(reported <= 1e-4 * (1.0 + 1e-12), "{reported} m in one step");
-        for (i, n) in nodes.iter().enumerate() {
-            let moved = (b.positions()[n.0 as usize] - before[i]).norm();
-            assert!(
-                moved <= 1e-4 * (1.0 + 1e-9),
-                "node {i} moved {moved} m in one step"
-            );
-        }
-    }
-    assert_eq!(region.steps_left(), 0);
-    for (i, n) in nodes.iter().enumerate() {
-        if b.is_fixed(*n) {
-            continue;
-        }
-        let d = (b.positions()[n.0 as usize] - V3::from(kf.positions[i])).norm();
-        assert!(d < 1e-9, "node {i} ends {d} m from the keyframe");
-    }
-    // Nothing more is added once the correction has run out; stale keyframes are ignored.
-    assert_eq!(region.drive(&mut b), 0.0);
-    assert_eq!(
-        region.apply_keyframe(&mut b, &map, &kf).unwrap(),
-        Correction::Stale
-    );
-}
-
-/// Hybrid: a keyframe older than `max_age_s` at the local clock is skipped; a keyframe
-/// slightly in the local clock's past is advanced by its velocity.
-#[test]
-fn hybrid_skips_stale_keyframes_and_advances_recent_ones() {
-    let mut a = beam();
-    let mut b = beam();
-    let map = beam_map(&a);
-    let mut kf = encode_keyframe(&a, &map, TIP, 1).unwrap();
-    let u = V3::new(0.0, 0.0, 0.01);
-    for v in &mut kf.velocities {
-        *v = u.into();
-    }
-    let config = HybridConfig::default();
-    let mut region = CorrectedRegion::new(TIP, config);
-    b.set_time(kf.sim_time + config.max_age_s + 0.01);
-    assert_eq!(
-        region.apply_keyframe(&mut b, &map, &kf).unwrap(),
-        Correction::TooOld
-    );
-    kf.keyframe_id = 2;
-    b.set_time(kf.sim_time + 0.05);
-    a.set_time(kf.sim_time);
-    let Correction::Started { max_m, .. } = region.apply_keyframe(&mut b, &map, &kf).unwrap()
-    else {
-        panic!("no correction started");
-    };
-    // Equal states, 50 ms ahead at 1 cm/s: every free node is corrected by 0.5 mm.
-    assert!((max_m - 5e-4).abs() < 1e-12, "{max_m}");
 }

@@ -163,6 +163,7 @@ pub(super) async fn site(
                             region: k.region,
                             keyframe_id: k.keyframe_id,
                             site,
+                            shows_keyframes: false,
                         }));
                     }
                 }

@@ -138,6 +138,30 @@ pub struct SessionConfig {
     pub playout_lag: PlayoutLag,
     /// Pace steps to wall-clock time (true) or run as fast as possible.
     pub realtime: bool,
+    /// Under hybrid: show the regions other sites own from their keyframes instead of
+    /// simulating them (`cosurg join --follow keyframes`; see
+    /// `sim_core::sync::SiteSync::show_keyframes`). The site then paces itself as a
+    /// keyframe receiver does.
+    pub shows_keyframes: bool,
+}
+
+impl SessionConfig {
+    /// The sync state this site starts from (and restarts from on a scene reset).
+    fn new_sync(&self, map: RegionMap) -> SiteSync {
+        let mut sync = SiteSync::new(self.strategy, map, sync_config());
+        sync.show_keyframes(self.shows_keyframes);
+        sync
+    }
+
+    /// The lag model: a hybrid site that shows keyframes needs them in hand, as a
+    /// keyframe receiver does; other hybrid sites only need the inputs in time.
+    fn pacing_strategy(&self) -> SyncStrategy {
+        if self.strategy == SyncStrategy::Hybrid && self.shows_keyframes {
+            SyncStrategy::Keyframe
+        } else {
+            self.strategy
+        }
+    }
 }
 
 /// Counters for the site's report.
@@ -247,13 +271,13 @@ impl SiteSession {
         let map = RegionMap::for_simulation(sim);
         let config = sync_config();
         SiteSession {
-            sync: SiteSync::new(cfg.strategy, map.clone(), config),
+            sync: cfg.new_sync(map.clone()),
             map,
             baselines: BaselineTracker::new(BaselineConfig {
                 history: config.baseline_history,
                 ..BaselineConfig::default()
             }),
-            clocks: PeerClocks::new(cfg.playout_lag).for_strategy(cfg.strategy),
+            clocks: PeerClocks::new(cfg.playout_lag).for_strategy(cfg.pacing_strategy()),
             cfg,
             sites: SiteTable::default(),
             epoch: 0,
@@ -550,6 +574,12 @@ impl SiteSession {
             }
             Message::KeyframeAck(a) => {
                 self.baselines.on_ack(a.site, a.region, a.keyframe_id);
+                if a.shows_keyframes && self.sync.follower_shows_keyframes() {
+                    info!(
+                        site = a.site,
+                        "a follower shows our keyframes: sending on drift as well"
+                    );
+                }
             }
             Message::SiteJoined(s) => self.sites.joined(s),
             Message::Leave(l) => {
@@ -657,6 +687,7 @@ impl SiteSession {
                     region,
                     keyframe_id,
                     site: me,
+                    shows_keyframes: self.sync.shows_keyframes(),
                 }));
             }
         }
@@ -896,6 +927,15 @@ impl SiteSession {
         if let Some(b) = pace.behind {
             self.stats.behind_sum += b;
             self.stats.behind_steps += 1;
+            if self.stats.behind_steps.is_multiple_of(50) {
+                tracing::trace!(
+                    t,
+                    behind_ms = b * 1e3,
+                    rate = pace.rate,
+                    lag = ?self.clocks.lag_terms(),
+                    "pacing"
+                );
+            }
         }
         let dt = self.cfg.options.dt;
         let mut wake = now;
@@ -975,7 +1015,7 @@ impl SiteSession {
         fresh.set_time(t);
         *sim = fresh;
         self.epoch = epoch;
-        self.sync = SiteSync::new(self.cfg.strategy, self.map.clone(), sync_config());
+        self.sync = self.cfg.new_sync(self.map.clone());
         self.pose_history.clear();
         self.inbox.reset(epoch);
         self.held_topology.clear();

@@ -52,10 +52,13 @@ pub const KEYFRAME_INTERVAL: f64 = 0.04;
 /// Under hybrid: jitter margin of the automatic lag, in mean deviations of the delay. A
 /// sample later than the lag leaves the remote tool carried on at its last rate for up to
 /// [`INPUT_EXTRAPOLATION_S`] (and the owner's keyframes correct what that changes), so
-/// one deviation is enough: measured with `cosurg bench sync` (2026-11-25, two seeds),
-/// 1.5 deviations gave display delays 26–54 ms above the path on good, average and burst
-/// and 123–135 ms on poor; 1.0 gave 23–58 and 94–95 ms, divergence ≤ 0.6 mm either way.
-pub const HYBRID_JITTER_DEVS: f64 = 1.0;
+/// the lag needs no margin above the inputs' mean transit: measured with `cosurg bench
+/// sync` (2026-11-25, 19:30 UTC, three seeds of good, average, poor, intercontinental and
+/// burst), 0.5 deviations with 80 ms of extrapolation gave display delays 15–45 ms above
+/// the path as its packets experienced it, none with 150 ms gave 8–29 ms; divergence
+/// ≤ 1.4 and ≤ 2.3 mm (earlier, 1.0 deviation with 40 ms: 94–148 ms above the path's
+/// nominal delay under poor).
+pub const HYBRID_JITTER_DEVS: f64 = 0.0;
 /// Under hybrid: the interval of the input datagrams (s, `session::POSE_HISTORY_INTERVAL`).
 const HYBRID_INPUT_INTERVAL: f64 = 0.008;
 /// Under hybrid: a follower this far (s) short of its target lag waits instead of slewing.
@@ -67,9 +70,11 @@ pub const MAX_HYBRID_LAG: f64 = 2.0;
 const INPUT_HEADROOM: f64 = HYBRID_INPUT_INTERVAL + 0.004;
 /// How far (s of simulated time) a remote tool's motion is carried on past its newest
 /// sample (the site's pose tracks). An input later than the follower's clock by less than
-/// this costs little (the tool moved on at its last rate), so the automatic lag only
-/// grows for inputs later than that.
-pub const INPUT_EXTRAPOLATION_S: f64 = 0.04;
+/// this costs little (the tool moved on at its last rate, and the owner's keyframes
+/// correct the rest), so the automatic lag only grows for inputs later than that. 150 ms
+/// covers the jitter of every preset (`poor`: 30 ms per hop, and a packet waits for the
+/// ones before it); see [`HYBRID_JITTER_DEVS`] for the measurement.
+pub const INPUT_EXTRAPOLATION_S: f64 = 0.15;
 /// Under hybrid: how fast (s of lag per wall s) the lag floor set by input shortfalls
 /// comes back down while the inputs arrive in time.
 const INPUT_FLOOR_DECAY: f64 = 0.01;
@@ -92,6 +97,12 @@ const TOOL_ACTIVE_FOR: f64 = 0.5;
 const SILENT_AFTER: f64 = 0.5;
 /// Transit samples outside 0..this (s) come from clocks not yet synchronised; ignored.
 const MAX_TRANSIT: f64 = 5.0;
+/// For this long (wall s) after a followed site appears mid-session (a join, or a rejoin
+/// under a new id) or our own link comes back, its samples carry the gap, not the path:
+/// they neither raise the hybrid lag nor enter the delay estimate. Measured after the
+/// `outage` preset's cut: inputs 0.4–0.6 s late and stamp transits of 0.2–0.4 s on a
+/// 80 ms path, which left a trainee's lag at 430–670 ms for the rest of the run.
+const QUIET_AFTER_JOIN_S: f64 = 1.0;
 
 /// `--playout-lag`: `auto` or milliseconds.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -209,6 +220,8 @@ pub struct PeerClocks {
     /// [`PeerClocks::input_shortfall`]), and when it was last raised or decayed (wall s).
     input_floor: f64,
     input_floor_at: f64,
+    /// Until this wall time (s) samples say nothing of the path ([`QUIET_AFTER_JOIN_S`]).
+    quiet_until: f64,
 }
 
 impl PeerClocks {
@@ -226,7 +239,13 @@ impl PeerClocks {
             inputs_only: false,
             input_floor: 0.0,
             input_floor_at: 0.0,
+            quiet_until: f64::NEG_INFINITY,
         }
+    }
+
+    /// Our link came back at `now` (wall s): see [`QUIET_AFTER_JOIN_S`].
+    pub fn quiet(&mut self, now: f64) {
+        self.quiet_until = self.quiet_until.max(now + QUIET_AFTER_JOIN_S);
     }
 
     /// Under hybrid, a new input sample of a remote tool this follower simulates arrived
@@ -240,7 +259,11 @@ impl PeerClocks {
     /// shortfalls measured under `poor` on 2026-11-24 were most likely the owner's time
     /// misestimated from bunched arrivals, see [`PeerClocks::heard`].)
     pub fn input_shortfall(&mut self, shortfall: f64, at: f64, now: f64) {
-        if !self.inputs_only || !shortfall.is_finite() || shortfall > MAX_INPUT_SHORTFALL {
+        if !self.inputs_only
+            || !shortfall.is_finite()
+            || shortfall > MAX_INPUT_SHORTFALL
+            || now < self.quiet_until
+        {
             return;
         }
         let elapsed = (now - self.input_floor_at).max(0.0);
@@ -284,6 +307,10 @@ impl PeerClocks {
     pub fn heard(&mut self, site: u16, sim_time: f64, now: f64, transit: Option<f64>) {
         let transit = transit.filter(|d| (0.0..MAX_TRANSIT).contains(d));
         let prev = self.peers.get(&site).copied();
+        if prev.is_none() && self.delay.mean.is_some() {
+            // A site that appears once the session runs: see `QUIET_AFTER_JOIN_S`.
+            self.quiet(now);
+        }
         let sent_at = transit.map(|d| now - d);
         // The rate is measured between send times where both are known: arrival times
         // carry the path's jitter (stamps 50 ms apart may arrive together after a
@@ -306,7 +333,9 @@ impl PeerClocks {
             (Some(old), Some(d)) => Some(0.875 * old + 0.125 * d),
             (old, d) => d.or(old),
         };
-        if let Some(d) = transit {
+        if let Some(d) = transit
+            && now >= self.quiet_until
+        {
             self.delay.sample(d);
         }
         self.peers.insert(
@@ -400,6 +429,17 @@ impl PeerClocks {
             .filter_map(|s| self.heard_time(*s, now))
             .map(|heard| t - heard)
             .fold(f64::NEG_INFINITY, f64::max)
+    }
+
+    /// The terms of the automatic lag, for the logs: smoothed delay, its mean deviation,
+    /// the input shortfall floor and the target (ms).
+    pub fn lag_terms(&self) -> [f64; 4] {
+        [
+            self.delay.mean.unwrap_or(f64::NAN) * 1e3,
+            self.delay.dev * 1e3,
+            self.input_floor * 1e3,
+            self.target_lag() * 1e3,
+        ]
     }
 
     /// The lag a non-leading follower keeps behind the sites it follows (s).
@@ -680,6 +720,35 @@ mod tests {
             c.heard(1, wall, wall + 0.2, Some(0.2));
         }
         c
+    }
+
+    /// A site that appears once the session runs (a rejoin under a new id), or our own
+    /// link coming back, starts a quiet second: its late samples and long transits carry
+    /// the gap, not the path, and change neither the lag nor the delay estimate.
+    #[test]
+    fn samples_right_after_a_rejoin_do_not_move_the_lag() {
+        let mut c = hybrid_heard(200);
+        c.tool_heard(1, 10.0);
+        let base = c.target_lag();
+        // Site 1 rejoins as site 2 at wall 10.0: its first stamps say 0.6 s of transit.
+        c.heard(2, 9.4, 10.0, Some(0.6));
+        c.tool_heard(2, 10.0);
+        c.input_shortfall(0.45, 9.4, 10.1);
+        assert_eq!(c.target_lag(), base, "quiet after the rejoin");
+        // A second later the new site's samples count again.
+        let later = 10.0 + QUIET_AFTER_JOIN_S + 0.05;
+        c.heard(2, later - 0.3, later, Some(0.3));
+        assert!(
+            c.target_lag() > base + 0.005,
+            "{} against {base}",
+            c.target_lag()
+        );
+        // Our own link coming back: quiet as well.
+        let mut d = hybrid_heard(200);
+        d.tool_heard(1, 10.0);
+        d.quiet(10.0);
+        d.heard(1, 9.5, 10.05, Some(0.55));
+        assert_eq!(d.target_lag(), base);
     }
 
     /// The inputs' real path is longer than the stamps' transit says: inputs arrive

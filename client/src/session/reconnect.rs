@@ -105,6 +105,8 @@ impl SiteSession {
         self.sites.welcome(w);
         self.welcomed_at = Some(now.wall);
         self.stats.reconnects += 1;
+        let wall = self.wall(now.wall);
+        self.clocks.quiet(wall);
         // The coordinator dropped our regions with the link. Ask for them again (and for
         // those we moved unseen), as if our tool had just touched them: while we own them
         // we send their keyframes, and we release them (with a final keyframe) once they

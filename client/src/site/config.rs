@@ -51,6 +51,9 @@ pub struct SiteConfig {
     /// How far a site that follows another site's regions or tool keeps its simulation
     /// time behind that site's (`site::pacing`).
     pub playout_lag: PlayoutLag,
+    /// Under hybrid: show the regions other sites own from their keyframes instead of
+    /// simulating them (`--follow`, resolved).
+    pub shows_keyframes: bool,
     /// Run the 1 kHz haptic loop beside the simulation.
     pub haptics: bool,
     /// Where the local tool's input comes from: the script, or a real device over UDP
@@ -126,6 +129,13 @@ pub struct SiteReport {
     pub down_bytes_per_s: f64,
     pub udp_up_bytes_per_s: f64,
     pub udp_down_bytes_per_s: f64,
+    /// With an impaired link (`--netem`): the mean one-way delay it added to the packets
+    /// it delivered, up (to the coordinator) and down (ms), jitter and the wait for earlier
+    /// packets included.
+    #[serde(default)]
+    pub link_up_delay_ms: Option<f64>,
+    #[serde(default)]
+    pub link_down_delay_ms: Option<f64>,
     /// Filled by the demo / sync bench from the recordings of all sites (mm).
     pub divergence_max_mm: Option<f64>,
     pub divergence_rms_mm: Option<f64>,

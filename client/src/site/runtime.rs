@@ -7,6 +7,7 @@ use anyhow::{Context, Result, bail};
 use tracing::{debug, info, warn};
 
 use sim_core::Simulation;
+use sim_core::sync::SyncStrategy;
 
 use super::config::{SiteConfig, SiteReport};
 use super::recording::{Recorder, SessionRecording};
@@ -33,7 +34,14 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     let dt = cfg.options.dt;
     let steps = (cfg.seconds / dt).round().max(1.0) as u64;
     let mut sim = Simulation::new(cfg.scene.clone(), cfg.options.clone())?;
-    let mut tools = Tools::new(&sim, &cfg.tools, cfg.strategy)?;
+    // A hybrid site that shows keyframes does not simulate the others' tools either: the
+    // regions they act on come from their owners' keyframes, as under keyframe sync.
+    let tools_strategy = if cfg.shows_keyframes {
+        SyncStrategy::Keyframe
+    } else {
+        cfg.strategy
+    };
+    let mut tools = Tools::new(&sim, &cfg.tools, tools_strategy)?;
     let mut recorder = Recorder::new(&sim, RECORD_INTERVAL);
     let writer = match (&cfg.out, cfg.vtu_interval) {
         (Some(dir), Some(_)) => Some(VtuThread::start(SeriesWriter::new(&dir.join("vtu"))?)),
@@ -67,6 +75,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
             linked: link.is_some(),
             playout_lag: cfg.playout_lag,
             realtime: cfg.realtime,
+            shows_keyframes: cfg.shows_keyframes,
         },
         &sim,
         Instant::now(),
@@ -519,6 +528,11 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         report.udp_down_bytes_per_s = st.udp_bytes_down as f64 / wall;
         report.clock_offset_us = clock.offset_us;
         report.rtt_us = clock.rtt_us;
+        if let Some(impaired) = link.impaired() {
+            let c = impaired.counters();
+            report.link_up_delay_ms = c.up.model.mean_delay_ms();
+            report.link_down_delay_ms = c.down.model.mean_delay_ms();
+        }
         link.close();
     }
     if let Some(r) = session_rec.take() {

@@ -14,6 +14,18 @@ use crate::output::ToolFrame;
 use crate::session::SiteSession;
 use crate::session::pacing::INPUT_EXTRAPOLATION_S;
 
+/// A local tool that rests after this site drove it still announces its pose (and its
+/// jaw) this often (s of simulated time), until another site drives it. A site that missed
+/// its last samples (a link lost, a late join) would otherwise go on simulating it where
+/// it last heard of it. Measured: after the `outage` preset's 3 s cut, the instructor's
+/// script ended before its link came back, and a trainee's copy of the forceps stayed
+/// closed on the tissue, holding its organ 12.5 mm from the instructor's to the end.
+pub const IDLE_POSE_INTERVAL_S: f64 = 0.25;
+
+/// A remote tool's sample more than this (s of simulated time) after the one before it
+/// starts its stream again (longer than [`IDLE_POSE_INTERVAL_S`]).
+const STREAM_GAP_S: f64 = 0.3;
+
 type V3 = Vector3<f64>;
 
 /// The scene's tools and their contact with the organ (sim-core's [`Interaction`]).
@@ -39,6 +51,10 @@ pub struct Tools {
     remote_site: Vec<Option<proto::SiteId>>,
     /// Whether the local tool is being driven this step (its script is running).
     local_active: bool,
+    /// While the local tool rests after this site drove it (and nobody else has driven it
+    /// since): the simulated time its held pose is next announced (see
+    /// [`IDLE_POSE_INTERVAL_S`]).
+    idle_announce_at: Option<f64>,
     /// Touch radius around contacts for region ownership (m).
     touch_radius: f64,
 }
@@ -67,6 +83,7 @@ impl Tools {
             instruments,
             remote_contact: strategy.simulates_remote_tools(),
             local_active: false,
+            idle_announce_at: None,
             touch_radius: 2.0 * sim.lattice().params().cell,
         })
     }
@@ -161,7 +178,7 @@ impl Tools {
         local: Option<ToolInput>,
         session: &SiteSession,
     ) -> Result<Vec<u32>> {
-        self.local_active = local.is_some();
+        self.note_local_input(local.is_some(), sim.time());
         // A pose stamped t + dt is the input its site used for the step from t: sample
         // the remote tracks there, so that a follower behind the owner in simulated time
         // replays the owner's tool as it was then rather than its latest pose.
@@ -241,13 +258,27 @@ impl Tools {
     /// `at` (s) is the simulated time of the next step's input (`sim.time() + dt`).
     /// Returns how late a new sample of a tool this site simulates arrived: `at` minus
     /// its time (positive: the simulation had already used a held pose in its place);
-    /// `None` for repeats and for tools that are only drawn.
+    /// `None` for repeats, for tools that are only drawn, and for the first sample after
+    /// a gap in the tool's stream ([`STREAM_GAP_S`]).
     pub fn remote_pose(&mut self, p: &proto::ToolPose, at: f64) -> Option<f64> {
         if let Some(site) = self.remote_site.get_mut(p.tool as usize) {
             *site = Some(p.site);
         }
+        if Some(p.tool as usize) == self.local && !self.local_active {
+            // Another site drives our instrument now: its pose is no longer ours to tell.
+            self.idle_announce_at = None;
+        }
         let simulated = self.remote_contact && Some(p.tool as usize) != self.local;
         if let Some(track) = self.remote_track.get_mut(p.tool as usize) {
+            // The first sample after a gap in the tool's stream (its site was cut off,
+            // rejoined, or its tool rested unannounced) was not waited for: its lateness
+            // says nothing of the path (measured: samples 0.3–0.5 s late after the
+            // `outage` preset's cut raised a trainee's lag to 450 ms for the rest of the
+            // run).
+            let resumed = track
+                .poses
+                .back()
+                .is_none_or(|(newest, _)| p.sim_time_s - newest > STREAM_GAP_S);
             let q = p.orientation.map(f64::from);
             let new = track.insert(
                 p.sim_time_s,
@@ -261,7 +292,7 @@ impl Tools {
                     p.jaw_rad.into(),
                 ),
             );
-            return (new && simulated).then_some(at - p.sim_time_s);
+            return (new && simulated && !resumed).then_some(at - p.sim_time_s);
         }
         None
     }
@@ -327,12 +358,24 @@ impl Tools {
         ))
     }
 
-    /// The local tool's pose for the others, while it is being driven.
-    pub fn local_pose_message(&self, site: proto::SiteId, t: f64) -> Option<proto::ToolPose> {
-        if !self.local_active {
-            return None;
+    /// The local tool is driven this step (`active`, at simulated time `t`, s) or rests.
+    /// Once it rests, its pose keeps being announced every [`IDLE_POSE_INTERVAL_S`].
+    fn note_local_input(&mut self, active: bool, t: f64) {
+        self.local_active = active;
+        if active {
+            self.idle_announce_at = Some(t + IDLE_POSE_INTERVAL_S);
         }
+    }
+
+    /// The local tool's pose for the others, while it is being driven.
+    pub fn local_pose_message(&mut self, site: proto::SiteId, t: f64) -> Option<proto::ToolPose> {
         let i = self.local?;
+        if !self.local_active {
+            if !self.idle_announce_at.is_some_and(|at| t >= at) {
+                return None;
+            }
+            self.idle_announce_at = Some(t + IDLE_POSE_INTERVAL_S);
+        }
         let tool = &self.interaction.tools.tools[i];
         let pose = tool.pose();
         let p = pose.translation.vector;
@@ -493,6 +536,56 @@ mod tests {
             nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, x),
             jaw,
         )
+    }
+
+    /// A tool this site drove keeps announcing its resting pose every
+    /// `IDLE_POSE_INTERVAL_S` until another site drives it; a tool never driven here is
+    /// not announced.
+    #[test]
+    fn a_resting_tool_is_announced_until_another_site_drives_it() {
+        let scene = sim_core::sim_scene::builtin::cholecystectomy_bodies();
+        let options = sim_core::SimOptions::from_scene(&scene.scene);
+        let sim = Simulation::new(scene, options).unwrap();
+        let mut tools = Tools::new(&sim, &["forceps".into()], SyncStrategy::Hybrid).unwrap();
+        let me = 7;
+        let sent = |tools: &mut Tools, t: f64| tools.local_pose_message(me, t).is_some();
+        assert!(
+            !sent(&mut tools, 0.5),
+            "never driven here: nothing to announce"
+        );
+        tools.note_local_input(true, 1.0);
+        assert!(sent(&mut tools, 1.0), "driven: every step");
+        tools.note_local_input(false, 1.004);
+        let announced: Vec<f64> = (0..=200)
+            .map(|k| 1.004 + 0.004 * f64::from(k))
+            .filter(|&t| sent(&mut tools, t))
+            .collect();
+        assert_eq!(announced.len(), 3, "{announced:?}");
+        // The first one interval after the last driven step, then one per interval (each
+        // at the first step past its time).
+        let mut due = 1.0 + IDLE_POSE_INTERVAL_S;
+        for t in &announced {
+            assert!(*t >= due - 1e-9 && *t < due + 0.004 + 1e-9, "{announced:?}");
+            due = t + IDLE_POSE_INTERVAL_S;
+        }
+        let pose = tools.local_pose_message(me, 9.0).unwrap();
+        assert_eq!((pose.site, pose.sim_time_s), (me, 9.0));
+        // Another site takes the forceps: we stop telling where it rests.
+        let mut theirs = pose;
+        theirs.site = 8;
+        theirs.tool = 1 - theirs.tool.min(1);
+        let drawn_only = tools.local;
+        tools.local = Some(usize::from(1 - theirs.tool));
+        // The first sample of a stream is no measure of the path; the next ones are.
+        assert_eq!(tools.remote_pose(&theirs, 9.1), None);
+        theirs.sim_time_s = 9.008;
+        assert!((tools.remote_pose(&theirs, 9.1).unwrap() - 0.092).abs() < 1e-12);
+        theirs.sim_time_s = 9.9;
+        assert_eq!(tools.remote_pose(&theirs, 9.95), None, "after a gap");
+        tools.local = drawn_only;
+        theirs.tool = pose.tool;
+        tools.remote_pose(&theirs, 9.1);
+        assert!(!sent(&mut tools, 20.0));
     }
 
     /// The bodies scene's instructor: forceps, clip applier and blade, one hand. The

@@ -173,6 +173,7 @@ fn ack_routed_to_keyframe_owner() {
             region: 4,
             keyframe_id: 1,
             site: 0,
+            shows_keyframes: true,
         }),
         0,
     );
@@ -183,7 +184,8 @@ fn ack_routed_to_keyframe_owner() {
             msg: Message::KeyframeAck(KeyframeAck {
                 region: 4,
                 keyframe_id: 1,
-                site: b
+                site: b,
+                shows_keyframes: true,
             })
         }]
     );

@@ -14,6 +14,11 @@
 //! sites agree (equal simulations, inputs in time) the correction is about zero and costs
 //! nothing; where they do not, the owner's state wins within a few steps.
 //!
+//! A keyframe that agrees with the local state to within the wire's quantisation
+//! ([`HybridConfig::agree_m`], [`HybridConfig::agree_m_s`]) starts no correction: the
+//! difference is rounding, and correcting it would nudge equal simulations apart (contact
+//! and grasping amplify a few micrometres into tenths of a millimetre within a second).
+//!
 //! Keyframes older than [`HybridConfig::max_age_s`] at the time the local clock reaches
 //! them are not used: advancing a stale state by its velocity is worse than the local
 //! simulation (a newer keyframe follows within a heartbeat).
@@ -38,6 +43,13 @@ pub struct HybridConfig {
     pub max_age_s: f64,
     /// The owner sends each owned region this often while owning (s of sim time).
     pub keyframe_interval_s: f64,
+    /// A keyframe whose every node is within this distance (m) of the local state …
+    pub agree_m: f64,
+    /// … and within this speed (m/s) of the local velocity agrees with it: no correction.
+    pub agree_m_s: f64,
+    /// The owner's rate cap per region (s of sim time) once a follower shows its
+    /// keyframes ([`super::SiteSync::follower_shows_keyframes`]).
+    pub shown_min_interval_s: f64,
 }
 
 impl Default for HybridConfig {
@@ -49,6 +61,15 @@ impl Default for HybridConfig {
             min_steps: 5,
             max_age_s: 0.15,
             keyframe_interval_s: 0.1,
+            // The wire's rounding (proto's default quantisation) is at most half a step per
+            // axis: √3 · 5 µm ≈ 8.7 µm and √3 · 0.05 mm/s ≈ 0.087 mm/s.
+            agree_m: 1e-5,
+            agree_m_s: 1e-4,
+            // A heartbeat keyframe must not hold back the next drift keyframe: with the
+            // sessions' 30 ms cap, a grasp's release 3 ms after a heartbeat reached the
+            // follower 30 ms late, and it showed 4.4 mm of divergence; 10 ms: 0.34 mm
+            // (`cosurg bench sync`, lan, trainee B on 5 CG iterations, 2026-11-25).
+            shown_min_interval_s: 0.01,
         }
     }
 }
@@ -63,6 +84,10 @@ pub enum Correction {
     Stale,
     /// Older than [`HybridConfig::max_age_s`]; ignored.
     TooOld,
+    /// Agrees with the local state to within the wire's rounding; no correction (one under
+    /// way is dropped: it was measured from an older keyframe). `max_m`: the largest node
+    /// distance (m).
+    Agrees { max_m: f64 },
 }
 
 /// A region another site owns, as a hybrid follower sees it: simulated locally, corrected
@@ -136,7 +161,7 @@ impl CorrectedRegion {
         let nodes = match_tree_and_nodes(sim, map, kf)?;
         let ahead = age.max(0.0);
         let mut diffs = Vec::with_capacity(nodes.len());
-        let mut max_m: f64 = 0.0;
+        let (mut max_m, mut max_m_s): (f64, f64) = (0.0, 0.0);
         for (i, &n) in nodes.iter().enumerate() {
             if sim.is_fixed(n) {
                 continue;
@@ -146,7 +171,14 @@ impl CorrectedRegion {
             let dx = target - sim.positions()[n.0 as usize];
             let dv = v_k - sim.velocities()[n.0 as usize];
             max_m = max_m.max(dx.norm());
+            max_m_s = max_m_s.max(dv.norm());
             diffs.push((n, sim.lattice().node_grid(n), dx, dv));
+        }
+        self.last_keyframe = Some(kf.keyframe_id);
+        if max_m <= self.config.agree_m && max_m_s <= self.config.agree_m_s {
+            self.pending.clear();
+            self.steps_left = 0;
+            return Ok(Correction::Agrees { max_m });
         }
         let steps = ((max_m / self.config.max_step_m).ceil() as u32).max(self.config.min_steps);
         let share = 1.0 / f64::from(steps);
@@ -155,7 +187,6 @@ impl CorrectedRegion {
             .map(|(n, g, dx, dv)| (n, g, dx * share, dv * share))
             .collect();
         self.steps_left = steps;
-        self.last_keyframe = Some(kf.keyframe_id);
         self.corrections += 1;
         Ok(Correction::Started { steps, max_m })
     }

@@ -199,6 +199,10 @@ pub struct SiteSync {
     /// Largest node distance (m) from the owner's keyframe at the newest keyframe applied
     /// (any region, either strategy): the site's live divergence.
     divergence_m: Option<f64>,
+    /// Under hybrid: this site shows the regions others own from their keyframes, as a
+    /// keyframe-strategy receiver, instead of simulating and correcting them (its own
+    /// solve is cut short: see [`SiteSync::show_keyframes`]).
+    shows_keyframes: bool,
 }
 
 impl SiteSync {
@@ -238,7 +242,47 @@ impl SiteSync {
             newest_id: BTreeMap::new(),
             released: Default::default(),
             divergence_m: None,
+            shows_keyframes: false,
         }
+    }
+
+    /// Under hybrid: show the regions other sites own from their keyframes (extrapolated
+    /// and interpolated, as [`SyncStrategy::Keyframe`] does) instead of simulating them
+    /// and correcting towards the keyframes. For a site whose own simulation is not the
+    /// owners' (a CG budget cut to keep up): its copy departs from the owner's in fast
+    /// motion faster than blended corrections bring it back (measured: a 5-iteration
+    /// solve 10.9 mm from the owner at a grasp's release). Such a site says so in its
+    /// acknowledgements, and owners then also send on dead-reckoning drift
+    /// ([`SiteSync::follower_shows_keyframes`]).
+    pub fn show_keyframes(&mut self, on: bool) {
+        self.shows_keyframes = on && self.strategy == SyncStrategy::Hybrid;
+        if self.shows_keyframes {
+            self.corrected.clear();
+        }
+    }
+
+    /// Whether this site shows other sites' regions from their keyframes (under
+    /// [`SyncStrategy::Keyframe`], or hybrid with [`SiteSync::show_keyframes`]).
+    pub fn shows_keyframes(&self) -> bool {
+        self.strategy == SyncStrategy::Keyframe || self.shows_keyframes
+    }
+
+    /// Under hybrid, as owner: a follower shows our keyframes instead of simulating (it
+    /// said so in an acknowledgement). From now on we also send when a region departs
+    /// from the receivers' dead reckoning by [`SyncConfig::drift_threshold_m`], as under
+    /// keyframe sync, besides the hybrid heartbeat, and at most once per
+    /// [`HybridConfig::shown_min_interval_s`].
+    /// Returns whether this changed anything.
+    pub fn follower_shows_keyframes(&mut self) -> bool {
+        let change = self.strategy == SyncStrategy::Hybrid
+            && self.policy.config().drift_threshold_m != self.config.drift_threshold_m;
+        if change {
+            self.policy
+                .set_drift_threshold(self.config.drift_threshold_m);
+            self.policy
+                .set_min_interval(self.hybrid.shown_min_interval_s);
+        }
+        change
     }
 
     /// Remote region state (created on its first keyframe).
@@ -309,7 +353,7 @@ impl SiteSync {
     /// Holds the next keyframe of a remote region before this site's clock reaches it
     /// ([`RemoteRegion::hold_next`]); returns whether it is held.
     pub fn hold_next(&mut self, sim: &Simulation, kf: &RegionKeyframe) -> bool {
-        if self.strategy != SyncStrategy::Keyframe || self.policy.is_owned(kf.region) {
+        if !self.shows_keyframes() || self.policy.is_owned(kf.region) {
             return false;
         }
         match self.remote.get_mut(&kf.region) {
@@ -381,7 +425,9 @@ impl SiteSync {
                 self.full_state_last = Some(kf.keyframe_id);
                 Ok(None)
             }
-            SyncFrame::Keyframe(kf) if self.strategy == SyncStrategy::Hybrid => {
+            SyncFrame::Keyframe(kf)
+                if self.strategy == SyncStrategy::Hybrid && !self.shows_keyframes =>
+            {
                 if self.policy.is_owned(kf.region) {
                     return Ok(None);
                 }
@@ -391,7 +437,7 @@ impl SiteSync {
                     .entry(kf.region)
                     .or_insert_with(|| CorrectedRegion::new(kf.region, hybrid));
                 let used = match c.apply_keyframe(sim, &self.map, kf)? {
-                    Correction::Started { max_m, .. } => {
+                    Correction::Started { max_m, .. } | Correction::Agrees { max_m } => {
                         self.divergence_m = Some(max_m);
                         true
                     }
@@ -404,7 +450,11 @@ impl SiteSync {
             }
             // Hybrid followers simulate their own tree state; the next keyframe carries
             // the owner's.
-            SyncFrame::TreeDelta(_) if self.strategy == SyncStrategy::Hybrid => Ok(None),
+            SyncFrame::TreeDelta(_)
+                if self.strategy == SyncStrategy::Hybrid && !self.shows_keyframes =>
+            {
+                Ok(None)
+            }
             SyncFrame::Keyframe(kf) => {
                 if self.policy.is_owned(kf.region)
                     || (self.released.contains(&kf.region) && !self.remote.contains_key(&kf.region))

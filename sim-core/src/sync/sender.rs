@@ -88,6 +88,17 @@ impl SendPolicy {
         &self.config
     }
 
+    /// Sends also when a region departs from the receivers' dead reckoning by more than
+    /// `m` (m; infinite: never, the hybrid strategy's default).
+    pub fn set_drift_threshold(&mut self, m: f64) {
+        self.config.drift_threshold_m = m;
+    }
+
+    /// Sends at most once per `s` (s of sim time) per region.
+    pub fn set_min_interval(&mut self, s: f64) {
+        self.config.min_interval_s = s;
+    }
+
     /// Starts owning a region; its keyframes are numbered from `first_id` (the newest id
     /// this site has seen for the region + 1).
     pub fn acquire(&mut self, region: RegionId, first_id: KeyframeId) {
