@@ -23,6 +23,7 @@
 //! that epoch only. A late joiner takes the current epoch from its join snapshot.
 
 pub mod claims;
+mod config;
 pub mod inbox;
 pub mod pacing;
 mod reconnect;
@@ -40,12 +41,13 @@ use proto::{
     BaselineConfig, BaselineTracker, Command, Epoch, Message, RegionId, Role, SiteId,
     TeachingTrajectory, Welcome,
 };
-use sim_core::sim_scene::LoadedScene;
-use sim_core::sync::{RegionMap, SiteSync, SyncConfig, SyncStrategy};
-use sim_core::{SimError, SimOptions, Simulation};
+use sim_core::sync::{RegionMap, SiteSync, SyncStrategy};
+use sim_core::{SimError, Simulation};
 use tracing::{debug, info, warn};
 
 use claims::Claims;
+use config::sync_config;
+pub use config::{SessionConfig, SessionSnapshot, SessionStats};
 use inbox::Inbox;
 pub use pacing::{Pace, PeerClocks, PlayoutLag};
 pub use reconnect::{MOVED_WHILE_CUT_OFF, RELEASES_UNHEARD};
@@ -125,83 +127,6 @@ pub enum ResetError {
     NotInstructor(Role),
 }
 
-/// What a session needs to know about its site.
-#[derive(Clone)]
-pub struct SessionConfig {
-    pub role: Role,
-    pub strategy: SyncStrategy,
-    /// The scene and options the simulation is built from (and rebuilt on a reset).
-    pub scene: LoadedScene,
-    pub options: SimOptions,
-    /// Whether the site has a link to a coordinator (without one nothing is transmitted).
-    pub linked: bool,
-    pub playout_lag: PlayoutLag,
-    /// Pace steps to wall-clock time (true) or run as fast as possible.
-    pub realtime: bool,
-    /// Under hybrid: show the regions other sites own from their keyframes instead of
-    /// simulating them (`cosurg join --follow keyframes`; see
-    /// `sim_core::sync::SiteSync::show_keyframes`). The site then paces itself as a
-    /// keyframe receiver does.
-    pub shows_keyframes: bool,
-}
-
-impl SessionConfig {
-    /// The sync state this site starts from (and restarts from on a scene reset).
-    fn new_sync(&self, map: RegionMap) -> SiteSync {
-        let mut sync = SiteSync::new(self.strategy, map, sync_config());
-        sync.show_keyframes(self.shows_keyframes);
-        sync
-    }
-
-    /// The lag model: a hybrid site that shows keyframes needs them in hand, as a
-    /// keyframe receiver does; other hybrid sites only need the inputs in time.
-    fn pacing_strategy(&self) -> SyncStrategy {
-        if self.strategy == SyncStrategy::Hybrid && self.shows_keyframes {
-            SyncStrategy::Keyframe
-        } else {
-            self.strategy
-        }
-    }
-}
-
-/// Counters for the site's report.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct SessionStats {
-    pub keyframes_applied: u64,
-    /// CPU time of applied keyframes (µs, sum): tree-state XOR, takeover, extrapolation.
-    pub apply_us_total: f64,
-    pub reconnects: u64,
-    pub resets: u64,
-    /// Wall time spent waiting so as not to run ahead of the owners' clocks (s).
-    pub paced_seconds: f64,
-    /// Sum and count of per-step lags behind the sites followed (s).
-    pub behind_sum: f64,
-    pub behind_steps: u64,
-    /// Topology ops received and applied (duplicates not counted), their CPU time (µs,
-    /// sum), keyframes dropped because their topology was not reached yet, and the bytes of
-    /// the topology ops we sent (framed).
-    pub topology_applied: u64,
-    pub topology_apply_us_total: f64,
-    pub keyframes_topology_dropped: u64,
-    pub topology_bytes_sent: u64,
-    /// Under hybrid: new input samples of remote tools that arrived after the simulation
-    /// had passed their time (it held the tool at its newest pose instead).
-    pub late_inputs: u64,
-}
-
-/// What a renderer or HUD reads of the session (see `site::SiteStatus`).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct SessionSnapshot {
-    pub site: Option<SiteId>,
-    pub role: Option<Role>,
-    pub epoch: Epoch,
-    pub sites: usize,
-    pub owned: Vec<RegionId>,
-    pub remote_owners: Vec<(RegionId, SiteId)>,
-    /// Live divergence from the owners' keyframes (m; see `SiteSync::divergence_m`).
-    pub divergence_m: Option<f64>,
-}
-
 /// How far ahead (s of simulated time) a site schedules its own cuts and releases: the path of the op
 /// to the other sites that lead (owners and tool drivers run level, at most
 /// `pacing::MAX_LEAD` apart) is one round trip to the coordinator (two hops), plus that
@@ -251,18 +176,6 @@ pub struct SiteSession {
     /// Our simulation's topology epoch when frames were last produced (stamped on our
     /// keyframes).
     topology_epoch: u32,
-}
-
-/// The sync tuning of a site. Extrapolation stays gentle: tissue under a surgeon's hand
-/// does not accelerate at tens of m/s², and a receiver never extrapolates far.
-fn sync_config() -> SyncConfig {
-    SyncConfig {
-        max_accel_m_s2: 5.0,
-        max_extrapolation_s: 0.06,
-        // At most ~33 keyframes per second per region.
-        min_interval_s: 0.03,
-        ..SyncConfig::default()
-    }
 }
 
 impl SiteSession {
@@ -461,11 +374,13 @@ impl SiteSession {
         let wall = self.wall(now.wall);
         match msg {
             Message::ToolPose(p) if self.sites.is_other(p.site) => {
-                self.clocks.tool_heard(p.site, wall);
+                self.clocks.tool_pose(p.site, p.sim_time_s, wall);
                 self.events.push_back(SessionEvent::RemotePose(p));
             }
             Message::ToolPoseHistory(h) if self.sites.is_other(h.site) => {
-                self.clocks.tool_heard(h.site, wall);
+                if let Some(newest) = h.samples.last() {
+                    self.clocks.tool_pose(h.site, newest.sim_time_s, wall);
+                }
                 let skip = h.samples.len().saturating_sub(proto::MAX_POSE_SAMPLES);
                 for s in h.samples.into_iter().skip(skip) {
                     if !s.sim_time_s.is_finite() {

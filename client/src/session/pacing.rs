@@ -93,6 +93,11 @@ const GAIN: f64 = 2.0;
 /// A remote tool counts as active (its site is followed) this long after its last pose
 /// (wall s).
 const TOOL_ACTIVE_FOR: f64 = 0.5;
+/// A tool pose this far (s of simulated time) or more after the one before it is not
+/// part of a driven tool's stream (a driven tool sends every step or every 16 ms): it is a
+/// resting tool's announcement (every 0.25 s, `site::tools::IDLE_POSE_INTERVAL_S`), or the
+/// first pose of a new stream, and does not make its site followed.
+const TOOL_STREAM_GAP_S: f64 = 0.1;
 /// A site unheard for this long (wall s) is not assumed to advance any further.
 const SILENT_AFTER: f64 = 0.5;
 /// Transit samples outside 0..this (s) come from clocks not yet synchronised; ignored.
@@ -210,6 +215,8 @@ pub struct PeerClocks {
     pub owners: BTreeMap<u32, u16>,
     /// Sites whose tool poses we receive, and when the last one was heard (wall s).
     tools: HashMap<u16, f64>,
+    /// Simulation time of the newest tool pose of each site (s).
+    tool_times: HashMap<u16, f64>,
     /// One-way delay from the followed sites to us: stamp transits and (except under
     /// hybrid) keyframe ages.
     delay: DelayFilter,
@@ -230,6 +237,7 @@ impl PeerClocks {
             peers: HashMap::new(),
             owners: BTreeMap::new(),
             tools: HashMap::new(),
+            tool_times: HashMap::new(),
             delay: DelayFilter {
                 mean: None,
                 dev: 0.0,
@@ -353,6 +361,19 @@ impl PeerClocks {
     /// A tool pose of `site` arrived at `now` (wall s): its site is followed for a while.
     pub fn tool_heard(&mut self, site: u16, now: f64) {
         self.tools.insert(site, now);
+    }
+
+    /// A tool pose of `site` with simulation time `sim_time` (s; the newest of a
+    /// datagram) arrived at `now` (wall s): its site is followed ([`Self::tool_heard`])
+    /// if the pose continues a driven tool's stream ([`TOOL_STREAM_GAP_S`]). Followers of
+    /// resting tools' announcements would pace against sites that drive nothing: the
+    /// sites of a session, each following the others, slowed one another to 0.9× real
+    /// time (measured in the default demo, 225 Hz instead of 250).
+    pub fn tool_pose(&mut self, site: u16, sim_time: f64, now: f64) {
+        let previous = self.tool_times.insert(site, sim_time);
+        if previous.is_some_and(|p| sim_time > p && sim_time - p < TOOL_STREAM_GAP_S) {
+            self.tool_heard(site, now);
+        }
     }
 
     /// A keyframe of `owner` with simulation time `sim_time` arrived at `now`: its age
@@ -720,6 +741,29 @@ mod tests {
             c.heard(1, wall, wall + 0.2, Some(0.2));
         }
         c
+    }
+
+    /// A driven tool's stream of poses makes its site followed; a resting tool's
+    /// announcements, 0.25 s apart, do not.
+    #[test]
+    fn only_a_driven_tools_stream_makes_its_site_followed() {
+        let mut c = PeerClocks::new(PlayoutLag::Auto);
+        for k in 0..8 {
+            let t = 1.0 + 0.25 * f64::from(k);
+            c.tool_pose(1, t, t);
+        }
+        assert!(c.followed(2.75).is_empty(), "announcements only");
+        for k in 0..3 {
+            let t = 3.0 + 0.008 * f64::from(k);
+            c.tool_pose(1, t, t);
+        }
+        assert_eq!(c.followed(3.02).into_iter().collect::<Vec<_>>(), vec![1]);
+        // Out of order or repeated: no stream either.
+        let mut d = PeerClocks::new(PlayoutLag::Auto);
+        d.tool_pose(2, 1.0, 1.0);
+        d.tool_pose(2, 1.0, 1.01);
+        d.tool_pose(2, 0.99, 1.02);
+        assert!(d.followed(1.02).is_empty());
     }
 
     /// A site that appears once the session runs (a rejoin under a new id), or our own
