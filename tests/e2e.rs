@@ -553,9 +553,10 @@ fn poor_network_keeps_divergence_bounded_and_settles() {
 const HYBRID_MOTION_BOUND_MM: f64 = 10.0;
 const HYBRID_SETTLED_BOUND_MM: f64 = 0.2;
 /// Display delay above the owner → coordinator → follower path (ms): the release bench's
-/// worst seed under `poor` (148 ms, 2026-11-25) plus 100 ms for a loaded machine
-/// (measured here with test-profile binaries: 112 ms under `poor`, 52 ms under `burst`).
-const HYBRID_DELAY_ABOVE_PATH_MS: f64 = 250.0;
+/// worst seed under `poor` (120 ms above the preset's path, 2026-11-25, 20:02 UTC; 148 ms
+/// at 17:17) plus 100 ms for a loaded machine (measured here with test-profile binaries
+/// at 17:17: 112 ms under `poor`, 52 ms under `burst`).
+const HYBRID_DELAY_ABOVE_PATH_MS: f64 = 220.0;
 
 /// An instructor lifting and a trainee watching, both under hybrid sync with `preset` on
 /// their own links (seed 5); checks the hybrid bounds above.
@@ -602,9 +603,9 @@ fn hybrid_follows_under(preset: &str) {
         "hybrid under {preset}: divergence {max:.2} mm, settled {settled:.3} mm, display \
          delay {delay:.0} ms (path {path_ms:.0} ms, target lag at the end {target:.0} ms)"
     );
-    // Display delay: the goal (≤ path + 50 ms) is met on six presets of eight in the
-    // release bench, not under `poor` (94 ms above the path at the median, 148 ms in the
-    // worst seed: the inputs' own mean transit is about 40–50 ms above the path there);
+    // Display delay: the goal (≤ path + 50 ms) is met on seven presets of eight in the
+    // release bench, not under `poor` (78 ms above the preset's path at the median, 120 ms
+    // in the worst seed: the path as its packets experience it is 440 ms, not 400);
     // see docs/RESULTS.md. Asserted here at the bench's worst plus a margin for a loaded
     // machine, so that a lag that doubles again (it was 650 ms above the path under
     // `poor` before the owner's time was taken from the stamps' send times) fails.
