@@ -37,8 +37,8 @@ import struct
 import sys
 import time
 
-WIRE_TAG = 6
-PROTOCOL_VERSION = 6
+WIRE_TAG = 7
+PROTOCOL_VERSION = 7
 ALPN = "cosurg/1"
 
 # proto::Message variant indices (append-only within a protocol version).
