@@ -103,8 +103,11 @@ const SILENT_AFTER: f64 = 0.5;
 /// Transit samples outside 0..this (s) come from clocks not yet synchronised; ignored.
 const MAX_TRANSIT: f64 = 5.0;
 /// For this long (wall s) after a followed site appears mid-session (a join, or a rejoin
-/// under a new id) or our own link comes back, its samples carry the gap, not the path:
-/// they neither raise the hybrid lag nor enter the delay estimate. Measured after the
+/// under a new id) or our own link comes back, samples carry the gap, not the path: input
+/// shortfalls and stamp transits (of every site: one estimate serves them all) neither
+/// raise the hybrid lag nor enter the delay estimate. At a session's start this also
+/// holds for a second once a second site is heard; keyframe ages (the keyframe lag model)
+/// are not held back. Measured after the
 /// `outage` preset's cut: inputs 0.4–0.6 s late and stamp transits of 0.2–0.4 s on a
 /// 80 ms path, which left a trainee's lag at 430–670 ms for the rest of the run.
 const QUIET_AFTER_JOIN_S: f64 = 1.0;

@@ -36,7 +36,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     let mut sim = Simulation::new(cfg.scene.clone(), cfg.options.clone())?;
     // A hybrid site that shows keyframes does not simulate the others' tools either: the
     // regions they act on come from their owners' keyframes, as under keyframe sync.
-    let tools_strategy = if cfg.shows_keyframes {
+    let tools_strategy = if cfg.shows_keyframes && cfg.strategy == SyncStrategy::Hybrid {
         SyncStrategy::Keyframe
     } else {
         cfg.strategy

@@ -52,9 +52,13 @@ pub struct Tools {
     /// Whether the local tool is being driven this step (its script is running).
     local_active: bool,
     /// While the local tool rests after this site drove it (and nobody else has driven it
-    /// since): the simulated time its held pose is next announced (see
+    /// since): that tool and the simulated time its held pose is next announced (see
     /// [`IDLE_POSE_INTERVAL_S`]).
-    idle_announce_at: Option<f64>,
+    idle_announce: Option<(usize, f64)>,
+    /// Per remote tool: the step (`at`, s) at which its stream last resumed after a gap;
+    /// every sample arriving for that step (one datagram carries several) is exempt from
+    /// the lateness count.
+    resumed_at: Vec<Option<f64>>,
     /// Touch radius around contacts for region ownership (m).
     touch_radius: f64,
 }
@@ -78,12 +82,13 @@ impl Tools {
             remote: vec![None; interaction.tools.len()],
             remote_site: vec![None; interaction.tools.len()],
             remote_track: vec![PoseTrack::default(); interaction.tools.len()],
+            resumed_at: vec![None; interaction.tools.len()],
             interaction,
             local: instruments.first().copied(),
             instruments,
             remote_contact: strategy.simulates_remote_tools(),
             local_active: false,
-            idle_announce_at: None,
+            idle_announce: None,
             touch_radius: 2.0 * sim.lattice().params().cell,
         })
     }
@@ -118,6 +123,7 @@ impl Tools {
         self.interaction = Interaction::new(sim);
         Self::enable_own(&mut self.interaction, &self.instruments);
         self.local = self.instruments.first().copied();
+        self.idle_announce = None;
         self.touch_radius = 2.0 * sim.lattice().params().cell;
     }
 
@@ -264,9 +270,13 @@ impl Tools {
         if let Some(site) = self.remote_site.get_mut(p.tool as usize) {
             *site = Some(p.site);
         }
-        if Some(p.tool as usize) == self.local && !self.local_active {
+        if self
+            .idle_announce
+            .is_some_and(|(tool, _)| tool == p.tool as usize)
+            && !self.local_active
+        {
             // Another site drives our instrument now: its pose is no longer ours to tell.
-            self.idle_announce_at = None;
+            self.idle_announce = None;
         }
         let simulated = self.remote_contact && Some(p.tool as usize) != self.local;
         if let Some(track) = self.remote_track.get_mut(p.tool as usize) {
@@ -275,10 +285,19 @@ impl Tools {
             // says nothing of the path (measured: samples 0.3–0.5 s late after the
             // `outage` preset's cut raised a trainee's lag to 450 ms for the rest of the
             // run).
-            let resumed = track
+            let gap = track
                 .poses
                 .back()
                 .is_none_or(|(newest, _)| p.sim_time_s - newest > STREAM_GAP_S);
+            let resumed = match self.resumed_at.get_mut(p.tool as usize) {
+                Some(slot) => {
+                    if gap {
+                        *slot = Some(at);
+                    }
+                    gap || *slot == Some(at)
+                }
+                None => gap,
+            };
             let q = p.orientation.map(f64::from);
             let new = track.insert(
                 p.sim_time_s,
@@ -362,8 +381,8 @@ impl Tools {
     /// Once it rests, its pose keeps being announced every [`IDLE_POSE_INTERVAL_S`].
     fn note_local_input(&mut self, active: bool, t: f64) {
         self.local_active = active;
-        if active {
-            self.idle_announce_at = Some(t + IDLE_POSE_INTERVAL_S);
+        if active && let Some(i) = self.local {
+            self.idle_announce = Some((i, t + IDLE_POSE_INTERVAL_S));
         }
     }
 
@@ -371,10 +390,14 @@ impl Tools {
     pub fn local_pose_message(&mut self, site: proto::SiteId, t: f64) -> Option<proto::ToolPose> {
         let i = self.local?;
         if !self.local_active {
-            if !self.idle_announce_at.is_some_and(|at| t >= at) {
+            // Only the instrument this site drove last, while in hand.
+            if !self
+                .idle_announce
+                .is_some_and(|(tool, at)| tool == i && t >= at)
+            {
                 return None;
             }
-            self.idle_announce_at = Some(t + IDLE_POSE_INTERVAL_S);
+            self.idle_announce = Some((i, t + IDLE_POSE_INTERVAL_S));
         }
         let tool = &self.interaction.tools.tools[i];
         let pose = tool.pose();
@@ -576,12 +599,21 @@ mod tests {
         theirs.tool = 1 - theirs.tool.min(1);
         let drawn_only = tools.local;
         tools.local = Some(usize::from(1 - theirs.tool));
-        // The first sample of a stream is no measure of the path; the next ones are.
+        // The first samples of a stream (those handled at its first step) are no measure
+        // of the path; the next ones are.
         assert_eq!(tools.remote_pose(&theirs, 9.1), None);
         theirs.sim_time_s = 9.008;
-        assert!((tools.remote_pose(&theirs, 9.1).unwrap() - 0.092).abs() < 1e-12);
+        assert!((tools.remote_pose(&theirs, 9.104).unwrap() - 0.096).abs() < 1e-12);
         theirs.sim_time_s = 9.9;
         assert_eq!(tools.remote_pose(&theirs, 9.95), None, "after a gap");
+        // The rest of that datagram's samples, handled at the same step: exempt too.
+        theirs.sim_time_s = 9.904;
+        assert_eq!(tools.remote_pose(&theirs, 9.95), None);
+        theirs.sim_time_s = 9.908;
+        assert!(
+            tools.remote_pose(&theirs, 9.96).is_some(),
+            "the next step counts"
+        );
         tools.local = drawn_only;
         theirs.tool = pose.tool;
         tools.remote_pose(&theirs, 9.1);

@@ -175,7 +175,10 @@ impl CorrectedRegion {
             diffs.push((n, sim.lattice().node_grid(n), dx, dv));
         }
         self.last_keyframe = Some(kf.keyframe_id);
-        if max_m <= self.config.agree_m && max_m_s <= self.config.agree_m_s {
+        // The velocity's rounding is carried into the target over `ahead`.
+        if max_m <= self.config.agree_m + self.config.agree_m_s * ahead
+            && max_m_s <= self.config.agree_m_s
+        {
             self.pending.clear();
             self.steps_left = 0;
             return Ok(Correction::Agrees { max_m });
