@@ -264,8 +264,8 @@ impl Tools {
     /// `at` (s) is the simulated time of the next step's input (`sim.time() + dt`).
     /// Returns how late a new sample of a tool this site simulates arrived: `at` minus
     /// its time (positive: the simulation had already used a held pose in its place);
-    /// `None` for repeats, for tools that are only drawn, and for the first sample after
-    /// a gap in the tool's stream ([`STREAM_GAP_S`]).
+    /// `None` for repeats, for tools that are only drawn, and for the samples handled at
+    /// the step the tool's stream starts or resumes after a gap ([`STREAM_GAP_S`]).
     pub fn remote_pose(&mut self, p: &proto::ToolPose, at: f64) -> Option<f64> {
         if let Some(site) = self.remote_site.get_mut(p.tool as usize) {
             *site = Some(p.site);
@@ -386,7 +386,8 @@ impl Tools {
         }
     }
 
-    /// The local tool's pose for the others, while it is being driven.
+    /// The local tool's pose for the others: while it is being driven, and every
+    /// [`IDLE_POSE_INTERVAL_S`] while it rests after this site drove it.
     pub fn local_pose_message(&mut self, site: proto::SiteId, t: f64) -> Option<proto::ToolPose> {
         let i = self.local?;
         if !self.local_active {
@@ -596,28 +597,44 @@ mod tests {
         // Another site takes the forceps: we stop telling where it rests.
         let mut theirs = pose;
         theirs.site = 8;
-        theirs.tool = 1 - theirs.tool.min(1);
-        let drawn_only = tools.local;
-        tools.local = Some(usize::from(1 - theirs.tool));
-        // The first samples of a stream (those handled at its first step) are no measure
-        // of the path; the next ones are.
-        assert_eq!(tools.remote_pose(&theirs, 9.1), None);
+        tools.remote_pose(&theirs, 9.1);
+        assert!(!sent(&mut tools, 20.0));
+    }
+
+    /// The samples handled at the step a remote tool's stream starts or resumes after a
+    /// gap (one datagram carries several) are no measure of the path: no lateness; the
+    /// next step's are.
+    #[test]
+    fn a_streams_first_datagram_reports_no_lateness() {
+        let scene = sim_core::sim_scene::builtin::cholecystectomy_bodies();
+        let options = sim_core::SimOptions::from_scene(&scene.scene);
+        let sim = Simulation::new(scene, options).unwrap();
+        // No instrument of our own: every tool is simulated from the others' samples.
+        let mut tools = Tools::new(&sim, &[], SyncStrategy::Hybrid).unwrap();
+        let mut theirs = proto::ToolPose {
+            site: 8,
+            tool: 0,
+            sim_time_s: 9.0,
+            position: [0.0; 3],
+            orientation: [1.0, 0.0, 0.0, 0.0],
+            jaw_rad: 0.1,
+            velocity: [0.0; 3],
+            angular_velocity: [0.0; 3],
+        };
+        assert_eq!(tools.remote_pose(&theirs, 9.1), None, "first sample");
+        theirs.sim_time_s = 9.004;
+        assert_eq!(tools.remote_pose(&theirs, 9.1), None, "same datagram");
         theirs.sim_time_s = 9.008;
         assert!((tools.remote_pose(&theirs, 9.104).unwrap() - 0.096).abs() < 1e-12);
         theirs.sim_time_s = 9.9;
         assert_eq!(tools.remote_pose(&theirs, 9.95), None, "after a gap");
-        // The rest of that datagram's samples, handled at the same step: exempt too.
         theirs.sim_time_s = 9.904;
-        assert_eq!(tools.remote_pose(&theirs, 9.95), None);
+        assert_eq!(tools.remote_pose(&theirs, 9.95), None, "same datagram");
         theirs.sim_time_s = 9.908;
         assert!(
             tools.remote_pose(&theirs, 9.96).is_some(),
             "the next step counts"
         );
-        tools.local = drawn_only;
-        theirs.tool = pose.tool;
-        tools.remote_pose(&theirs, 9.1);
-        assert!(!sent(&mut tools, 20.0));
     }
 
     /// The bodies scene's instructor: forceps, clip applier and blade, one hand. The

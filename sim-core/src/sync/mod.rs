@@ -267,6 +267,12 @@ impl SiteSync {
         self.strategy == SyncStrategy::Keyframe || self.shows_keyframes
     }
 
+    /// Under hybrid, unless it shows keyframes: this site simulates the regions others own
+    /// and corrects them towards their keyframes.
+    fn simulates_remote_regions(&self) -> bool {
+        self.strategy == SyncStrategy::Hybrid && !self.shows_keyframes
+    }
+
     /// Under hybrid, as owner: a follower shows our keyframes instead of simulating (it
     /// said so in an acknowledgement). From now on we also send when a region departs
     /// from the receivers' dead reckoning by [`SyncConfig::drift_threshold_m`], as under
@@ -425,9 +431,7 @@ impl SiteSync {
                 self.full_state_last = Some(kf.keyframe_id);
                 Ok(None)
             }
-            SyncFrame::Keyframe(kf)
-                if self.strategy == SyncStrategy::Hybrid && !self.shows_keyframes =>
-            {
+            SyncFrame::Keyframe(kf) if self.simulates_remote_regions() => {
                 if self.policy.is_owned(kf.region) {
                     return Ok(None);
                 }
@@ -450,11 +454,7 @@ impl SiteSync {
             }
             // Hybrid followers simulate their own tree state; the next keyframe carries
             // the owner's.
-            SyncFrame::TreeDelta(_)
-                if self.strategy == SyncStrategy::Hybrid && !self.shows_keyframes =>
-            {
-                Ok(None)
-            }
+            SyncFrame::TreeDelta(_) if self.simulates_remote_regions() => Ok(None),
             SyncFrame::Keyframe(kf) => {
                 if self.policy.is_owned(kf.region)
                     || (self.released.contains(&kf.region) && !self.remote.contains_key(&kf.region))

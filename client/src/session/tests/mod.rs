@@ -152,6 +152,20 @@ struct Pair {
     region: RegionId,
 }
 
+/// A third site (a trainee, id 3) welcomed into a session of three, before its snapshot.
+fn late_joiner() -> (FakeClock, Simulation, SiteSession) {
+    let clock = FakeClock::new();
+    let sim = new_sim();
+    let mut c = session(Role::Trainee, &sim, &clock);
+    let sites = [
+        (1, Role::Instructor),
+        (2, Role::Trainee),
+        (3, Role::Trainee),
+    ];
+    c.handle_welcome(&welcome(3, &sites), clock.now());
+    (clock, sim, c)
+}
+
 fn pair() -> Pair {
     pair_with(SyncStrategy::Keyframe)
 }
@@ -634,20 +648,7 @@ fn reset_drops_the_old_epoch_and_applies_the_new_one() {
     assert_eq!(p.b.stats().keyframes_applied, applied + 1);
 
     // A late joiner takes epoch 1 from its snapshot and applies its keyframes.
-    let clock = FakeClock::new();
-    let mut sim_c = new_sim();
-    let mut c = session(Role::Trainee, &sim_c, &clock);
-    c.handle_welcome(
-        &welcome(
-            3,
-            &[
-                (1, Role::Instructor),
-                (2, Role::Trainee),
-                (3, Role::Trainee),
-            ],
-        ),
-        clock.now(),
-    );
+    let (clock, mut sim_c, mut c) = late_joiner();
     let mut kf = kfs[0].clone();
     kf.sim_time = p.sim_a.time();
     c.handle_message(
@@ -776,20 +777,7 @@ fn topology_ops_apply_once_and_keyframes_of_an_unreached_topology_are_dropped() 
     assert!(p.sim_b.separation().is_some_and(|s| !s.crossed.is_empty()));
 
     // A late joiner takes the op from its snapshot and reaches the same topology.
-    let clock = FakeClock::new();
-    let mut sim_c = new_sim();
-    let mut c = session(Role::Trainee, &sim_c, &clock);
-    c.handle_welcome(
-        &welcome(
-            3,
-            &[
-                (1, Role::Instructor),
-                (2, Role::Trainee),
-                (3, Role::Trainee),
-            ],
-        ),
-        clock.now(),
-    );
+    let (clock, mut sim_c, mut c) = late_joiner();
     let Message::Snapshot(mut s) = snapshot(p.sim_b.time(), 0, Vec::new()) else {
         unreachable!()
     };
