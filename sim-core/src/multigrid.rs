@@ -11,11 +11,18 @@
 //! edge (the lattice's bisection record) or, for a cube corner, of the edge of the
 //! doubled Kuhn cube through it (the root cubes are mirror images of each other, so the
 //! cube of twice the size is again a reflected Kuhn cube, whose diagonals run from the
-//! corner ≡ 0 to the corner ≡ 2 (mod 4) in units of the node's spacing). A node whose
-//! parents are missing (the edge leaves the domain) stays on the coarser level: on
-//! adaptive lattices and odd cell counts the coarse levels are then not a uniform grid,
-//! but every prolongation is still exact linear interpolation on the levels it links or
-//! the identity, and the Galerkin products keep the coarse operators consistent.
+//! corner ≡ 0 to the corner ≡ 2 (mod 4) in units of the node's spacing).
+//!
+//! Where the domain ends at a coordinate that is not a multiple of the coarser spacing
+//! (a box of 12 cells: the plane at 12 has no neighbour at 16), the node's edge along
+//! that axis would leave the domain. That coordinate is then frozen, as the boundary at
+//! 0 is: the node moves only along its other axes, so a boundary plane coarsens as a 2D
+//! grid and a boundary line as a 1D one, instead of staying on every coarser level (which
+//! stalled the 48 × 12 × 12-cell beam's hierarchy at 1,558 nodes). A node whose parents
+//! are missing altogether (an adaptive lattice's grading) stays on the coarser level. The
+//! coarse levels are then not a uniform grid, but every prolongation is still exact
+//! linear interpolation (a midpoint between two kept nodes) or the identity, and the
+//! Galerkin products keep the coarse operators consistent.
 
 use std::collections::HashMap;
 
@@ -70,47 +77,84 @@ pub fn lattice_hierarchy(lattice: &Lattice) -> Result<Hierarchy, FemError> {
         if current.len() < 8 || t >= 62 {
             break;
         }
-        let in_level = |s: usize, pos: &[usize]| pos[s] != usize::MAX;
-        // Parents (slots) of each node of level t, if both are kept.
-        let parents = |s: usize, pos: &[usize]| -> Option<(usize, usize)> {
-            let n = NodeId(s as u32);
-            let (a, b) = match lattice.node_parent_edge(n) {
-                Some((a, b)) => (a.0 as usize, b.0 as usize),
-                None => {
-                    let g = lattice.node_grid(n);
-                    let step = 1i64 << t;
-                    let mut lo = g;
-                    let mut hi = g;
-                    for ax in 0..3 {
-                        if level_of_coord(g[ax]) == t {
-                            let up = g[ax] + step;
-                            let (x0, x1) = if up.rem_euclid(4 * step) == 0 {
-                                (up, g[ax] - step)
-                            } else {
-                                (g[ax] - step, up)
-                            };
-                            lo[ax] = x0;
-                            hi[ax] = x1;
-                        }
-                    }
-                    (*by_grid.get(&lo)?, *by_grid.get(&hi)?)
+        let step = 1i64 << t;
+        let in_level = |g: [i64; 3]| by_grid.get(&g).filter(|&&p| pos[p] != usize::MAX);
+        // The axes along which the node of slot `s` moves to reach its parents at level
+        // t (bit `ax` set), or `None` if it is not dropped at this level. A bisection
+        // midpoint of level t moves along its parent edge (handled by the caller). A
+        // grid node moves along every axis whose coordinate has level t, except an axis
+        // on which its two neighbours at ±step do not both exist: the domain ends there
+        // (a cell count that is not a power of two) and the coordinate is frozen like a
+        // boundary at 0, so the node coarsens within that plane or line instead of
+        // staying on every coarser level. A coordinate left below level t (a node kept
+        // earlier for the same reason) is frozen as well.
+        let moving_axes = |s: usize| -> Option<u8> {
+            let g = lattice.node_grid(NodeId(s as u32));
+            let mut axes = 0u8;
+            for ax in 0..3 {
+                let l = level_of_coord(g[ax]);
+                if l > t {
+                    continue;
                 }
+                let mut lo = g;
+                let mut hi = g;
+                lo[ax] -= step;
+                hi[ax] += step;
+                if l == t && in_level(lo).is_some() && in_level(hi).is_some() {
+                    axes |= 1 << ax;
+                }
+            }
+            // Dropped at level t only if no moving coordinate lies above it: the lowest
+            // unfrozen coordinate level is t exactly when some axis moves.
+            (axes != 0).then_some(axes)
+        };
+        let bisected =
+            |s: usize| level[s] == t && lattice.node_parent_edge(NodeId(s as u32)).is_some();
+        // Parents (slots) of a node dropped at level t, if both stay on the coarser level.
+        let parents = |s: usize| -> Option<(usize, usize)> {
+            let n = NodeId(s as u32);
+            let (a, b) = if bisected(s) {
+                let (a, b) = lattice.node_parent_edge(n)?;
+                (a.0 as usize, b.0 as usize)
+            } else {
+                let axes = moving_axes(s)?;
+                let g = lattice.node_grid(n);
+                let mut lo = g;
+                let mut hi = g;
+                for ax in (0..3).filter(|ax| axes & (1 << ax) != 0) {
+                    // The doubled Kuhn cube's diagonal runs from the corner ≡ 0 to the
+                    // corner ≡ 2 (mod 4) in units of `step` (see the module docs).
+                    let up = g[ax] + step;
+                    let (x0, x1) = if up.rem_euclid(4 * step) == 0 {
+                        (up, g[ax] - step)
+                    } else {
+                        (g[ax] - step, up)
+                    };
+                    lo[ax] = x0;
+                    hi[ax] = x1;
+                }
+                (*in_level(lo)?, *in_level(hi)?)
             };
-            let kept = |p: usize| in_level(p, pos) && level[p] > t;
+            let dropped = |p: usize| bisected(p) || moving_axes(p).is_some();
+            let kept = |p: usize| pos[p] != usize::MAX && !dropped(p);
             (kept(a) && kept(b)).then_some((a, b))
         };
         let mut coarse = Vec::new();
         let mut interp = Vec::new();
         for &s in &current {
-            match (level[s] == t).then(|| parents(s, &pos)).flatten() {
+            match parents(s) {
                 Some(ab) => interp.push((s, ab)),
                 None => coarse.push(s),
             }
         }
         if interp.is_empty() {
-            // Nothing dropped at level t: done if no node lies above it, else try the
-            // next level (no prolongation for this one).
-            if current.iter().all(|&s| level[s] <= t) {
+            // Nothing dropped at level t: done if no coordinate lies above it, else try
+            // the next level (no prolongation for this one).
+            let above = |s: usize| {
+                let g = lattice.node_grid(NodeId(s as u32));
+                g.iter().any(|&c| c != 0 && level_of_coord(c) > t)
+            };
+            if !current.iter().any(|&s| above(s)) {
                 break;
             }
             continue;

@@ -112,3 +112,21 @@ fn adaptive_lattice_hierarchy_interpolates_linear_fields_exactly() {
     assert!(sizes.len() >= 3, "{sizes:?}");
     assert!(sizes.windows(2).all(|w| w[1] < w[0]), "{sizes:?}");
 }
+
+#[test]
+fn a_box_whose_cell_counts_are_not_powers_of_two_coarsens_on_its_far_planes() {
+    // 12 × 3 × 3 cells, halved once: the far planes x = 12 and y, z = 3 cells have no
+    // neighbour one coarse spacing beyond them. Frozen there, they coarsen within their
+    // planes; they used to stay on every level (the 48 × 12 × 12-cell beam stalled at
+    // 1,558 nodes).
+    let mut lat = box_lattice([12, 3, 3], 3);
+    let mut ev = Vec::new();
+    lat.refine_where(|_, _| true, &mut ev);
+    let sizes = check_linear_exactness(&lat);
+    // 25×7×7 → 13×4×4 (root corners) → 7×3×3 (y, z: 0, 2, 3) → 4×3×3 → 3×3×3 (x: 0, 8,
+    // 12). Before the frozen axes: 1,225, 208, 119, 116, 115.
+    assert_eq!(
+        sizes,
+        [25 * 7 * 7, 13 * 4 * 4, 7 * 3 * 3, 4 * 3 * 3, 3 * 3 * 3]
+    );
+}
