@@ -6,6 +6,7 @@ use clap::{Args, Subcommand};
 mod beam;
 pub mod cantilever;
 pub mod coordinator;
+pub mod memory;
 pub mod scale;
 pub mod stress;
 pub mod sweep;

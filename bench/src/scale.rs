@@ -1,8 +1,9 @@
 //! `cosurg bench scale`: Jacobi-PCG, MG-PCG (multigrid-preconditioned CG over the lattice
 //! hierarchy) and the sparse direct solver on the soft (E = 1e5 Pa) and stiff (1e6 Pa)
 //! cantilever beams at 1,536 and 12,288 tets (finer with `--cells`), dt 1 and 10 ms, every
-//! step solved to a relative residual of 1e-6: CG iterations and wall time per step (p50,
-//! p99), one thread; and the exponent of p50 time against tets between the sizes run.
+//! step solved to a relative residual of 1e-6: CG iterations, wall time per step (p50,
+//! p99, one thread) and the most heap each row held; and the exponent of p50 time against
+//! tets between the sizes run.
 
 use std::time::Instant;
 
@@ -101,12 +102,17 @@ pub struct ScaleRow {
     pub ms_p99: f64,
     /// Largest relative residual of a timed step (≤ tolerance unless the budget ran out).
     pub residual_max: f64,
+    /// Most heap the row held (MiB): scene, lattice, FEM system and solver while it was
+    /// built and stepped, over every thread ([`crate::memory`]); `None` when the binary
+    /// does not count its heap.
+    pub heap_peak_mib: Option<f64>,
 }
 
 const MATERIALS: [(&str, f64); 2] = [("soft", 1e5), ("stiff", 1e6)];
 const TOLERANCE: f64 = 1e-6;
 
 fn run_one(young: f64, cell: f64, dt: f64, solver: LinearSolver, steps: usize) -> Result<ScaleRow> {
+    let heap = crate::memory::HeapScope::open();
     let scene = cantilever_with(young, cell).context("cantilever scene")?;
     let mut o = SimOptions::from_scene(&scene.scene);
     o.dt = dt;
@@ -141,6 +147,7 @@ fn run_one(young: f64, cell: f64, dt: f64, solver: LinearSolver, steps: usize) -
         ms_p50: percentile(&ms, 50.0),
         ms_p99: percentile(&ms, 99.0),
         residual_max,
+        heap_peak_mib: heap.map(|h| h.peak_bytes() as f64 / (1024.0 * 1024.0)),
     })
 }
 
@@ -169,7 +176,7 @@ pub fn run(args: ScaleArgs) -> Result<()> {
                     row.material = material;
                     if !args.json {
                         println!(
-                            "{:<5} {:>6} tets  dt {:>4.1} ms  {:<10}  iters {:>6.1} (max {:>4})  ms/step p50 {:>7.2} p99 {:>7.2}",
+                            "{:<5} {:>6} tets  dt {:>4.1} ms  {:<10}  iters {:>6.1} (max {:>4})  ms/step p50 {:>7.2} p99 {:>7.2}  heap {:>7} MiB",
                             row.material,
                             row.tets,
                             row.dt_s * 1e3,
@@ -177,7 +184,9 @@ pub fn run(args: ScaleArgs) -> Result<()> {
                             row.iterations_mean,
                             row.iterations_max,
                             row.ms_p50,
-                            row.ms_p99
+                            row.ms_p99,
+                            row.heap_peak_mib
+                                .map_or("-".to_string(), |m| format!("{m:.1}"))
                         );
                     }
                     rows.push(row);

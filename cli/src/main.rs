@@ -7,6 +7,10 @@ use clap::Parser;
 
 mod command;
 
+/// Counts heap bytes for the benches' memory columns (off unless a bench measures).
+#[global_allocator]
+static ALLOC: bench::memory::CountingAlloc = bench::memory::CountingAlloc;
+
 fn main() {
     // Mesa's software OpenGL (llvmpipe) draws on the window thread alone unless the user
     // says otherwise: its default, one worker per core, competed with the simulation for

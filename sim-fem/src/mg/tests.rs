@@ -178,7 +178,20 @@ fn mg_solve(
     tol: f64,
     params: MgParams,
 ) -> (Vec<V3>, usize, usize) {
+    mg_solve_split(a, h, b, tol, params, &[])
+}
+
+/// [`mg_solve`] with the finest level's smoothing split at `bounds` (hybrid sweeps).
+fn mg_solve_split(
+    a: &Assembled,
+    h: &Hierarchy,
+    b: &[V3],
+    tol: f64,
+    params: MgParams,
+    bounds: &[usize],
+) -> (Vec<V3>, usize, usize) {
     let mut mg = Multigrid::new(h, &a.fixed, &a.pattern, params).unwrap();
+    mg.set_fine_parts(bounds);
     mg.refresh(&a.blocks);
     let mut x = vec![V3::zeros(); b.len()];
     let solver = SolverParams {
@@ -361,10 +374,16 @@ fn direct_steps_agree_with_converged_jacobi_pcg_also_after_the_fixed_nodes_chang
 
 /// The V-cycle alone as a stationary iteration `x ← x + V(b − A x)` from 0: the mean
 /// residual reduction per cycle over cycles 4 to 12 (past the start-up transient).
-fn vcycle_contraction(a: &Assembled, h: &Hierarchy, params: MgParams) -> (f64, usize) {
+fn vcycle_contraction(
+    a: &Assembled,
+    h: &Hierarchy,
+    params: MgParams,
+    bounds: &[usize],
+) -> (f64, usize) {
     let n = a.fixed.len();
     let b = rhs(n, &a.fixed);
     let mut mg = Multigrid::new(h, &a.fixed, &a.pattern, params).unwrap();
+    mg.set_fine_parts(bounds);
     mg.refresh(&a.blocks);
     let norm = |v: &[V3]| v.iter().map(|x| x.norm_squared()).sum::<f64>().sqrt();
     let (mut x, mut r, mut z, mut ax) = (
@@ -408,7 +427,7 @@ fn vcycle_contraction_does_not_grow_with_the_level_count_also_with_a_stiff_inclu
         let mut rates = Vec::new();
         for cells in [[4, 2, 2], [8, 4, 4], [16, 8, 8]] {
             let (_, a) = beam_matrix(cells, contrast, 0.01);
-            rates.push(vcycle_contraction(&a, &box_hierarchy(cells), params));
+            rates.push(vcycle_contraction(&a, &box_hierarchy(cells), params, &[]));
         }
         eprintln!("contrast {contrast}: (rate per V-cycle, levels) = {rates:?}");
         let levels: Vec<usize> = rates.iter().map(|r| r.1).collect();
@@ -420,6 +439,96 @@ fn vcycle_contraction_does_not_grow_with_the_level_count_also_with_a_stiff_inclu
         assert!(
             rates[2].0 <= rates[1].0 + 0.05,
             "contrast {contrast}: {rates:?}"
+        );
+    }
+}
+
+/// Splits of the rows into 2 and 3 uneven parts.
+fn splits(n: usize) -> [Vec<usize>; 2] {
+    [vec![0, n / 2, n], vec![0, n / 5, n / 2 + 7, n]]
+}
+
+#[test]
+fn hybrid_smoothing_over_parts_matches_dense_cholesky_with_1000x_stiffness_contrast() {
+    // ℓ1 hybrid Gauss–Seidel on the finest level (parts swept at once): the solve still
+    // reaches the dense Cholesky solution, in at most 1.4× the iterations of sequential
+    // sweeps (measured 1.13–1.31× on this 225-node mesh, whose parts are mostly interface;
+    // a Jacobi smoother between all rows would need far more).
+    let cells = [8, 4, 4];
+    for contrast in [1.0, 1000.0] {
+        let (_, a) = beam_matrix(cells, contrast, 0.01);
+        let n = a.fixed.len();
+        let b = rhs(n, &a.fixed);
+        let reference = dense_solve(&a, &b);
+        let h = box_hierarchy(cells);
+        let (_, sequential, _) = mg_solve(&a, &h, &b, 1e-12, SMALL_COARSEST);
+        for bounds in splits(n) {
+            let (x, iters, _) = mg_solve_split(&a, &h, &b, 1e-12, SMALL_COARSEST, &bounds);
+            eprintln!("contrast {contrast}, {bounds:?}: {iters} against {sequential}");
+            let d = rel_diff(&x, &reference);
+            assert!(
+                d < 1e-8,
+                "contrast {contrast}, {bounds:?}: {d:e} after {iters}"
+            );
+            assert!(
+                10 * iters <= 14 * sequential,
+                "contrast {contrast}, {bounds:?}: {iters} iterations against {sequential}"
+            );
+        }
+    }
+}
+
+#[test]
+fn hybrid_vcycle_is_symmetric_and_contracts() {
+    // CG needs a symmetric preconditioner: ⟨V a, b⟩ = ⟨a, V b⟩ for the V-cycle with the
+    // backward sweeps the adjoint of the forward ones, split or not. And the V-cycle alone
+    // still contracts with a stiff inclusion.
+    use rand::{Rng, SeedableRng};
+    let cells = [8, 4, 4];
+    let (_, a) = beam_matrix(cells, 1000.0, 0.01);
+    let n = a.fixed.len();
+    let h = box_hierarchy(cells);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let mut random = || -> Vec<V3> {
+        (0..n)
+            .map(|i| {
+                if a.fixed[i] {
+                    V3::zeros()
+                } else {
+                    V3::new(rng.random(), rng.random(), rng.random()) - V3::repeat(0.5)
+                }
+            })
+            .collect()
+    };
+    let (u, w) = (random(), random());
+    let dot = |x: &[V3], y: &[V3]| x.iter().zip(y).map(|(p, q)| p.dot(q)).sum::<f64>();
+    let mut all = vec![vec![]];
+    all.extend(splits(n));
+    for bounds in all {
+        let mut mg = Multigrid::new(&h, &a.fixed, &a.pattern, SMALL_COARSEST).unwrap();
+        mg.set_fine_parts(&bounds);
+        mg.refresh(&a.blocks);
+        let (mut vu, mut vw) = (vec![V3::zeros(); n], vec![V3::zeros(); n]);
+        mg.vcycle(&a.blocks, &u, &mut vu);
+        mg.vcycle(&a.blocks, &w, &mut vw);
+        let (left, right) = (dot(&vu, &w), dot(&u, &vw));
+        assert!(
+            (left - right).abs() <= 1e-10 * left.abs().max(right.abs()),
+            "{bounds:?}: ⟨Vu, w⟩ = {left:e}, ⟨u, Vw⟩ = {right:e}"
+        );
+        // Positive definite on these two.
+        assert!(dot(&vu, &u) > 0.0 && dot(&vw, &w) > 0.0, "{bounds:?}");
+    }
+    let params = MgParams {
+        smoothing_steps: 1,
+        ..SMALL_COARSEST
+    };
+    let (sequential, _) = vcycle_contraction(&a, &h, params, &[]);
+    for bounds in splits(n) {
+        let (rate, _) = vcycle_contraction(&a, &h, params, &bounds);
+        assert!(
+            rate < 0.9 && rate <= sequential + 0.1,
+            "{bounds:?}: {rate} per V-cycle against {sequential} sequential"
         );
     }
 }

@@ -3,7 +3,7 @@
 use nalgebra::{Cholesky, DVector, Dyn, Matrix3, Vector3};
 
 use super::galerkin::{GalerkinPlan, mask_prolongation};
-use super::smoother::{SymRows, post_smooth, pre_smooth, symmetric_smooth};
+use super::smoother::{HybridSweeps, SymRows, post_smooth, pre_smooth, symmetric_smooth};
 use super::{Hierarchy, Prolongation};
 use crate::FemError;
 use crate::solver::BlockPattern;
@@ -56,6 +56,8 @@ pub struct Multigrid {
     fixed: Vec<bool>,
     fine_rows: SymRows,
     fine_dinv: Vec<Matrix3<f64>>,
+    /// The finest level's rows split over threads ([`Multigrid::set_fine_parts`]).
+    fine_hybrid: Option<HybridSweeps>,
     levels: Vec<Level>,
     coarsest: Option<Cholesky<f64, Dyn>>,
     fine_res: Vec<V3>,
@@ -148,6 +150,7 @@ impl Multigrid {
             fixed: fixed.to_vec(),
             fine_rows: SymRows::of_pattern(pattern),
             fine_dinv: Vec::new(),
+            fine_hybrid: None,
             levels,
             coarsest: None,
             fine_res: vec![V3::zeros(); n],
@@ -201,7 +204,26 @@ impl Multigrid {
 
     /// Refreshes the finest level's smoother diagonal only (cheap: every solve).
     pub fn update_fine_diagonal(&mut self, fine: &[Matrix3<f64>]) {
-        self.fine_dinv = self.fine_rows.diagonal_inverses(fine, &self.fixed);
+        self.fine_dinv = match &self.fine_hybrid {
+            Some(h) => h.diagonal_inverses(&self.fine_rows, fine, &self.fixed),
+            None => self.fine_rows.diagonal_inverses(fine, &self.fixed),
+        };
+    }
+
+    /// Splits the finest level's smoothing into the contiguous row ranges `bounds` (first
+    /// 0, last the row count), swept at once on the current rayon pool with ℓ1 hybrid
+    /// Gauss–Seidel (`smoother.rs`); fewer than two parts: one sequential sweep. The
+    /// coarse levels stay sequential (each is about an eighth of the one above). Takes
+    /// effect at the next [`Multigrid::refresh`] or [`Multigrid::update_fine_diagonal`],
+    /// which every solve calls first.
+    pub fn set_fine_parts(&mut self, bounds: &[usize]) {
+        let same = match &self.fine_hybrid {
+            Some(h) => h.bounds() == bounds,
+            None => bounds.len() < 3,
+        };
+        if !same {
+            self.fine_hybrid = HybridSweeps::new(bounds);
+        }
     }
 
     /// One V-cycle: `z ≈ A⁻¹ r` with `fine` the finest operator's upper blocks (those it
@@ -214,7 +236,10 @@ impl Multigrid {
             return;
         }
         let res = &mut self.fine_res;
-        pre_smooth(rows, fine, dinv, r, z, res, nu);
+        match &mut self.fine_hybrid {
+            Some(h) => h.pre_smooth(rows, fine, dinv, r, z, res, nu),
+            None => pre_smooth(rows, fine, dinv, r, z, res, nu),
+        }
         let l0 = &mut self.levels[0];
         restrict(&l0.p, res, &mut l0.r);
         let last = self.levels.len() - 1;
@@ -250,6 +275,9 @@ impl Multigrid {
             post_smooth(&l.rows, &l.blocks, &l.dinv, &l.r, &mut l.z, nu);
         }
         prolong_add(&self.levels[0].p, &self.levels[0].z, z);
-        post_smooth(rows, fine, dinv, r, z, nu);
+        match &mut self.fine_hybrid {
+            Some(h) => h.post_smooth(rows, fine, dinv, r, z, nu),
+            None => post_smooth(rows, fine, dinv, r, z, nu),
+        }
     }
 }

@@ -119,7 +119,13 @@ impl FemSystem {
         if self.uses_multigrid(p) {
             operator = OperatorMode::Assembled;
             self.refresh_order();
-            mg = Some(self.take_multigrid(p)?);
+            let mut c = self.take_multigrid(p)?;
+            // On several threads the finest level's smoothing is split as the products are.
+            let bounds = self
+                .active_partition()
+                .map_or(&[][..], |q| &q.node_start[..]);
+            c.mg.set_fine_parts(bounds);
+            mg = Some(c);
         }
         let mut direct = None;
         if self.uses_direct(p) {

@@ -12,7 +12,7 @@ use crate::system::{LinearSolver, StepParams};
 /// A built preconditioner and its age.
 #[derive(Clone, Debug)]
 pub(super) struct MgCache {
-    mg: Multigrid,
+    pub(super) mg: Multigrid,
     /// [`StepParams::mg_sweeps`] it was built with.
     sweeps: usize,
     /// Steps since the coarse operators were rebuilt (`usize::MAX`: never).
