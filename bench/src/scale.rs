@@ -1,9 +1,10 @@
 //! `cosurg bench scale`: Jacobi-PCG, MG-PCG (multigrid-preconditioned CG over the lattice
 //! hierarchy) and the sparse direct solver on the soft (E = 1e5 Pa) and stiff (1e6 Pa)
 //! cantilever beams at 1,536 and 12,288 tets (finer with `--cells`), dt 1 and 10 ms, every
-//! step solved to a relative residual of 1e-6: CG iterations, wall time per step (p50,
-//! p99, one thread) and the most heap each row held; and the exponent of p50 time against
-//! tets between the sizes run.
+//! step solved to a relative residual of 1e-6, then the default organ scene (the liver and
+//! its gallbladder at their lattice's resolution, no tool touching) the same way: CG
+//! iterations, wall time per step (p50, p99, one thread) and the most heap each row held;
+//! and the exponent of p50 time against tets between the beam sizes run.
 
 use std::time::Instant;
 
@@ -33,6 +34,9 @@ pub struct ScaleArgs {
     /// Solvers to run, comma-separated; default all (jacobi-pcg, mg-pcg, direct).
     #[arg(long, value_delimiter = ',')]
     pub solvers: Vec<LinearSolver>,
+    /// Leave out the default organ scene's rows (run after the beams).
+    #[arg(long)]
+    pub no_organ: bool,
 }
 
 /// How p50 time grows with the mesh for one (beam, dt, solver): `t ∝ tets^exponent`
@@ -85,11 +89,13 @@ fn exponents(rows: &[ScaleRow]) -> Vec<ScaleExponent> {
     out
 }
 
-/// One (beam, dt, solver) run.
+/// One (beam or organ, dt, solver) run.
 #[derive(Debug, Serialize)]
 pub struct ScaleRow {
+    /// `soft` or `stiff` (the beams), `organ` (the default scene, its own materials).
     pub material: &'static str,
-    pub young_pa: f64,
+    /// The beam's Young's modulus (Pa); `None` for the organ.
+    pub young_pa: Option<f64>,
     pub tets: usize,
     pub dt_s: f64,
     pub solver: &'static str,
@@ -111,9 +117,25 @@ pub struct ScaleRow {
 const MATERIALS: [(&str, f64); 2] = [("soft", 1e5), ("stiff", 1e6)];
 const TOLERANCE: f64 = 1e-6;
 
-fn run_one(young: f64, cell: f64, dt: f64, solver: LinearSolver, steps: usize) -> Result<ScaleRow> {
+/// The beam or the organ to step.
+#[derive(Clone, Copy, Debug)]
+enum Subject {
+    Beam {
+        young: f64,
+        cell: f64,
+    },
+    /// The built-in default scene (the liver with the gallbladder), untouched by tools.
+    Organ,
+}
+
+fn run_one(subject: Subject, dt: f64, solver: LinearSolver, steps: usize) -> Result<ScaleRow> {
     let heap = crate::memory::HeapScope::open();
-    let scene = cantilever_with(young, cell).context("cantilever scene")?;
+    let scene = match subject {
+        Subject::Beam { young, cell } => {
+            cantilever_with(young, cell).context("cantilever scene")?
+        }
+        Subject::Organ => sim_core::sim_scene::builtin::default_scene(),
+    };
     let mut o = SimOptions::from_scene(&scene.scene);
     o.dt = dt;
     o.step.linear_solver = solver;
@@ -136,7 +158,10 @@ fn run_one(young: f64, cell: f64, dt: f64, solver: LinearSolver, steps: usize) -
     }
     Ok(ScaleRow {
         material: "",
-        young_pa: young,
+        young_pa: match subject {
+            Subject::Beam { young, .. } => Some(young),
+            Subject::Organ => None,
+        },
         tets,
         dt_s: dt,
         solver: solver.name(),
@@ -167,30 +192,37 @@ pub fn run(args: ScaleArgs) -> Result<()> {
     } else {
         args.solvers.clone()
     };
-    let mut rows = Vec::new();
+    let mut subjects: Vec<(&'static str, Subject)> = Vec::new();
     for &(material, young) in &MATERIALS {
         for &cell in &cells {
-            for &dt in &dts {
-                for &solver in &solvers {
-                    let mut row = run_one(young, cell, dt, solver, args.steps)?;
-                    row.material = material;
-                    if !args.json {
-                        println!(
-                            "{:<5} {:>6} tets  dt {:>4.1} ms  {:<10}  iters {:>6.1} (max {:>4})  ms/step p50 {:>7.2} p99 {:>7.2}  heap {:>7} MiB",
-                            row.material,
-                            row.tets,
-                            row.dt_s * 1e3,
-                            row.solver,
-                            row.iterations_mean,
-                            row.iterations_max,
-                            row.ms_p50,
-                            row.ms_p99,
-                            row.heap_peak_mib
-                                .map_or("-".to_string(), |m| format!("{m:.1}"))
-                        );
-                    }
-                    rows.push(row);
+            subjects.push((material, Subject::Beam { young, cell }));
+        }
+    }
+    if !args.no_organ {
+        subjects.push(("organ", Subject::Organ));
+    }
+    let mut rows = Vec::new();
+    for &(material, subject) in &subjects {
+        for &dt in &dts {
+            for &solver in &solvers {
+                let mut row = run_one(subject, dt, solver, args.steps)?;
+                row.material = material;
+                if !args.json {
+                    println!(
+                        "{:<5} {:>6} tets  dt {:>4.1} ms  {:<10}  iters {:>6.1} (max {:>4})  ms/step p50 {:>7.2} p99 {:>7.2}  heap {:>7} MiB",
+                        row.material,
+                        row.tets,
+                        row.dt_s * 1e3,
+                        row.solver,
+                        row.iterations_mean,
+                        row.iterations_max,
+                        row.ms_p50,
+                        row.ms_p99,
+                        row.heap_peak_mib
+                            .map_or("-".to_string(), |m| format!("{m:.1}"))
+                    );
                 }
+                rows.push(row);
             }
         }
     }

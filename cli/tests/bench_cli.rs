@@ -143,8 +143,8 @@ fn scale_json_every_solver_converges_and_the_exponents_are_reported() {
     );
     let r: Value = serde_json::from_slice(&out.stdout).expect("JSON");
     let rows = r["rows"].as_array().expect("rows");
-    // 2 beams × 2 meshes × 1 dt × 3 solvers.
-    assert_eq!(rows.len(), 12, "{r}");
+    // 2 beams × 2 meshes × 1 dt × 3 solvers, then the organ × 1 dt × 3 solvers.
+    assert_eq!(rows.len(), 15, "{r}");
     for row in rows {
         let residual = num(row, "residual_max");
         assert!(residual <= 1e-6, "not converged: {row}");
@@ -153,6 +153,36 @@ fn scale_json_every_solver_converges_and_the_exponents_are_reported() {
             // Exact up to round-off, not just to the tolerance.
             assert!(residual < 1e-9, "{row}");
         }
+        // The cosurg binary counts its heap: every row held some.
+        assert!(num(row, "heap_peak_mib") > 0.0, "{row}");
+    }
+    let organ: Vec<&Value> = rows.iter().filter(|w| w["material"] == "organ").collect();
+    assert_eq!(organ.len(), 3, "{r}");
+    assert!(organ.iter().all(|w| w["young_pa"].is_null()), "{r}");
+    // The finer beam holds more than the coarser one (8× the tets), solver by solver.
+    let heap = |cell_tets: f64, solver: &str| {
+        rows.iter()
+            .filter(|w| {
+                w["material"] == "soft" && w["solver"] == solver && num(w, "tets") == cell_tets
+            })
+            .map(|w| num(w, "heap_peak_mib"))
+            .next()
+            .expect("row")
+    };
+    let tets: Vec<f64> = rows
+        .iter()
+        .filter(|w| w["material"] == "soft")
+        .map(|w| num(w, "tets"))
+        .collect();
+    let (small, big) = (
+        tets.iter().cloned().fold(f64::MAX, f64::min),
+        tets.iter().cloned().fold(0.0, f64::max),
+    );
+    for solver in ["jacobi-pcg", "mg-pcg", "direct"] {
+        assert!(
+            heap(big, solver) > 2.0 * heap(small, solver),
+            "{solver}: {r}"
+        );
     }
     let exps = r["exponents"].as_array().expect("exponents");
     assert_eq!(exps.len(), 6, "{r}");

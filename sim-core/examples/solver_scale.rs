@@ -88,8 +88,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                         iters.push(r.fem.cg_iterations);
                         res = res.max(r.fem.cg_residual);
                     }
+                    // Node count per multigrid level, finest first (MG-PCG only).
+                    let levels = sim.fem()?.multigrid_level_sizes().unwrap_or_default();
                     println!(
-                        "{{\"material\":\"{material}\",\"young_pa\":{young},\"tets\":{},\"dt_s\":{dt},\"solver\":\"{}\",\"steps\":{steps},\"iterations_mean\":{:.1},\"iterations_max\":{},\"ms_p50\":{:.3},\"ms_p99\":{:.3},\"ms_min\":{:.3},\"cpu_ms_mean\":{:.3},\"residual_max\":{res:.2e}}}",
+                        "{{\"material\":\"{material}\",\"young_pa\":{young},\"tets\":{},\"dt_s\":{dt},\"solver\":\"{}\",\"steps\":{steps},\"iterations_mean\":{:.1},\"iterations_max\":{},\"ms_p50\":{:.3},\"ms_p99\":{:.3},\"ms_min\":{:.3},\"cpu_ms_mean\":{:.3},\"residual_max\":{res:.2e},\"levels\":{levels:?}}}",
                         sim.lattice().leaf_count(),
                         solver.name(),
                         iters.iter().sum::<usize>() as f64 / steps as f64,

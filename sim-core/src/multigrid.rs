@@ -14,15 +14,20 @@
 //! corner ≡ 0 to the corner ≡ 2 (mod 4) in units of the node's spacing).
 //!
 //! Where the domain ends at a coordinate that is not a multiple of the coarser spacing
-//! (a box of 12 cells: the plane at 12 has no neighbour at 16), the node's edge along
-//! that axis would leave the domain. That coordinate is then frozen, as the boundary at
-//! 0 is: the node moves only along its other axes, so a boundary plane coarsens as a 2D
-//! grid and a boundary line as a 1D one, instead of staying on every coarser level (which
-//! stalled the 48 × 12 × 12-cell beam's hierarchy at 1,558 nodes). A node whose parents
-//! are missing altogether (an adaptive lattice's grading) stays on the coarser level. The
-//! coarse levels are then not a uniform grid, but every prolongation is still exact
-//! linear interpolation (a midpoint between two kept nodes) or the identity, and the
-//! Galerkin products keep the coarse operators consistent.
+//! (a box of 13 cells: the plane at 12 has no neighbour at 16, the far plane at 13 none at
+//! 14), a node's parent on that side is the farthest node of the level short of the
+//! missing one, with weights by distance: 12 takes ⅕ of 8 and ⅘ of 13. Where a node has
+//! several such axes, or such an axis and a regular one, its parents are the corners of
+//! the box they span, with multilinear weights (up to 8 parents). A node with no node at
+//! all on one side of an axis (the far plane itself) is frozen on that axis, as the
+//! boundary at 0 is, and coarsens within its plane or line. Before this the far planes
+//! stayed on every coarser level: the 48 × 12 × 12-cell beam's hierarchy stalled at 1,558
+//! nodes, and the 49 × 13 × 13-cell beam kept one-cell layers beside eight-cell ones. A
+//! node whose parents are missing altogether (an adaptive lattice's grading) stays on the
+//! coarser level. The coarse levels are then not a uniform grid, but every prolongation
+//! is still exact for linear fields (midpoints, distance-weighted or multilinear
+//! interpolation from kept nodes) or the identity, and the Galerkin products keep the
+//! coarse operators consistent.
 
 use std::collections::HashMap;
 
@@ -47,135 +52,132 @@ fn grid_level(g: [i64; 3]) -> u32 {
 /// [`crate::Simulation`]: dead slots get empty rows). Stops when a level has fewer than
 /// 8 nodes or no node could be dropped.
 pub fn lattice_hierarchy(lattice: &Lattice) -> Result<Hierarchy, FemError> {
+    Ok(lattice_hierarchy_with_grids(lattice)?.0)
+}
+
+/// One node of a level: its grid point, and its lattice slot if it is a lattice node
+/// (`None`: a node outside the domain, see the module documentation).
+#[derive(Clone, Copy, Debug)]
+struct LevelNode {
+    grid: [i64; 3],
+    slot: Option<usize>,
+}
+
+/// [`lattice_hierarchy`], with the grid points of every coarse level's nodes (coarsest
+/// last; the finest level is the lattice's nodes).
+pub(crate) fn lattice_hierarchy_with_grids(
+    lattice: &Lattice,
+) -> Result<(Hierarchy, Vec<Vec<[i64; 3]>>), FemError> {
     let cap = lattice.node_capacity();
-    let live: Vec<NodeId> = lattice.nodes().collect();
-    let by_grid: HashMap<[i64; 3], usize> = live
-        .iter()
-        .map(|&n| (lattice.node_grid(n), n.0 as usize))
-        .collect();
-    let level: Vec<u32> = (0..cap)
-        .map(|i| {
-            let n = NodeId(i as u32);
-            if lattice.node_alive(n) {
-                grid_level(lattice.node_grid(n))
-            } else {
-                0
-            }
+    // The current level's nodes, the row of each in the prolongation onto it (the finest
+    // level's rows are the slots), and its index by grid point.
+    let mut current: Vec<LevelNode> = lattice
+        .nodes()
+        .map(|n| LevelNode {
+            grid: lattice.node_grid(n),
+            slot: Some(n.0 as usize),
         })
         .collect();
-    let Some(t0) = live.iter().map(|n| level[n.0 as usize]).min() else {
-        return Ok(Hierarchy::default());
+    let mut row_of: Vec<usize> = current.iter().map(|n| n.slot.unwrap_or(0)).collect();
+    let mut rows_len = cap;
+    let Some(t0) = current.iter().map(|n| grid_level(n.grid)).min() else {
+        return Ok((Hierarchy::default(), Vec::new()));
     };
-    // Position of each slot in the current level (`usize::MAX`: not in it); the finest
-    // level is the slot numbering itself.
-    let mut pos: Vec<usize> = (0..cap).collect();
-    let mut current: Vec<usize> = live.iter().map(|n| n.0 as usize).collect();
-    let mut current_len = cap;
     let mut levels = Vec::new();
+    let mut grids = Vec::new();
     for k in 0..MAX_LEVELS {
         let t = t0 + k as u32;
         if current.len() < 8 || t >= 62 {
             break;
         }
+        let index: HashMap<[i64; 3], usize> = current
+            .iter()
+            .enumerate()
+            .map(|(i, n)| (n.grid, i))
+            .collect();
         let step = 1i64 << t;
-        let in_level = |g: [i64; 3]| by_grid.get(&g).filter(|&&p| pos[p] != usize::MAX);
-        // The axes along which the node of slot `s` moves to reach its parents at level
-        // t (bit `ax` set), or `None` if it is not dropped at this level. A bisection
-        // midpoint of level t moves along its parent edge (handled by the caller). A
-        // grid node moves along every axis whose coordinate has level t, except an axis
-        // on which its two neighbours at ±step do not both exist: the domain ends there
-        // (a cell count that is not a power of two) and the coordinate is frozen like a
-        // boundary at 0, so the node coarsens within that plane or line instead of
-        // staying on every coarser level. A coordinate left below level t (a node kept
-        // earlier for the same reason) is frozen as well.
-        let moving_axes = |s: usize| -> Option<u8> {
-            let g = lattice.node_grid(NodeId(s as u32));
-            let mut axes = 0u8;
-            for ax in 0..3 {
-                let l = level_of_coord(g[ax]);
-                if l > t {
-                    continue;
+        // The coarse level: every node of the current one not dropped at level t, then
+        // the nodes outside the domain that dropped nodes take as parents.
+        let mut coarse: Vec<LevelNode> = Vec::new();
+        let mut coarse_index: HashMap<[i64; 3], usize> = HashMap::new();
+        let mut parents_of: Vec<Option<[[i64; 3]; 2]>> = vec![None; current.len()];
+        for (i, node) in current.iter().enumerate() {
+            let g = node.grid;
+            let parents = (grid_level(g) == t)
+                .then(|| {
+                    match node
+                        .slot
+                        .and_then(|s| lattice.node_parent_edge(NodeId(s as u32)))
+                    {
+                        // A bisection midpoint: its parent edge's ends.
+                        Some((a, b)) => [lattice.node_grid(a), lattice.node_grid(b)],
+                        // A cube corner: the doubled Kuhn cube's diagonal through it,
+                        // from the corner ≡ 0 to the corner ≡ 2 (mod 4) in units of
+                        // `step` (see the module documentation).
+                        None => {
+                            let (mut lo, mut hi) = (g, g);
+                            for ax in (0..3).filter(|&ax| level_of_coord(g[ax]) == t) {
+                                let up = g[ax] + step;
+                                (lo[ax], hi[ax]) = if up.rem_euclid(4 * step) == 0 {
+                                    (up, g[ax] - step)
+                                } else {
+                                    (g[ax] - step, up)
+                                };
+                            }
+                            [lo, hi]
+                        }
+                    }
+                })
+                // Parents stay on the coarser level only if they lie above level t.
+                .filter(|ab| ab.iter().all(|&p| grid_level(p) > t));
+            match parents {
+                Some(ab) => parents_of[i] = Some(ab),
+                None => {
+                    coarse_index.insert(g, coarse.len());
+                    coarse.push(*node);
                 }
-                let mut lo = g;
-                let mut hi = g;
-                lo[ax] -= step;
-                hi[ax] += step;
-                if l == t && in_level(lo).is_some() && in_level(hi).is_some() {
-                    axes |= 1 << ax;
-                }
-            }
-            // Dropped at level t only if no moving coordinate lies above it: the lowest
-            // unfrozen coordinate level is t exactly when some axis moves.
-            (axes != 0).then_some(axes)
-        };
-        let bisected =
-            |s: usize| level[s] == t && lattice.node_parent_edge(NodeId(s as u32)).is_some();
-        // Parents (slots) of a node dropped at level t, if both stay on the coarser level.
-        let parents = |s: usize| -> Option<(usize, usize)> {
-            let n = NodeId(s as u32);
-            let (a, b) = if bisected(s) {
-                let (a, b) = lattice.node_parent_edge(n)?;
-                (a.0 as usize, b.0 as usize)
-            } else {
-                let axes = moving_axes(s)?;
-                let g = lattice.node_grid(n);
-                let mut lo = g;
-                let mut hi = g;
-                for ax in (0..3).filter(|ax| axes & (1 << ax) != 0) {
-                    // The doubled Kuhn cube's diagonal runs from the corner ≡ 0 to the
-                    // corner ≡ 2 (mod 4) in units of `step` (see the module docs).
-                    let up = g[ax] + step;
-                    let (x0, x1) = if up.rem_euclid(4 * step) == 0 {
-                        (up, g[ax] - step)
-                    } else {
-                        (g[ax] - step, up)
-                    };
-                    lo[ax] = x0;
-                    hi[ax] = x1;
-                }
-                (*in_level(lo)?, *in_level(hi)?)
-            };
-            let dropped = |p: usize| bisected(p) || moving_axes(p).is_some();
-            let kept = |p: usize| pos[p] != usize::MAX && !dropped(p);
-            (kept(a) && kept(b)).then_some((a, b))
-        };
-        let mut coarse = Vec::new();
-        let mut interp = Vec::new();
-        for &s in &current {
-            match parents(s) {
-                Some(ab) => interp.push((s, ab)),
-                None => coarse.push(s),
             }
         }
-        if interp.is_empty() {
+        if parents_of.iter().all(Option::is_none) {
             // Nothing dropped at level t: done if no coordinate lies above it, else try
             // the next level (no prolongation for this one).
-            let above = |s: usize| {
-                let g = lattice.node_grid(NodeId(s as u32));
-                g.iter().any(|&c| c != 0 && level_of_coord(c) > t)
-            };
-            if !current.iter().any(|&s| above(s)) {
+            let above = |n: &LevelNode| n.grid.iter().any(|&c| c != 0 && level_of_coord(c) > t);
+            if !current.iter().any(above) {
                 break;
             }
             continue;
         }
-        let mut coarse_pos = vec![usize::MAX; cap];
-        for (i, &s) in coarse.iter().enumerate() {
-            coarse_pos[s] = i;
+        // Parents outside the current level: a lattice node of the level if there is
+        // one at that point (a bisection parent), else a node outside the domain.
+        for ab in parents_of.iter().flatten() {
+            for &p in ab {
+                if coarse_index.contains_key(&p) {
+                    continue;
+                }
+                let slot = index.get(&p).and_then(|&i| current[i].slot);
+                coarse_index.insert(p, coarse.len());
+                coarse.push(LevelNode { grid: p, slot });
+            }
         }
-        let mut rows = vec![Vec::new(); current_len];
-        for &s in &coarse {
-            rows[pos[s]] = vec![(coarse_pos[s], 1.0)];
+        if coarse.len() >= current.len() {
+            // No smaller: the level's nodes are the corners of one cube of the padded
+            // grid (or fewer), each doubling would only move them apart.
+            break;
         }
-        for &(s, (a, b)) in &interp {
-            rows[pos[s]] = vec![(coarse_pos[a], 0.5), (coarse_pos[b], 0.5)];
+        let mut rows = vec![Vec::new(); rows_len];
+        for (i, node) in current.iter().enumerate() {
+            rows[row_of[i]] = match parents_of[i] {
+                Some([a, b]) => vec![(coarse_index[&a], 0.5), (coarse_index[&b], 0.5)],
+                None => vec![(coarse_index[&node.grid], 1.0)],
+            };
         }
         levels.push(Prolongation::from_rows(coarse.len(), &rows)?);
-        current_len = coarse.len();
-        pos = coarse_pos;
+        grids.push(coarse.iter().map(|n| n.grid).collect());
+        rows_len = coarse.len();
+        row_of = (0..coarse.len()).collect();
         current = coarse;
     }
-    Ok(Hierarchy { levels })
+    Ok((Hierarchy { levels }, grids))
 }
 
 /// Trailing zero bits of one coordinate (0 counts as 62).
