@@ -63,11 +63,14 @@ struct LevelNode {
     slot: Option<usize>,
 }
 
+/// The grid points of each coarse level's nodes, finest coarse level first.
+pub(crate) type LevelGrids = Vec<Vec<[i64; 3]>>;
+
 /// [`lattice_hierarchy`], with the grid points of every coarse level's nodes (coarsest
 /// last; the finest level is the lattice's nodes).
 pub(crate) fn lattice_hierarchy_with_grids(
     lattice: &Lattice,
-) -> Result<(Hierarchy, Vec<Vec<[i64; 3]>>), FemError> {
+) -> Result<(Hierarchy, LevelGrids), FemError> {
     let cap = lattice.node_capacity();
     // The current level's nodes, the row of each in the prolongation onto it (the finest
     // level's rows are the slots), and its index by grid point.
