@@ -79,9 +79,14 @@ pub struct HeapScope {
 
 impl HeapScope {
     /// Opens a scope, or `None` when this binary does not count (its global allocator is
-    /// not [`CountingAlloc`], as in tests).
+    /// not [`CountingAlloc`], as in tests) or another scope is open (the counters are
+    /// global; waiting for it could deadlock a thread that holds it).
     pub fn open() -> Option<HeapScope> {
-        let guard = SCOPE.lock().unwrap_or_else(|e| e.into_inner());
+        let guard = match SCOPE.try_lock() {
+            Ok(g) => g,
+            Err(std::sync::TryLockError::Poisoned(e)) => e.into_inner(),
+            Err(std::sync::TryLockError::WouldBlock) => return None,
+        };
         CURRENT.store(0, Relaxed);
         PEAK.store(0, Relaxed);
         COUNTING.store(true, Relaxed);

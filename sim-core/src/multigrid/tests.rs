@@ -36,8 +36,11 @@ fn linear(p: &V3) -> V3 {
 
 /// Walks the hierarchy with each level's rest positions (the coarse levels' from their
 /// grid points, which may lie outside the lattice); at every level the prolongation of the
-/// linear field sampled on the coarse nodes must equal the field on the fine nodes.
-/// Returns the level sizes, finest (live nodes) first.
+/// linear field sampled on the coarse nodes must equal the field on the fine nodes, and the
+/// prolongation must have full column rank (`PᵀP` positive definite: no coarse node
+/// unused, none a combination of others), so that the Galerkin coarse operators of a
+/// positive-definite matrix are positive definite. Returns the level sizes, finest (live
+/// nodes) first.
 fn check_linear_exactness(lat: &Lattice) -> Vec<usize> {
     let (h, grids) = lattice_hierarchy_with_grids(lat).unwrap();
     h.validate(lat.node_capacity()).unwrap();
@@ -68,6 +71,19 @@ fn check_linear_exactness(lat: &Lattice) -> Vec<usize> {
                 "row {i}: {got:?} vs {want:?}"
             );
         }
+        let nc = p.coarse_len();
+        let mut ptp = nalgebra::DMatrix::<f64>::zeros(nc, nc);
+        for i in 0..p.fine_len() {
+            for (c1, w1) in p.row(i) {
+                for (c2, w2) in p.row(i) {
+                    ptp[(c1, c2)] += w1 * w2;
+                }
+            }
+        }
+        assert!(
+            ptp.cholesky().is_some(),
+            "level of {nc} nodes: PᵀP is singular"
+        );
         fine = grid.iter().map(|g| Some(world(g))).collect();
         sizes.push(p.coarse_len());
     }
@@ -92,8 +108,7 @@ fn uniform_lattice_hierarchy_interpolates_linear_fields_exactly() {
 #[test]
 fn adaptive_lattice_hierarchy_interpolates_linear_fields_exactly() {
     // Refined to depth 5 where x < 3 cells, conformity grades the rest: a non-uniform
-    // lattice with a 7-cell (odd) length, whose coarse levels keep the boundary nodes
-    // without parents.
+    // lattice with a 7-cell (odd) length, whose coarse levels take nodes outside it.
     let mut lat = box_lattice([7, 3, 2], 5);
     let mut ev = Vec::new();
     lat.refine_where(
@@ -123,4 +138,30 @@ fn a_box_whose_cell_counts_are_not_powers_of_two_coarsens_on_its_far_planes() {
     // Before the far planes coarsened: 1,225, 208, 119, 116, 115 (they stayed on every
     // level).
     assert_eq!(sizes, [25 * 7 * 7, 13 * 4 * 4, 7 * 3 * 3, 4 * 2 * 2, 9, 8]);
+}
+
+#[test]
+fn an_l_shaped_lattice_coarsens_with_full_rank_levels() {
+    // 8 × 4 × 4 cells less the block x ≥ 4, y ≥ 2: a re-entrant corner, padded nodes
+    // inside the missing block as well as beyond the far planes.
+    let mut cells = Vec::new();
+    for i in 0..8 {
+        for j in 0..4 {
+            for k in 0..4 {
+                if !(i >= 4 && j >= 2) {
+                    cells.push([i, j, k]);
+                }
+            }
+        }
+    }
+    let params = LatticeParams {
+        origin: V3::new(0.0, 0.0, 0.0),
+        cell: 0.02,
+        max_depth: 3,
+    };
+    let mut lat = Lattice::from_cells(params, &cells).unwrap();
+    let mut ev = Vec::new();
+    lat.refine_where(|_, _| true, &mut ev);
+    let sizes = check_linear_exactness(&lat);
+    assert!(sizes.len() >= 4, "{sizes:?}");
 }

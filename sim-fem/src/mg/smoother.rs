@@ -301,9 +301,10 @@ pub(super) struct HybridSweeps {
 
 impl HybridSweeps {
     /// A split at `bounds` (ascending, first 0, last the row count), or `None` when it has
-    /// fewer than two parts.
+    /// fewer than two parts or does not start at 0.
     pub fn new(bounds: &[usize]) -> Option<Self> {
-        (bounds.len() >= 3 && bounds.windows(2).all(|w| w[0] <= w[1])).then(|| Self {
+        let ok = bounds.len() >= 3 && bounds[0] == 0 && bounds.windows(2).all(|w| w[0] <= w[1]);
+        ok.then(|| Self {
             bounds: bounds.to_vec(),
             before: Vec::new(),
         })

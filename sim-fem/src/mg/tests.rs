@@ -149,9 +149,9 @@ fn rhs(n: usize, fixed: &[bool]) -> Vec<V3> {
         .collect()
 }
 
-/// Dense Cholesky solve on the free DOFs (the independent reference).
-fn dense_solve(a: &Assembled, b: &[V3]) -> Vec<V3> {
-    let n = b.len();
+/// The whole symmetric matrix, dense.
+fn dense_matrix(a: &Assembled) -> DMatrix<f64> {
+    let n = a.fixed.len();
     let mut m = DMatrix::zeros(3 * n, 3 * n);
     for i in 0..n {
         for (slot, j) in a.pattern.row(i) {
@@ -164,6 +164,13 @@ fn dense_solve(a: &Assembled, b: &[V3]) -> Vec<V3> {
                 .copy_from(&blk.transpose());
         }
     }
+    m
+}
+
+/// Dense Cholesky solve on the free DOFs (the independent reference).
+fn dense_solve(a: &Assembled, b: &[V3]) -> Vec<V3> {
+    let n = b.len();
+    let m = dense_matrix(a);
     let rhs = DVector::from_iterator(3 * n, b.iter().flat_map(|v| v.iter().copied()));
     let x = m.cholesky().expect("SPD").solve(&rhs);
     (0..n)
@@ -530,5 +537,42 @@ fn hybrid_vcycle_is_symmetric_and_contracts() {
             rate < 0.9 && rate <= sequential + 0.1,
             "{bounds:?}: {rate} per V-cycle against {sequential} sequential"
         );
+    }
+}
+
+#[test]
+fn hybrid_l1_diagonal_matches_a_dense_computation() {
+    // Each row's 3×3 diagonal block plus, on its diagonal, the sum of |a_rc| over the
+    // row's scalar entries in other parts (lower blocks are stored transposed: a mix-up of
+    // rows and columns there would keep the smoother symmetric and convergent, and only
+    // this test would see it).
+    let cells = [4, 2, 2];
+    let (_, a) = beam_matrix(cells, 1000.0, 0.01);
+    let n = a.fixed.len();
+    let m = dense_matrix(&a);
+    let rows = super::smoother::SymRows::of_pattern(&a.pattern);
+    for bounds in splits(n) {
+        let h = super::smoother::HybridSweeps::new(&bounds).unwrap();
+        let dinv = h.diagonal_inverses(&rows, &a.blocks, &a.fixed);
+        for i in 0..n {
+            if a.fixed[i] {
+                assert_eq!(dinv[i], Matrix3::zeros());
+                continue;
+            }
+            let p = bounds.partition_point(|&b| b <= i) - 1;
+            let (s, e) = (bounds[p], bounds[p + 1]);
+            let mut d: Matrix3<f64> = m.fixed_view::<3, 3>(3 * i, 3 * i).into();
+            for r in 0..3 {
+                let off: f64 = (0..n)
+                    .filter(|&j| j < s || j >= e)
+                    .flat_map(|j| (0..3).map(move |c| (j, c)))
+                    .map(|(j, c)| m[(3 * i + r, 3 * j + c)].abs())
+                    .sum();
+                d[(r, r)] += off;
+            }
+            let want = d.try_inverse().unwrap();
+            let err = (dinv[i] - want).norm() / want.norm();
+            assert!(err < 1e-12, "{bounds:?}, row {i}: relative error {err:e}");
+        }
     }
 }

@@ -204,9 +204,13 @@ impl Multigrid {
 
     /// Refreshes the finest level's smoother diagonal only (cheap: every solve).
     pub fn update_fine_diagonal(&mut self, fine: &[Matrix3<f64>]) {
+        // Without a coarse level the V-cycle is one sequential symmetric sweep, which
+        // needs the plain diagonal.
         self.fine_dinv = match &self.fine_hybrid {
-            Some(h) => h.diagonal_inverses(&self.fine_rows, fine, &self.fixed),
-            None => self.fine_rows.diagonal_inverses(fine, &self.fixed),
+            Some(h) if !self.levels.is_empty() => {
+                h.diagonal_inverses(&self.fine_rows, fine, &self.fixed)
+            }
+            _ => self.fine_rows.diagonal_inverses(fine, &self.fixed),
         };
     }
 
@@ -216,7 +220,11 @@ impl Multigrid {
     /// coarse levels stay sequential (each is about an eighth of the one above). Takes
     /// effect at the next [`Multigrid::refresh`] or [`Multigrid::update_fine_diagonal`],
     /// which every solve calls first.
+    /// Bounds that do not start at 0 and end at the row count split nothing.
     pub fn set_fine_parts(&mut self, bounds: &[usize]) {
+        let n = self.fine_rows.num_rows();
+        let valid = bounds.first() == Some(&0) && bounds.last() == Some(&n);
+        let bounds = if valid { bounds } else { &[] };
         let same = match &self.fine_hybrid {
             Some(h) => h.bounds() == bounds,
             None => bounds.len() < 3,
