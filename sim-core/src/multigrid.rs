@@ -68,8 +68,8 @@ pub(crate) fn lattice_hierarchy_with_grids(
     lattice: &Lattice,
 ) -> Result<(Hierarchy, LevelGrids), FemError> {
     let cap = lattice.node_capacity();
-    // The current level's nodes, the row of each in the prolongation onto it (the finest
-    // level's rows are the slots), and its index by grid point.
+    // The current level's nodes and the row of each in the prolongation onto it (the
+    // finest level's rows are the slots).
     let mut current: Vec<LevelNode> = lattice
         .nodes()
         .map(|n| LevelNode {
@@ -89,11 +89,6 @@ pub(crate) fn lattice_hierarchy_with_grids(
         if current.len() < 8 || t >= 62 {
             break;
         }
-        let index: HashMap<[i64; 3], usize> = current
-            .iter()
-            .enumerate()
-            .map(|(i, n)| (n.grid, i))
-            .collect();
         let step = 1i64 << t;
         // The coarse level: every node of the current one not dropped at level t, then
         // the nodes outside the domain that dropped nodes take as parents.
@@ -153,7 +148,6 @@ pub(crate) fn lattice_hierarchy_with_grids(
                 if coarse_index.contains_key(&p) {
                     continue;
                 }
-                debug_assert!(!index.contains_key(&p), "a dropped node's parent");
                 coarse_index.insert(p, coarse.len());
                 coarse.push(LevelNode {
                     grid: p,

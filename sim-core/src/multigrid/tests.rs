@@ -9,11 +9,18 @@ use super::lattice_hierarchy_with_grids;
 type V3 = Vector3<f64>;
 
 fn box_lattice(n: [i32; 3], max_depth: u8) -> Lattice {
+    lattice_of_box_cells(n, max_depth, |_| true)
+}
+
+/// The cells of the box `n` for which `keep` holds.
+fn lattice_of_box_cells(n: [i32; 3], max_depth: u8, keep: impl Fn([i32; 3]) -> bool) -> Lattice {
     let mut cells = Vec::new();
     for i in 0..n[0] {
         for j in 0..n[1] {
             for k in 0..n[2] {
-                cells.push([i, j, k]);
+                if keep([i, j, k]) {
+                    cells.push([i, j, k]);
+                }
             }
         }
     }
@@ -144,22 +151,7 @@ fn a_box_whose_cell_counts_are_not_powers_of_two_coarsens_on_its_far_planes() {
 fn an_l_shaped_lattice_coarsens_with_full_rank_levels() {
     // 8 × 4 × 4 cells less the block x ≥ 4, y ≥ 2: a re-entrant corner, padded nodes
     // inside the missing block as well as beyond the far planes.
-    let mut cells = Vec::new();
-    for i in 0..8 {
-        for j in 0..4 {
-            for k in 0..4 {
-                if !(i >= 4 && j >= 2) {
-                    cells.push([i, j, k]);
-                }
-            }
-        }
-    }
-    let params = LatticeParams {
-        origin: V3::new(0.0, 0.0, 0.0),
-        cell: 0.02,
-        max_depth: 3,
-    };
-    let mut lat = Lattice::from_cells(params, &cells).unwrap();
+    let mut lat = lattice_of_box_cells([8, 4, 4], 3, |[i, j, _]| !(i >= 4 && j >= 2));
     let mut ev = Vec::new();
     lat.refine_where(|_, _| true, &mut ev);
     let sizes = check_linear_exactness(&lat);

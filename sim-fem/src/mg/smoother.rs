@@ -216,10 +216,16 @@ impl SymRows {
 
     /// `out = r − A z`.
     pub fn residual(&self, blocks: &[Matrix3<f64>], r: &[V3], z: &[V3], out: &mut [V3]) {
-        for i in 0..self.num_rows() {
-            let d = blocks[self.diag[i] as usize] * z[i];
-            out[i] = r[i] - d - self.lower_product(blocks, z, i) - self.upper_product(blocks, z, i);
+        for (i, o) in out.iter_mut().enumerate() {
+            *o = self.residual_row(blocks, r, z, i);
         }
+    }
+
+    /// `(r − A z)_i`.
+    #[inline]
+    fn residual_row(&self, blocks: &[Matrix3<f64>], r: &[V3], z: &[V3], i: usize) -> V3 {
+        let d = blocks[self.diag[i] as usize] * z[i];
+        r[i] - d - self.lower_product(blocks, z, i) - self.upper_product(blocks, z, i)
     }
 }
 
@@ -483,14 +489,8 @@ impl HybridSweeps {
             .into_par_iter()
             .enumerate()
             .for_each(|(p, part)| {
-                let s = bounds[p];
                 for (k, o) in part.iter_mut().enumerate() {
-                    let i = s + k;
-                    let d = blocks[rows.diag[i] as usize] * z[i];
-                    *o = r[i]
-                        - d
-                        - rows.lower_product(blocks, z, i)
-                        - rows.upper_product(blocks, z, i);
+                    *o = rows.residual_row(blocks, r, z, bounds[p] + k);
                 }
             });
     }
