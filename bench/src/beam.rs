@@ -8,7 +8,8 @@ use indicatif::ProgressBar;
 use nalgebra::Vector3;
 use serde::Serialize;
 use sim_core::sim_fem::{
-    ByersXu, Model, MullerIterative, NewtonParams, PolarMethod, SolverParams, StiffnessMode,
+    ByersXu, LinearSolver, Model, MullerIterative, NewtonParams, PolarMethod, SolverParams,
+    StiffnessMode,
 };
 use sim_core::sim_scene::LoadedScene;
 use sim_core::{NodeId, SimOptions, Simulation};
@@ -73,6 +74,8 @@ pub struct Knobs {
     pub rest_threshold_m: f64,
     /// CG operator.
     pub operator: String,
+    /// Linear solver of the implicit step (`jacobi-pcg`, `mg-pcg`, `direct`).
+    pub linear_solver: String,
     /// CG iteration budget per linear solve.
     pub cg_iterations: usize,
     /// CG relative tolerance.
@@ -103,6 +106,9 @@ pub struct RunConfig {
     pub skip_rest: bool,
     pub cg_iterations: usize,
     pub cg_tolerance: f64,
+    /// Linear solver of the implicit step (the budget and tolerance above apply to the
+    /// CG solvers; Newton's inner solves stay on CG whatever it says).
+    pub linear_solver: LinearSolver,
     /// CG starts from the previous step's Δv (off, as in the product: see `SimOptions`).
     pub cg_warm_start: bool,
     pub newton: NewtonParams,
@@ -129,6 +135,7 @@ impl RunConfig {
             skip_rest: true,
             cg_iterations: 50,
             cg_tolerance: 1e-6,
+            linear_solver: LinearSolver::JacobiPcg,
             cg_warm_start: false,
             newton: NewtonParams {
                 max_iters: 8,
@@ -187,6 +194,7 @@ impl RunConfig {
             tol: self.cg_tolerance,
             warm_start: self.cg_warm_start,
         };
+        o.step.linear_solver = self.linear_solver;
         o.step.newton = self.newton;
         o.step.threads = self.threads;
         o
@@ -208,6 +216,7 @@ impl RunConfig {
                 0.0
             },
             operator: format!("{:?}", options.step.operator).to_lowercase(),
+            linear_solver: options.step.linear_solver.name().into(),
             cg_iterations: self.cg_iterations,
             cg_tolerance: self.cg_tolerance,
             cg_warm_start: self.cg_warm_start,

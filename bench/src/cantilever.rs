@@ -16,7 +16,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use sim_core::Simulation;
-use sim_core::sim_fem::Model;
+use sim_core::sim_fem::{LinearSolver, Model};
 use sim_core::sim_scene::builtin::{cantilever, cantilever_with};
 
 use super::beam::{Knobs, Polar, RunConfig, Runner, Trace, build, deviation, model_name, simulate};
@@ -144,6 +144,18 @@ pub struct CantileverReport {
 const MATERIALS: [(&str, f64); 2] = [("soft", 1e5), ("stiff", 1e6)];
 const SAMPLE_INTERVAL: f64 = 0.01;
 
+/// Co-rotational all-on with every step converged (relative residual 1e-6) by the
+/// multigrid-preconditioned CG, where the others stop at the 50-iteration Jacobi-PCG
+/// budget; from the last converged Δv, as the product runs MG-PCG
+/// (`StepParams::use_linear_solver`).
+fn mg_pcg() -> RunConfig {
+    RunConfig::all_on(Model::Corotational).with(MG_PCG, |c| {
+        c.linear_solver = LinearSolver::MgPcg;
+        c.cg_iterations = 500;
+        c.cg_warm_start = true;
+    })
+}
+
 fn variants(all: bool) -> Vec<RunConfig> {
     let on = || RunConfig::all_on(Model::Corotational);
     let mut v = vec![
@@ -153,6 +165,9 @@ fn variants(all: bool) -> Vec<RunConfig> {
         on().with("dense", |c| c.template_stiffness = false),
         on().with("polar-svd", |c| c.polar = Polar::Svd),
         on().with(TWO_THREADS, |c| c.threads = 2),
+        mg_pcg(),
+        mg_pcg().with("all-on-mg-pcg-1e-4", |c| c.cg_tolerance = 1e-4),
+        mg_pcg().with("all-on-mg-pcg-1e-3", |c| c.cg_tolerance = 1e-3),
     ];
     if all {
         v.push(RunConfig::all_off(Model::Corotational));
@@ -193,6 +208,7 @@ pub fn run(args: CantileverArgs) -> Result<()> {
                         RunConfig::all_on(Model::Corotational),
                         RunConfig::all_off(Model::Corotational),
                         RunConfig::all_on(Model::Corotational).with(TWO_THREADS, |c| c.threads = 2),
+                        mg_pcg(),
                     ]
                 } else {
                     variants(args.full || !expensive)
@@ -366,6 +382,7 @@ fn group_key(r: &RunRow) -> String {
 
 /// Variant label of the all-on configuration stepped on two threads.
 const TWO_THREADS: &str = "all-on-2-threads";
+const MG_PCG: &str = "all-on-mg-pcg";
 
 /// p50 of each single-technique-off variant over p50 of all-on, per group (and all-on
 /// over all-on on two threads: what the second core gives).

@@ -138,7 +138,7 @@ fn run_one(subject: Subject, dt: f64, solver: LinearSolver, steps: usize) -> Res
     };
     let mut o = SimOptions::from_scene(&scene.scene);
     o.dt = dt;
-    o.step.linear_solver = solver;
+    o.step.use_linear_solver(solver);
     o.step.solver.tol = TOLERANCE;
     o.step.solver.max_iters = 20_000;
     let mut sim = Simulation::new(scene, o)?;

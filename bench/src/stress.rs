@@ -22,7 +22,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 use sim_core::NodeId;
-use sim_core::sim_fem::Model;
+use sim_core::sim_fem::{LinearSolver, Model};
 use sim_core::sim_scene::builtin::cantilever_with;
 use sim_core::sim_scene::{Capsule, Inclusion, LoadedScene, Material};
 
@@ -61,7 +61,8 @@ pub struct StressArgs {
 pub struct CaseResult {
     pub name: String,
     /// Solver configuration: `product` (co-rotational all-on, the scene's 50-iteration CG
-    /// budget) or `cg-converged` (same, CG up to 2,000 iterations to 1e-6).
+    /// budget), `cg-converged` (same, CG up to 2,000 iterations to 1e-6) or `mg-pcg`
+    /// (same, MG-PCG to 1e-6 from the last converged Δv, as the product runs MG-PCG).
     pub config: String,
     /// CG iterations per step (mean) and steps that fell back to Newton.
     pub cg_per_step: f64,
@@ -214,7 +215,7 @@ pub fn run(args: StressArgs) -> Result<()> {
     let bar = if args.json {
         ProgressBar::hidden()
     } else {
-        ProgressBar::new((2 * steps * selected.len()) as u64)
+        ProgressBar::new((configs().len() * steps * selected.len()) as u64)
     };
     bar.set_style(
         ProgressStyle::with_template("{bar:40} {percent:>3}% eta {eta:>4} {msg}")
@@ -222,13 +223,9 @@ pub fn run(args: StressArgs) -> Result<()> {
     );
     let mut cases = Vec::new();
     for case in selected {
-        for converged in [false, true] {
-            bar.set_message(format!(
-                "{} {}",
-                case.name,
-                if converged { "cg-converged" } else { "product" }
-            ));
-            cases.push(run_case(&scene, case, converged, steps, args.seed, &bar)?);
+        for config in configs() {
+            bar.set_message(format!("{} {}", case.name, config.variant));
+            cases.push(run_case(&scene, case, &config, steps, args.seed, &bar)?);
         }
     }
     bar.finish_and_clear();
@@ -346,21 +343,30 @@ fn plot(dir: &std::path::Path, r: &StressReport) -> Result<Vec<PathBuf>> {
     Ok(out)
 }
 
+/// The solver configurations every case runs with.
+fn configs() -> [RunConfig; 3] {
+    let on = || RunConfig::all_on(Model::Corotational);
+    [
+        on().with("product", |_| {}),
+        on().with("cg-converged", |c| c.cg_iterations = 2000),
+        on().with("mg-pcg", |c| {
+            c.linear_solver = LinearSolver::MgPcg;
+            c.cg_iterations = 2000;
+            c.cg_warm_start = true;
+        }),
+    ]
+}
+
 fn run_case(
     scene: &LoadedScene,
     case: &Case,
-    converged: bool,
+    config: &RunConfig,
     steps: usize,
     seed: u64,
     bar: &ProgressBar,
 ) -> Result<CaseResult> {
     let wall = Instant::now();
-    let config = if converged {
-        RunConfig::all_on(Model::Corotational).with("cg-converged", |c| c.cg_iterations = 2000)
-    } else {
-        RunConfig::all_on(Model::Corotational).with("product", |_| {})
-    };
-    let (mut sim, _) = build(scene, &config, case.dt)?;
+    let (mut sim, _) = build(scene, config, case.dt)?;
     let nodes: Vec<NodeId> = sim.lattice().nodes().collect();
     let tets = sim.lattice().leaf_count();
     let free: Vec<NodeId> = nodes

@@ -59,8 +59,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     let scene = cosurg_sim_core::sim_scene::builtin::cantilever_with(young, cell)?;
                     let mut o = SimOptions::from_scene(&scene.scene);
                     o.dt = dt;
-                    o.step.linear_solver = solver;
-                    o.step.solver.tol = 1e-6;
+                    o.step.use_linear_solver(solver);
+                    o.step.solver.tol = std::env::var("COSURG_TOL")
+                        .ok()
+                        .and_then(|s| s.parse().ok())
+                        .unwrap_or(1e-6);
                     o.step.solver.max_iters = 20_000;
                     if let Some(k) = env_usize("COSURG_MG_SWEEPS") {
                         o.step.mg_sweeps = k;
@@ -71,6 +74,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     if let Some(w) = env_usize("COSURG_WARM_START") {
                         o.step.solver.warm_start = w != 0;
                     }
+                    if let Some(a) = std::env::var("COSURG_SHARING_DEG")
+                        .ok()
+                        .and_then(|s| s.parse::<f64>().ok())
+                    {
+                        o.sharing_angle_deg = (a > 0.0).then_some(a);
+                    }
                     if let Some(t) = env_usize("COSURG_THREADS") {
                         o.step.threads = t;
                     }
@@ -80,6 +89,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     }
                     let (mut ms, mut iters, mut res) = (Vec::new(), Vec::new(), 0.0f64);
                     let mut cpu = Vec::new();
+                    let mut extracted = 0usize;
                     for _ in 0..steps {
                         let (t, c) = (Instant::now(), thread_cpu_ms());
                         let r = sim.step()?;
@@ -87,11 +97,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                         cpu.push(thread_cpu_ms() - c);
                         iters.push(r.fem.cg_iterations);
                         res = res.max(r.fem.cg_residual);
+                        extracted += r.fem.rotations_extracted;
                     }
                     // Node count per multigrid level, finest first (MG-PCG only).
                     let levels = sim.fem()?.multigrid_level_sizes().unwrap_or_default();
                     println!(
-                        "{{\"material\":\"{material}\",\"young_pa\":{young},\"tets\":{},\"dt_s\":{dt},\"solver\":\"{}\",\"steps\":{steps},\"iterations_mean\":{:.1},\"iterations_max\":{},\"ms_p50\":{:.3},\"ms_p99\":{:.3},\"ms_min\":{:.3},\"cpu_ms_mean\":{:.3},\"residual_max\":{res:.2e},\"levels\":{levels:?}}}",
+                        "{{\"material\":\"{material}\",\"young_pa\":{young},\"tets\":{},\"dt_s\":{dt},\"solver\":\"{}\",\"steps\":{steps},\"iterations_mean\":{:.1},\"iterations_max\":{},\"ms_p50\":{:.3},\"ms_p99\":{:.3},\"ms_min\":{:.3},\"cpu_ms_mean\":{:.3},\"residual_max\":{res:.2e},\"rotations_per_step\":{:.0},\"levels\":{levels:?}}}",
                         sim.lattice().leaf_count(),
                         solver.name(),
                         iters.iter().sum::<usize>() as f64 / steps as f64,
@@ -100,6 +111,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                         percentile(&ms, 99.0),
                         ms.iter().copied().fold(f64::INFINITY, f64::min),
                         cpu.iter().sum::<f64>() / steps as f64,
+                        extracted as f64 / steps as f64,
                     );
                 }
             }

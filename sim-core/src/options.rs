@@ -43,7 +43,7 @@ impl SimOptions {
             }),
             sim_scene::PolarMethod::ShapeMatching => PolarMethod::ShapeMatching,
         };
-        SimOptions {
+        let mut options = SimOptions {
             dt: s.dt,
             step: StepParams {
                 model: s.model,
@@ -60,11 +60,15 @@ impl SimOptions {
                 solver: SolverParams {
                     max_iters: s.cg_iterations as usize,
                     tol: s.cg_tolerance,
-                    // Cold start: with the 50-iteration budget at dt = 33 ms, starting CG
-                    // from the previous step's Δv pumped about 9 kJ into the stress beam
-                    // after violent impulses (`cosurg bench stress --case impulses-33ms`;
-                    // 1.02× with a cold start). It saves only a few iterations where CG
-                    // converges (dt ≤ 1 ms).
+                    // Set with the solver below (`StepParams::use_linear_solver`).
+                    // Jacobi-PCG starts cold: with the 50-iteration budget at dt = 33 ms,
+                    // starting CG from the previous step's Δv pumped about 9 kJ into the
+                    // stress beam after violent impulses (`cosurg bench stress --case
+                    // impulses-33ms`; 1.02× with a cold start), and it saves only a few
+                    // iterations where CG converges (dt ≤ 1 ms). MG-PCG converges within
+                    // its budget and the step keeps only a converged Δv, so it starts
+                    // from the last one: 17.8 → 15.9 iterations on the stiff 12,288-tet
+                    // beam at dt 10 ms (docs/RESULTS.md).
                     warm_start: false,
                 },
                 gravity: scene.gravity,
@@ -89,7 +93,9 @@ impl SimOptions {
                 .then_some(f.rotation_sharing_angle_deg),
             adaptivity: f.adaptivity,
             contact: f.contact,
-        }
+        };
+        options.step.use_linear_solver(s.solver);
+        options
     }
 
     /// Whether elements get shape keys for the template stiffness table (the stiffness

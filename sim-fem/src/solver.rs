@@ -12,7 +12,8 @@ pub struct SolverParams {
     pub max_iters: usize,
     /// Stop when `‖b − A x‖₂ ≤ tol ‖b‖₂` (unpreconditioned residual, free DOFs).
     pub tol: f64,
-    /// Start from the previous step's solution (dynamic steps only).
+    /// Start from the previous step's solution (dynamic steps only), when that solve
+    /// converged (reached `tol`): a truncated solve's Δv is not kept.
     pub warm_start: bool,
 }
 

@@ -153,6 +153,17 @@ pub struct StepParams {
     pub energy_guard: bool,
 }
 
+impl StepParams {
+    /// Switches the linear solver, with the warm start that goes with it: MG-PCG starts
+    /// from the last converged Δv (it converges within its budget, and a truncated Δv is
+    /// never kept), the others start cold (a truncated Jacobi-PCG solve gains little from
+    /// a guess and, warm-started, once pumped energy into the stress beam).
+    pub fn use_linear_solver(&mut self, solver: LinearSolver) {
+        self.linear_solver = solver;
+        self.solver.warm_start = solver == LinearSolver::MgPcg;
+    }
+}
+
 /// Newton control of the robust fallback step ([`StepParams::fallback_angle_deg`]).
 pub const FALLBACK_NEWTON: NewtonParams = NewtonParams {
     max_iters: 4,
