@@ -4,7 +4,10 @@
 //! step solved to a relative residual of 1e-6, then the default organ scene (the liver and
 //! its gallbladder at their lattice's resolution, no tool touching) the same way: CG
 //! iterations, wall time per step (p50, p99, one thread) and the most heap each row held;
-//! and the exponent of p50 time against tets between the beam sizes run.
+//! and the exponent of p50 time against tets between the beam sizes run. Each scene
+//! runs with its own features (the beams share no rotations) unless `--sharing-angle`
+//! sets the product's rotation sharing for every row; MG-PCG starts each solve from the
+//! previous converged step's Δv, as the product does.
 
 use std::time::Instant;
 
@@ -37,6 +40,11 @@ pub struct ScaleArgs {
     /// Leave out the default organ scene's rows (run after the beams).
     #[arg(long)]
     pub no_organ: bool,
+    /// Rotation-sharing angle θ_tol (degrees) for every row; 0 turns sharing off. Default:
+    /// each scene's own (the beams share no rotations, the organ shares within 5°); 5 is
+    /// the product's configuration (`cosurg bench cantilever`'s all-on).
+    #[arg(long)]
+    pub sharing_angle: Option<f64>,
 }
 
 /// How p50 time grows with the mesh for one (beam, dt, solver): `t ∝ tets^exponent`
@@ -108,6 +116,12 @@ pub struct ScaleRow {
     pub ms_p99: f64,
     /// Largest relative residual of a timed step (≤ tolerance unless the budget ran out).
     pub residual_max: f64,
+    /// Whether each solve started from the previous converged step's Δv (MG-PCG does).
+    pub warm_start: bool,
+    /// Rotation-sharing angle θ_tol (degrees) of the run; `None`: no sharing.
+    pub sharing_angle_deg: Option<f64>,
+    /// Rotation extractions per timed step (mean).
+    pub rotations_per_step: f64,
     /// Most heap the row held (MiB): scene, lattice, FEM system and solver while it was
     /// built and stepped, over every thread ([`crate::memory`]); `None` when the binary
     /// does not count its heap.
@@ -128,7 +142,13 @@ enum Subject {
     Organ,
 }
 
-fn run_one(subject: Subject, dt: f64, solver: LinearSolver, steps: usize) -> Result<ScaleRow> {
+fn run_one(
+    subject: Subject,
+    dt: f64,
+    solver: LinearSolver,
+    steps: usize,
+    sharing_angle: Option<f64>,
+) -> Result<ScaleRow> {
     let heap = crate::memory::HeapScope::open();
     let scene = match subject {
         Subject::Beam { young, cell } => {
@@ -141,6 +161,10 @@ fn run_one(subject: Subject, dt: f64, solver: LinearSolver, steps: usize) -> Res
     o.step.use_linear_solver(solver);
     o.step.solver.tol = TOLERANCE;
     o.step.solver.max_iters = 20_000;
+    if let Some(a) = sharing_angle {
+        o.sharing_angle_deg = (a > 0.0).then_some(a);
+    }
+    let (warm_start, sharing_angle_deg) = (o.step.solver.warm_start, o.sharing_angle_deg);
     let mut sim = Simulation::new(scene, o)?;
     let tets = sim.lattice().leaf_count();
     for _ in 0..3 {
@@ -149,12 +173,14 @@ fn run_one(subject: Subject, dt: f64, solver: LinearSolver, steps: usize) -> Res
     let mut ms = Vec::with_capacity(steps);
     let mut iters = Vec::with_capacity(steps);
     let mut residual_max: f64 = 0.0;
+    let mut rotations = 0usize;
     for _ in 0..steps {
         let t = Instant::now();
         let r = sim.step()?;
         ms.push(t.elapsed().as_secs_f64() * 1e3);
         iters.push(r.fem.cg_iterations);
         residual_max = residual_max.max(r.fem.cg_residual);
+        rotations += r.fem.rotations_extracted;
     }
     Ok(ScaleRow {
         material: "",
@@ -172,6 +198,9 @@ fn run_one(subject: Subject, dt: f64, solver: LinearSolver, steps: usize) -> Res
         ms_p50: percentile(&ms, 50.0),
         ms_p99: percentile(&ms, 99.0),
         residual_max,
+        warm_start,
+        sharing_angle_deg,
+        rotations_per_step: rotations as f64 / steps.max(1) as f64,
         heap_peak_mib: heap.map(|h| h.peak_bytes() as f64 / (1024.0 * 1024.0)),
     })
 }
@@ -205,11 +234,11 @@ pub fn run(args: ScaleArgs) -> Result<()> {
     for &(material, subject) in &subjects {
         for &dt in &dts {
             for &solver in &solvers {
-                let mut row = run_one(subject, dt, solver, args.steps)?;
+                let mut row = run_one(subject, dt, solver, args.steps, args.sharing_angle)?;
                 row.material = material;
                 if !args.json {
                     println!(
-                        "{:<5} {:>6} tets  dt {:>4.1} ms  {:<10}  iters {:>6.1} (max {:>4})  ms/step p50 {:>7.2} p99 {:>7.2}  heap {:>7} MiB",
+                        "{:<5} {:>6} tets  dt {:>4.1} ms  {:<10}  iters {:>6.1} (max {:>4})  ms/step p50 {:>7.2} p99 {:>7.2}  rot/step {:>6.0}  heap {:>7} MiB",
                         row.material,
                         row.tets,
                         row.dt_s * 1e3,
@@ -218,6 +247,7 @@ pub fn run(args: ScaleArgs) -> Result<()> {
                         row.iterations_max,
                         row.ms_p50,
                         row.ms_p99,
+                        row.rotations_per_step,
                         row.heap_peak_mib
                             .map_or("-".to_string(), |m| format!("{m:.1}"))
                     );
