@@ -80,7 +80,7 @@ pub struct Knobs {
     pub cg_iterations: usize,
     /// CG relative tolerance.
     pub cg_tolerance: f64,
-    /// CG warm start from the previous step's Δv.
+    /// CG warm start from the previous step's Δv (when that solve converged).
     pub cg_warm_start: bool,
     /// Newton iterations allowed per step (non-linear model), else null.
     pub newton_iterations: Option<usize>,
@@ -109,7 +109,8 @@ pub struct RunConfig {
     /// Linear solver of the implicit step (the budget and tolerance above apply to the
     /// CG solvers; Newton's inner solves stay on CG whatever it says).
     pub linear_solver: LinearSolver,
-    /// CG starts from the previous step's Δv (off, as in the product: see `SimOptions`).
+    /// CG starts from the previous step's Δv when that solve converged (off, as the
+    /// product's Jacobi-PCG; on in [`RunConfig::with_mg_pcg`], as its MG-PCG).
     pub cg_warm_start: bool,
     pub newton: NewtonParams,
     /// Uniform refinement (bisection levels) of every root tet before the run.
@@ -172,6 +173,15 @@ impl RunConfig {
             ..Self::all_on(Model::StVK)
         }
     }
+    /// The linear solve switched to MG-PCG with an iteration budget, starting from the
+    /// last converged Δv as the product's MG-PCG does (`StepParams::use_linear_solver`).
+    pub fn with_mg_pcg(mut self, budget: usize) -> Self {
+        self.linear_solver = LinearSolver::MgPcg;
+        self.cg_iterations = budget;
+        self.cg_warm_start = true;
+        self
+    }
+
     pub fn with(mut self, variant: &str, f: impl FnOnce(&mut RunConfig)) -> Self {
         self.variant = variant.into();
         f(&mut self);
@@ -189,12 +199,12 @@ impl RunConfig {
             StiffnessMode::Dense
         };
         o.step.rest_threshold = if self.skip_rest { REST_THRESHOLD } else { 0.0 };
+        o.step.use_linear_solver(self.linear_solver);
         o.step.solver = SolverParams {
             max_iters: self.cg_iterations,
             tol: self.cg_tolerance,
             warm_start: self.cg_warm_start,
         };
-        o.step.linear_solver = self.linear_solver;
         o.step.newton = self.newton;
         o.step.threads = self.threads;
         o

@@ -16,7 +16,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use sim_core::Simulation;
-use sim_core::sim_fem::{LinearSolver, Model};
+use sim_core::sim_fem::Model;
 use sim_core::sim_scene::builtin::{cantilever, cantilever_with};
 
 use super::beam::{Knobs, Polar, RunConfig, Runner, Trace, build, deviation, model_name, simulate};
@@ -144,16 +144,13 @@ pub struct CantileverReport {
 const MATERIALS: [(&str, f64); 2] = [("soft", 1e5), ("stiff", 1e6)];
 const SAMPLE_INTERVAL: f64 = 0.01;
 
-/// Co-rotational all-on with every step converged (relative residual 1e-6) by the
-/// multigrid-preconditioned CG, where the others stop at the 50-iteration Jacobi-PCG
-/// budget; from the last converged Δv, as the product runs MG-PCG
-/// (`StepParams::use_linear_solver`).
+/// Co-rotational all-on with every step converged (relative residual 1e-6, budget 500) by
+/// the multigrid-preconditioned CG, where the others stop at the 50-iteration Jacobi-PCG
+/// budget.
 fn mg_pcg() -> RunConfig {
-    RunConfig::all_on(Model::Corotational).with(MG_PCG, |c| {
-        c.linear_solver = LinearSolver::MgPcg;
-        c.cg_iterations = 500;
-        c.cg_warm_start = true;
-    })
+    RunConfig::all_on(Model::Corotational)
+        .with_mg_pcg(500)
+        .with(MG_PCG, |_| {})
 }
 
 fn variants(all: bool) -> Vec<RunConfig> {

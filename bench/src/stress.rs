@@ -22,7 +22,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 use sim_core::NodeId;
-use sim_core::sim_fem::{LinearSolver, Model};
+use sim_core::sim_fem::Model;
 use sim_core::sim_scene::builtin::cantilever_with;
 use sim_core::sim_scene::{Capsule, Inclusion, LoadedScene, Material};
 
@@ -55,14 +55,19 @@ pub struct StressArgs {
     /// Run only the cases whose name contains this (e.g. `pull-through-10ms`).
     #[arg(long)]
     pub case: Option<String>,
+    /// Run only this solver configuration (`product`, `cg-converged`, `mg-pcg`,
+    /// `mg-pcg-budget`); default all.
+    #[arg(long)]
+    pub config: Option<String>,
 }
 
 #[derive(Debug, Serialize)]
 pub struct CaseResult {
     pub name: String,
     /// Solver configuration: `product` (co-rotational all-on, the scene's 50-iteration CG
-    /// budget), `cg-converged` (same, CG up to 2,000 iterations to 1e-6) or `mg-pcg`
-    /// (same, MG-PCG to 1e-6 from the last converged Δv, as the product runs MG-PCG).
+    /// budget), `cg-converged` (same, CG up to 2,000 iterations to 1e-6), `mg-pcg` (same,
+    /// MG-PCG up to 2,000 iterations to 1e-6 from the last converged Δv) or
+    /// `mg-pcg-budget` (MG-PCG with the product's 50-iteration budget).
     pub config: String,
     /// CG iterations per step (mean) and steps that fell back to Newton.
     pub cg_per_step: f64,
@@ -212,10 +217,23 @@ pub fn run(args: StressArgs) -> Result<()> {
             CASES.iter().map(|c| c.name).collect::<Vec<_>>().join(", ")
         );
     }
+    if let Some(f) = &args.config
+        && !configs().iter().any(|c| c.variant == *f)
+    {
+        anyhow::bail!(
+            "no stress configuration {f:?}; configurations: {}",
+            configs().map(|c| c.variant).join(", ")
+        );
+    }
+    let configs_run = if args.config.is_some() {
+        1
+    } else {
+        configs().len()
+    };
     let bar = if args.json {
         ProgressBar::hidden()
     } else {
-        ProgressBar::new((configs().len() * steps * selected.len()) as u64)
+        ProgressBar::new((configs_run * steps * selected.len()) as u64)
     };
     bar.set_style(
         ProgressStyle::with_template("{bar:40} {percent:>3}% eta {eta:>4} {msg}")
@@ -223,7 +241,10 @@ pub fn run(args: StressArgs) -> Result<()> {
     );
     let mut cases = Vec::new();
     for case in selected {
-        for config in configs() {
+        for config in configs()
+            .into_iter()
+            .filter(|c| args.config.as_ref().is_none_or(|f| c.variant == *f))
+        {
             bar.set_message(format!("{} {}", case.name, config.variant));
             cases.push(run_case(&scene, case, &config, steps, args.seed, &bar)?);
         }
@@ -344,16 +365,14 @@ fn plot(dir: &std::path::Path, r: &StressReport) -> Result<Vec<PathBuf>> {
 }
 
 /// The solver configurations every case runs with.
-fn configs() -> [RunConfig; 3] {
+fn configs() -> [RunConfig; 4] {
     let on = || RunConfig::all_on(Model::Corotational);
     [
         on().with("product", |_| {}),
         on().with("cg-converged", |c| c.cg_iterations = 2000),
-        on().with("mg-pcg", |c| {
-            c.linear_solver = LinearSolver::MgPcg;
-            c.cg_iterations = 2000;
-            c.cg_warm_start = true;
-        }),
+        on().with_mg_pcg(2000).with("mg-pcg", |_| {}),
+        // what a scene with `solver = "mg-pcg"` runs: its budget, warm start
+        on().with_mg_pcg(50).with("mg-pcg-budget", |_| {}),
     ]
 }
 

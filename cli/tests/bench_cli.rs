@@ -131,8 +131,15 @@ fn stress_quick_json() {
         cases.iter().any(|c| c["max_inverted"].as_u64() > Some(0)),
         "the pull inverts elements"
     );
+    for config in ["product", "cg-converged", "mg-pcg", "mg-pcg-budget"] {
+        assert!(
+            cases.iter().any(|c| c["config"] == config),
+            "no {config} case"
+        );
+    }
     // After a pull through inversion the body comes back to rest and gains no energy
-    // (within 5 % of what it held at release), with the real-time and the converged CG:
+    // (within 5 % of what it held at release), with the real-time and the converged CG and
+    // with MG-PCG:
     // shared rotations switching on inverted leaves once made it gain several times that
     // and never settle.
     for c in cases

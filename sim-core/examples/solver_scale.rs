@@ -2,11 +2,15 @@
 //! residual of 1e-6 (the same runs as `cosurg bench scale`, without the client, so that
 //! a release build needs sim-core only): `cargo run --release -p cosurg-sim-core
 //! --example solver_scale -- [steps] [beam soft|stiff] [cell m] [dt s] [solver]`
-//! (each filter optional, for profiling one configuration with `perf`); the environment
-//! variables `COSURG_MG_SWEEPS`, `COSURG_MG_REFRESH` and `COSURG_THREADS` override the
-//! multigrid's Gauss–Seidel sweeps, its coarse refresh period and the step's threads. Prints one JSON
-//! object per line: beam, tets, dt, solver, mean and max CG iterations, p50/p99/min wall ms and mean on-CPU ms per
-//! step (one thread).
+//! (each filter optional, for profiling one configuration with `perf`). Environment
+//! variables override: `COSURG_MG_SWEEPS` (the multigrid's Gauss–Seidel sweeps),
+//! `COSURG_MG_REFRESH` (its coarse refresh period), `COSURG_THREADS` (the step's threads),
+//! `COSURG_WARM_START` (0/1; default: the solver's, on for MG-PCG), `COSURG_TOL` (the
+//! relative residual, default 1e-6) and `COSURG_SHARING_DEG` (rotation sharing θ_tol,
+//! default the scene's: none). Prints one JSON object per line: beam, tets, dt, solver,
+//! mean and max CG iterations, p50/p99/min wall ms and mean on-CPU ms per step (one
+//! thread), the largest residual, rotation extractions per step and the multigrid's level
+//! sizes.
 
 use std::time::Instant;
 
@@ -35,6 +39,10 @@ fn env_usize(name: &str) -> Option<usize> {
     std::env::var(name).ok()?.parse().ok()
 }
 
+fn env_f64(name: &str) -> Option<f64> {
+    std::env::var(name).ok()?.parse().ok()
+}
+
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let steps: usize = std::env::args()
         .nth(1)
@@ -60,10 +68,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     let mut o = SimOptions::from_scene(&scene.scene);
                     o.dt = dt;
                     o.step.use_linear_solver(solver);
-                    o.step.solver.tol = std::env::var("COSURG_TOL")
-                        .ok()
-                        .and_then(|s| s.parse().ok())
-                        .unwrap_or(1e-6);
+                    o.step.solver.tol = env_f64("COSURG_TOL").unwrap_or(1e-6);
                     o.step.solver.max_iters = 20_000;
                     if let Some(k) = env_usize("COSURG_MG_SWEEPS") {
                         o.step.mg_sweeps = k;
@@ -74,10 +79,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     if let Some(w) = env_usize("COSURG_WARM_START") {
                         o.step.solver.warm_start = w != 0;
                     }
-                    if let Some(a) = std::env::var("COSURG_SHARING_DEG")
-                        .ok()
-                        .and_then(|s| s.parse::<f64>().ok())
-                    {
+                    if let Some(a) = env_f64("COSURG_SHARING_DEG") {
                         o.sharing_angle_deg = (a > 0.0).then_some(a);
                     }
                     if let Some(t) = env_usize("COSURG_THREADS") {

@@ -65,10 +65,10 @@ impl SimOptions {
                     // starting CG from the previous step's Δv pumped about 9 kJ into the
                     // stress beam after violent impulses (`cosurg bench stress --case
                     // impulses-33ms`; 1.02× with a cold start), and it saves only a few
-                    // iterations where CG converges (dt ≤ 1 ms). MG-PCG converges within
-                    // its budget and the step keeps only a converged Δv, so it starts
-                    // from the last one: 17.8 → 15.9 iterations on the stiff 12,288-tet
-                    // beam at dt 10 ms (docs/RESULTS.md).
+                    // iterations where CG converges (dt ≤ 1 ms). MG-PCG usually converges
+                    // within the budget and a step keeps only a converged Δv, so it starts
+                    // from the last one: 18.2 → 16.2 iterations on the stiff 12,288-tet
+                    // beam at dt 10 ms to 1e-6 (docs/RESULTS.md).
                     warm_start: false,
                 },
                 gravity: scene.gravity,

@@ -331,7 +331,7 @@ fn threaded_step_matches_sequential() {
         solver: SolverParams {
             max_iters: 30,
             tol: 1e-8,
-            warm_start: true,
+            warm_start: false,
         },
         threads,
         ..Default::default()
@@ -499,9 +499,12 @@ fn only_a_converged_step_warm_starts_the_next() {
     let (mesh, mut sys) = beam([12, 3, 3], soft(), true);
     let zero = vec![V3::zeros(); mesh.rest.len()];
     let (mut x, mut v) = (mesh.rest.clone(), zero.clone());
+    // Truncated setup steps: the system keeps no Δv, so both runs below start alike.
     for _ in 0..10 {
-        sys.step(&mut x, &mut v, &zero, 0.01, &params(30, 1e-8, false))
+        let s = sys
+            .step(&mut x, &mut v, &zero, 0.01, &params(5, 1e-12, false))
             .unwrap();
+        assert!(s.cg_residual > 1e-12, "{s:?}");
     }
     let run = |p: &StepParams| {
         let mut s = sys.clone();

@@ -10,7 +10,7 @@ use super::{FemSystem, V3};
 use crate::FemError;
 use crate::model::Model;
 use crate::solver::{CgResult, LinearOperator, pcg};
-use crate::system::{OperatorMode, StepParams, StepStats};
+use crate::system::{LinearSolver, OperatorMode, StepParams, StepStats};
 
 impl FemSystem {
     /// The matrix of the linearised step at `x`, `M + dt C + (β dt + dt²) R K Rᵀ + dt² K_c`
@@ -100,6 +100,8 @@ impl FemSystem {
                 && stats.max_rotation_change_sq
                     > crate::polar::rotation_threshold_sq(p.fallback_angle_deg.to_radians())
             {
+                // Δv from before such a turn is no guess for the steps after it.
+                self.caches.warm_dv = Vec::new();
                 return self.fallback_step(x, v, f_ext, dt, p, &stats);
             }
         }
@@ -152,7 +154,11 @@ impl FemSystem {
             rhs[i] = (fint[i] + f_ext[i] + p.gravity * mass[i] - v[i] * mass_damping[i]) * dt
                 - (av[i] - v[i] * mass_coef[i]);
         }
-        let mut dv = if p.solver.warm_start && warm.len() == n {
+        // MG-PCG without its hierarchy (none set, or dropped after a cut) runs as plain
+        // Jacobi-PCG, and starts cold like it.
+        let warm_start =
+            p.solver.warm_start && (p.linear_solver != LinearSolver::MgPcg || mg.is_some());
+        let mut dv = if warm_start && warm.len() == n {
             warm
         } else {
             vec![V3::zeros(); n]
@@ -193,7 +199,7 @@ impl FemSystem {
         {
             start.restore(x, v);
             // The rejected step's Δv is no guess for the next one.
-            self.caches.warm_dv = vec![V3::zeros(); n];
+            self.caches.warm_dv = Vec::new();
             let mut s = self.fallback_step(x, v, f_ext, dt, p, &stats)?;
             s.energy_guard = true;
             return Ok(s);
