@@ -109,8 +109,8 @@ pub struct RunConfig {
     /// Linear solver of the implicit step (the budget and tolerance above apply to the
     /// CG solvers; Newton's inner solves stay on CG whatever it says).
     pub linear_solver: LinearSolver,
-    /// CG starts from the previous step's Δv when that solve converged (off, as the
-    /// product's Jacobi-PCG; on in [`RunConfig::with_mg_pcg`], as its MG-PCG).
+    /// CG starts from the previous step's Δv when that solve converged (off, as in the
+    /// product: see `SimOptions`).
     pub cg_warm_start: bool,
     pub newton: NewtonParams,
     /// Uniform refinement (bisection levels) of every root tet before the run.
@@ -173,12 +173,10 @@ impl RunConfig {
             ..Self::all_on(Model::StVK)
         }
     }
-    /// The linear solve switched to MG-PCG with an iteration budget, starting from the
-    /// last converged Δv as the product's MG-PCG does (`StepParams::use_linear_solver`).
+    /// The linear solve switched to MG-PCG with an iteration budget.
     pub fn with_mg_pcg(mut self, budget: usize) -> Self {
         self.linear_solver = LinearSolver::MgPcg;
         self.cg_iterations = budget;
-        self.cg_warm_start = true;
         self
     }
 
@@ -199,7 +197,7 @@ impl RunConfig {
             StiffnessMode::Dense
         };
         o.step.rest_threshold = if self.skip_rest { REST_THRESHOLD } else { 0.0 };
-        o.step.use_linear_solver(self.linear_solver);
+        o.step.linear_solver = self.linear_solver;
         o.step.solver = SolverParams {
             max_iters: self.cg_iterations,
             tol: self.cg_tolerance,

@@ -6,8 +6,7 @@
 //! iterations, wall time per step (p50, p99, one thread) and the most heap each row held;
 //! and the exponent of p50 time against tets between the beam sizes run. Each scene
 //! runs with its own features (the beams share no rotations) unless `--sharing-angle`
-//! sets the product's rotation sharing for every row; MG-PCG starts each solve from the
-//! previous converged step's Δv, as the product does.
+//! sets the product's rotation sharing for every row.
 
 use std::time::Instant;
 
@@ -116,7 +115,8 @@ pub struct ScaleRow {
     pub ms_p99: f64,
     /// Largest relative residual of a timed step (≤ tolerance unless the budget ran out).
     pub residual_max: f64,
-    /// Whether each solve started from the previous converged step's Δv (MG-PCG does).
+    /// Whether each solve started from the previous converged step's Δv (off unless the
+    /// solver's default changes: see `SimOptions::from_scene`).
     pub warm_start: bool,
     /// Rotation-sharing angle θ_tol (degrees) of the run; `None`: no sharing.
     pub sharing_angle_deg: Option<f64>,
@@ -158,7 +158,7 @@ fn run_one(
     };
     let mut o = SimOptions::from_scene(&scene.scene);
     o.dt = dt;
-    o.step.use_linear_solver(solver);
+    o.step.linear_solver = solver;
     o.step.solver.tol = TOLERANCE;
     o.step.solver.max_iters = 20_000;
     if let Some(a) = sharing_angle {

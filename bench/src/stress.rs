@@ -66,8 +66,8 @@ pub struct CaseResult {
     pub name: String,
     /// Solver configuration: `product` (co-rotational all-on, the scene's 50-iteration CG
     /// budget), `cg-converged` (same, CG up to 2,000 iterations to 1e-6), `mg-pcg` (same,
-    /// MG-PCG up to 2,000 iterations to 1e-6 from the last converged Δv) or
-    /// `mg-pcg-budget` (MG-PCG with the product's 50-iteration budget).
+    /// MG-PCG up to 2,000 iterations to 1e-6) or `mg-pcg-budget` (MG-PCG with the
+    /// product's 50-iteration budget).
     pub config: String,
     /// CG iterations per step (mean) and steps that fell back to Newton.
     pub cg_per_step: f64,

@@ -74,7 +74,7 @@ impl SimKnobs {
             o.step.threads = t.max(1);
         }
         if let Some(s) = self.solver {
-            o.step.use_linear_solver(s);
+            o.step.linear_solver = s;
         }
     }
 }

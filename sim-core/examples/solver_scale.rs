@@ -5,7 +5,7 @@
 //! (each filter optional, for profiling one configuration with `perf`). Environment
 //! variables override: `COSURG_MG_SWEEPS` (the multigrid's Gauss–Seidel sweeps),
 //! `COSURG_MG_REFRESH` (its coarse refresh period), `COSURG_THREADS` (the step's threads),
-//! `COSURG_WARM_START` (0/1; default: the solver's, on for MG-PCG), `COSURG_TOL` (the
+//! `COSURG_WARM_START` (0/1: start from the last converged Δv; default 0), `COSURG_TOL` (the
 //! relative residual, default 1e-6) and `COSURG_SHARING_DEG` (rotation sharing θ_tol,
 //! default the scene's: none). Prints one JSON object per line: beam, tets, dt, solver,
 //! mean and max CG iterations, p50/p99/min wall ms and mean on-CPU ms per step (one
@@ -67,7 +67,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     let scene = cosurg_sim_core::sim_scene::builtin::cantilever_with(young, cell)?;
                     let mut o = SimOptions::from_scene(&scene.scene);
                     o.dt = dt;
-                    o.step.use_linear_solver(solver);
+                    o.step.linear_solver = solver;
                     o.step.solver.tol = env_f64("COSURG_TOL").unwrap_or(1e-6);
                     o.step.solver.max_iters = 20_000;
                     if let Some(k) = env_usize("COSURG_MG_SWEEPS") {

@@ -43,7 +43,7 @@ impl SimOptions {
             }),
             sim_scene::PolarMethod::ShapeMatching => PolarMethod::ShapeMatching,
         };
-        let mut options = SimOptions {
+        SimOptions {
             dt: s.dt,
             step: StepParams {
                 model: s.model,
@@ -60,15 +60,13 @@ impl SimOptions {
                 solver: SolverParams {
                     max_iters: s.cg_iterations as usize,
                     tol: s.cg_tolerance,
-                    // Set with the solver below (`StepParams::use_linear_solver`).
-                    // Jacobi-PCG starts cold: with the 50-iteration budget at dt = 33 ms,
-                    // starting CG from the previous step's Δv pumped about 9 kJ into the
-                    // stress beam after violent impulses (`cosurg bench stress --case
-                    // impulses-33ms`; 1.02× with a cold start), and it saves only a few
-                    // iterations where CG converges (dt ≤ 1 ms). MG-PCG usually converges
-                    // within the budget and a step keeps only a converged Δv, so it starts
-                    // from the last one: 18.2 → 16.2 iterations on the stiff 12,288-tet
-                    // beam at dt 10 ms to 1e-6 (docs/RESULTS.md).
+                    // Cold start: with the 50-iteration budget at dt = 33 ms, starting CG
+                    // from the previous step's Δv pumped about 9 kJ into the stress beam
+                    // after violent impulses (`cosurg bench stress --case impulses-33ms`;
+                    // 1.02× with a cold start). It saves only a few iterations where CG
+                    // converges (dt ≤ 1 ms; MG-PCG at dt 10 ms: 18.2 → 16.2 on the stiff
+                    // 12,288-tet beam), and with MG-PCG it tripled the energy guard's
+                    // Newton fallbacks in the 1,536-tet stress pulls (docs/RESULTS.md).
                     warm_start: false,
                 },
                 gravity: scene.gravity,
@@ -93,9 +91,7 @@ impl SimOptions {
                 .then_some(f.rotation_sharing_angle_deg),
             adaptivity: f.adaptivity,
             contact: f.contact,
-        };
-        options.step.use_linear_solver(s.solver);
-        options
+        }
     }
 
     /// Whether elements get shape keys for the template stiffness table (the stiffness

@@ -104,7 +104,7 @@ fn run_on(
     steps: usize,
 ) -> (Vec<V3>, Vec<usize>, usize) {
     let mut o = SimOptions::from_scene(&scene.scene);
-    o.step.use_linear_solver(solver);
+    o.step.linear_solver = solver;
     o.step.threads = threads;
     o.step.solver.max_iters = 20_000;
     o.step.solver.tol = 1e-6;
@@ -191,7 +191,7 @@ fn direct_on_an_adaptive_lattice_with_a_1000x_stiffer_rod_across_a_refinement() 
     let half = |c: &V3| c.x < 0.2;
     let stepped = |solver: LinearSolver, tol: f64| {
         let mut o = SimOptions::from_scene(&scene.scene);
-        o.step.use_linear_solver(solver);
+        o.step.linear_solver = solver;
         o.step.solver.max_iters = 20_000;
         o.step.solver.tol = tol;
         let mut sim = Simulation::new(scene.clone(), o).unwrap();

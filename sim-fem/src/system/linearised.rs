@@ -10,7 +10,7 @@ use super::{FemSystem, V3};
 use crate::FemError;
 use crate::model::Model;
 use crate::solver::{CgResult, LinearOperator, pcg};
-use crate::system::{LinearSolver, OperatorMode, StepParams, StepStats};
+use crate::system::{OperatorMode, StepParams, StepStats};
 
 impl FemSystem {
     /// The matrix of the linearised step at `x`, `M + dt C + (β dt + dt²) R K Rᵀ + dt² K_c`
@@ -154,11 +154,7 @@ impl FemSystem {
             rhs[i] = (fint[i] + f_ext[i] + p.gravity * mass[i] - v[i] * mass_damping[i]) * dt
                 - (av[i] - v[i] * mass_coef[i]);
         }
-        // MG-PCG without its hierarchy (none set, or dropped after a cut) runs as plain
-        // Jacobi-PCG, and starts cold like it.
-        let warm_start =
-            p.solver.warm_start && (p.linear_solver != LinearSolver::MgPcg || mg.is_some());
-        let mut dv = if warm_start && warm.len() == n {
+        let mut dv = if p.solver.warm_start && warm.len() == n {
             warm
         } else {
             vec![V3::zeros(); n]

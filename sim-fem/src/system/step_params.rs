@@ -107,8 +107,7 @@ pub struct StepParams {
     pub operator: OperatorMode,
     /// CG budget.
     pub solver: SolverParams,
-    /// Preconditioner of CG in the linearised step. Set it with
-    /// [`StepParams::use_linear_solver`], which also sets the warm start that goes with it.
+    /// Preconditioner of CG in the linearised step.
     pub linear_solver: LinearSolver,
     /// With [`LinearSolver::MgPcg`]: rebuild the coarse operators (Galerkin `Pᵀ A P`)
     /// every this many steps (and whenever dt or the fixed nodes change); in between the
@@ -152,18 +151,6 @@ pub struct StepParams {
     /// elements; steps with inverted elements also a rotation pass and an energy
     /// evaluation.
     pub energy_guard: bool,
-}
-
-impl StepParams {
-    /// Switches the linear solver, with the warm start that goes with it: MG-PCG starts
-    /// from the last converged Δv (it usually converges within the budget, and a step
-    /// keeps its Δv only when it did), the others start cold (a truncated Jacobi-PCG solve
-    /// gains little from a guess and, warm-started, once pumped energy into the stress
-    /// beam). MG-PCG without its hierarchy runs as Jacobi-PCG and starts cold too.
-    pub fn use_linear_solver(&mut self, solver: LinearSolver) {
-        self.linear_solver = solver;
-        self.solver.warm_start = solver == LinearSolver::MgPcg;
-    }
 }
 
 /// Newton control of the robust fallback step ([`StepParams::fallback_angle_deg`]).
