@@ -115,8 +115,8 @@ pub struct ScaleRow {
     pub ms_p99: f64,
     /// Largest relative residual of a timed step (≤ tolerance unless the budget ran out).
     pub residual_max: f64,
-    /// Whether each solve started from the previous converged step's Δv (off unless the
-    /// solver's default changes: see `SimOptions::from_scene`).
+    /// Whether each solve started from the previous converged step's Δv (the scene's
+    /// options: off, see `SimOptions::from_scene`).
     pub warm_start: bool,
     /// Rotation-sharing angle θ_tol (degrees) of the run; `None`: no sharing.
     pub sharing_angle_deg: Option<f64>,

@@ -217,23 +217,21 @@ pub fn run(args: StressArgs) -> Result<()> {
             CASES.iter().map(|c| c.name).collect::<Vec<_>>().join(", ")
         );
     }
-    if let Some(f) = &args.config
-        && !configs().iter().any(|c| c.variant == *f)
-    {
+    let run_configs: Vec<RunConfig> = configs()
+        .into_iter()
+        .filter(|c| args.config.as_ref().is_none_or(|f| c.variant == *f))
+        .collect();
+    if run_configs.is_empty() {
         anyhow::bail!(
-            "no stress configuration {f:?}; configurations: {}",
+            "no stress configuration {:?}; configurations: {}",
+            args.config.as_deref().unwrap_or(""),
             configs().map(|c| c.variant).join(", ")
         );
     }
-    let configs_run = if args.config.is_some() {
-        1
-    } else {
-        configs().len()
-    };
     let bar = if args.json {
         ProgressBar::hidden()
     } else {
-        ProgressBar::new((configs_run * steps * selected.len()) as u64)
+        ProgressBar::new((run_configs.len() * steps * selected.len()) as u64)
     };
     bar.set_style(
         ProgressStyle::with_template("{bar:40} {percent:>3}% eta {eta:>4} {msg}")
@@ -241,12 +239,9 @@ pub fn run(args: StressArgs) -> Result<()> {
     );
     let mut cases = Vec::new();
     for case in selected {
-        for config in configs()
-            .into_iter()
-            .filter(|c| args.config.as_ref().is_none_or(|f| c.variant == *f))
-        {
+        for config in &run_configs {
             bar.set_message(format!("{} {}", case.name, config.variant));
-            cases.push(run_case(&scene, case, &config, steps, args.seed, &bar)?);
+            cases.push(run_case(&scene, case, config, steps, args.seed, &bar)?);
         }
     }
     bar.finish_and_clear();
@@ -371,7 +366,7 @@ fn configs() -> [RunConfig; 4] {
         on().with("product", |_| {}),
         on().with("cg-converged", |c| c.cg_iterations = 2000),
         on().with_mg_pcg(2000).with("mg-pcg", |_| {}),
-        // what a scene with `solver = "mg-pcg"` runs: its budget, warm start
+        // what a scene with `solver = "mg-pcg"` runs: the scene's budget
         on().with_mg_pcg(50).with("mg-pcg-budget", |_| {}),
     ]
 }
