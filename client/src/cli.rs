@@ -47,7 +47,7 @@ pub struct SimKnobs {
     /// Threads of the FEM step (default 1: the step stays on the simulation thread).
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Linear solver of the implicit step: jacobi-pcg, mg-pcg or direct (default: the
+    /// Linear solver of the implicit step: jacobi-pcg, mg-pcg, direct or auto (default: the
     /// scene's).
     #[arg(long)]
     pub solver: Option<LinearSolver>,

@@ -181,14 +181,19 @@ pub fn run(args: RunArgs) -> Result<()> {
     writer.write_frame(&sim, &frames(&interaction), None)?;
     let mut step_ms = Vec::with_capacity(steps as usize);
     let mut max_force: f64 = 0.0;
+    // Steps and CG iterations per linear solver (`auto` may move from one to another).
+    let mut solves: std::collections::BTreeMap<&'static str, (u64, usize)> = Default::default();
     for k in 1..=steps {
         let t0 = Instant::now();
         if !args.no_tools {
             let inputs = interaction.scripted_inputs(&sim, sim.time());
             interaction.before_step(&mut sim, &inputs)?;
         }
-        sim.step()?;
+        let report = sim.step()?;
         step_ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        let entry = solves.entry(report.fem.solver.name()).or_default();
+        entry.0 += 1;
+        entry.1 += report.fem.cg_iterations;
         for c in &interaction.state().tools {
             max_force = max_force.max(c.force.norm());
         }
@@ -213,6 +218,12 @@ pub fn run(args: RunArgs) -> Result<()> {
         percentile(&step_ms, 50.0),
         percentile(&step_ms, 99.0)
     );
+    for (solver, (n, iterations)) in &solves {
+        println!(
+            "linear solver {solver}: {n} steps, CG iterations mean {:.1}",
+            *iterations as f64 / *n as f64
+        );
+    }
     println!("largest tool force {max_force:.3} N");
     for (name, p) in sim.probes() {
         println!("probe {name}: [{:.6}, {:.6}, {:.6}] m", p.x, p.y, p.z);

@@ -119,6 +119,9 @@ pub struct Simulation {
     shape_ids: HashMap<ShapeKey, u64>,
     fem: Option<FemSystem>,
     fem_fixed: Vec<bool>,
+    /// [`LinearSolver::Auto`]'s choice (made on the first solve): kept across the FEM
+    /// rebuilds of topology changes.
+    auto_multigrid: Option<bool>,
     sharing: RotationSharing,
     surfaces: Vec<Surface>,
     probe_names: Vec<String>,
@@ -312,6 +315,7 @@ impl Simulation {
             shape_ids: HashMap::new(),
             fem: None,
             fem_fixed: Vec::new(),
+            auto_multigrid: None,
             sharing,
             surfaces,
             probe_names,
@@ -426,8 +430,28 @@ impl Simulation {
             fixed: fixed.clone(),
             rotation_sources,
         })?;
-        if self.options.step.linear_solver == LinearSolver::MgPcg && self.cut.is_none() {
-            fem.set_multigrid_hierarchy(crate::multigrid::lattice_hierarchy(&self.lattice)?)?;
+        // Auto needs the hierarchy where it chose MG-PCG, and before it chooses where the
+        // V-cycle would have a coarse level.
+        let free = fixed.iter().filter(|f| !**f).count();
+        let wants_hierarchy = match self.options.step.linear_solver {
+            LinearSolver::MgPcg => true,
+            LinearSolver::Auto => match self.auto_multigrid {
+                Some(chosen) => chosen,
+                None => free > sim_fem::mg::MgParams::default().coarsest_nodes,
+            },
+            LinearSolver::JacobiPcg | LinearSolver::Direct => false,
+        };
+        fem.set_auto_multigrid(self.auto_multigrid);
+        if wants_hierarchy {
+            let mut hierarchy = crate::multigrid::lattice_hierarchy(&self.lattice)?;
+            if let Some(cut) = &self.cut {
+                let sep = &cut.separation;
+                hierarchy =
+                    crate::multigrid::hierarchy_with_copies(hierarchy, fem.num_nodes(), |d| {
+                        sep.dof_node(d).0 as usize
+                    })?;
+            }
+            fem.set_multigrid_hierarchy(hierarchy)?;
         }
         self.fem_fixed = fixed;
         self.fem = Some(fem);
@@ -504,6 +528,7 @@ impl Simulation {
         fem.set_external_stiffness(&self.k_extra);
         let result = fem.step(&mut self.x, &mut self.v, &f_ext, dt, &params);
         fem.clear_external_stiffness();
+        self.auto_multigrid = fem.auto_chose_multigrid();
         self.k_extra.clear();
         let stats = match result {
             Ok(s) => s,

@@ -176,6 +176,37 @@ pub(crate) fn lattice_hierarchy_with_grids(
     Ok((Hierarchy { levels }, grids))
 }
 
+/// The hierarchy of a system whose degrees of freedom are lattice slots and copies of
+/// lattice nodes (the virtual nodes of a cut: `dof_node(d)` is the lattice slot degree of
+/// freedom `d` belongs to, `d` itself for a slot). A copy takes its node's row of the
+/// finest prolongation, so the coarse levels stay the uncut lattice's: the coarse
+/// correction moves both sides of a cut alike and only the fine smoother separates them.
+/// CG stays exact (the V-cycle is still a symmetric positive definite preconditioner:
+/// a copy's row adds a full-rank row to `P`); only its iteration count can grow, by the
+/// share of the solution the cut makes discontinuous (measured in the tests below and
+/// in `examples/cut_cost.rs`).
+pub fn hierarchy_with_copies(
+    mut hierarchy: Hierarchy,
+    dofs: usize,
+    dof_node: impl Fn(usize) -> usize,
+) -> Result<Hierarchy, FemError> {
+    let Some(finest) = hierarchy.levels.first() else {
+        return Ok(hierarchy);
+    };
+    let rows: Vec<Vec<(usize, f64)>> = (0..dofs)
+        .map(|d| {
+            let n = dof_node(d);
+            if n < finest.fine_len() {
+                finest.row(n).collect()
+            } else {
+                Vec::new()
+            }
+        })
+        .collect();
+    hierarchy.levels[0] = Prolongation::from_rows(finest.coarse_len(), &rows)?;
+    Ok(hierarchy)
+}
+
 /// Trailing zero bits of one coordinate (0 counts as 62).
 fn level_of_coord(c: i64) -> u32 {
     if c == 0 {

@@ -217,3 +217,122 @@ fn direct_on_an_adaptive_lattice_with_a_1000x_stiffer_rod_across_a_refinement() 
     let d = max_diff(&xd, &xj);
     assert!(d < 1e-8, "max position difference {d:e} m");
 }
+
+/// Steps the 12k-tet beam notched from the top at x ≈ 0.21 m (a cut through its upper
+/// half, 1.5 cm into the clamped-to-free span) 3 times with `solver` to 1e-6; returns the
+/// positions, the CG iterations of each step and the number of virtual nodes.
+fn run_notched(solver: LinearSolver) -> (Vec<V3>, Vec<usize>, usize) {
+    let scene = beam_scene(false);
+    let mut o = SimOptions::from_scene(&scene.scene);
+    o.step.linear_solver = solver;
+    o.step.solver.max_iters = 20_000;
+    o.step.solver.tol = 1e-6;
+    let mut sim = Simulation::new(scene, o).unwrap();
+    refine(&mut sim, 3, |_| true);
+    // The sheet lies off the lattice's planes (x = 0.2109 m) and spans the beam's width
+    // and its upper half (z from 0.045 m to above the top).
+    let (x, z0, z1, y0, y1) = (0.2109, 0.045, 0.12, -0.02, 0.12);
+    let op = cosurg_sim_core::cut::TopologyOp::Cut(cosurg_sim_core::cut::CutOp {
+        id: cosurg_sim_core::cut::OpId { site: 1, seq: 0 },
+        triangles: vec![
+            [[x, y0, z0], [x, y1, z0], [x, y1, z1]],
+            [[x, y0, z0], [x, y1, z1], [x, y0, z1]],
+        ],
+    });
+    sim.apply_topology_op(op).unwrap();
+    let copies = sim
+        .separation()
+        .expect("the notch cuts")
+        .virtual_nodes
+        .len();
+    let iters = (0..3)
+        .map(|_| {
+            let r = sim.step().unwrap();
+            assert!(r.fem.cg_residual <= 1e-6, "{:?}", r.fem);
+            r.fem.cg_iterations
+        })
+        .collect();
+    (sim.positions().to_vec(), iters, copies)
+}
+
+#[test]
+fn mg_pcg_after_a_cut_solves_the_steps_of_jacobi_pcg() {
+    // After a cut the virtual nodes (copies of lattice nodes) take their node's row of
+    // the finest prolongation: the same converged steps, still in a fraction of
+    // Jacobi-PCG's iterations (the uncut beam's MG-PCG takes about 17).
+    let (xj, jacobi, copies) = run_notched(LinearSolver::JacobiPcg);
+    let (xm, mg, _) = run_notched(LinearSolver::MgPcg);
+    eprintln!("notched beam, {copies} virtual nodes: Jacobi-PCG {jacobi:?}, MG-PCG {mg:?}");
+    assert!(copies > 50, "{copies} virtual nodes");
+    for (m, j) in mg.iter().zip(&jacobi) {
+        assert!(3 * m <= *j, "MG-PCG {mg:?} vs Jacobi-PCG {jacobi:?}");
+    }
+    let d = max_diff(&xm, &xj);
+    assert!(d < 1e-6, "max position difference {d:e} m");
+}
+
+/// Steps a beam (`rounds` refinements of the 1,536-tet one, 12,288 tets at 3) with the
+/// scene's default solver, `auto`, to 1e-6 under a CG budget; returns each step's solver.
+fn auto_solvers(scene: &LoadedScene, rounds: u32, dt: f64, budget: usize) -> Vec<LinearSolver> {
+    let mut o = SimOptions::from_scene(&scene.scene);
+    assert_eq!(
+        o.step.linear_solver,
+        LinearSolver::Auto,
+        "the scenes' default"
+    );
+    o.dt = dt;
+    o.step.solver.max_iters = budget;
+    o.step.solver.tol = 1e-6;
+    let mut sim = Simulation::new(scene.clone(), o).unwrap();
+    refine(&mut sim, rounds, |_| true);
+    (0..4).map(|_| sim.step().unwrap().fem.solver).collect()
+}
+
+#[test]
+fn auto_moves_the_fine_stiff_step_to_mg_pcg_and_leaves_the_easy_one_on_jacobi() {
+    use LinearSolver::{JacobiPcg, MgPcg};
+    let scene = beam_scene(false);
+    // 12,288 tets at dt 10 ms: Jacobi-PCG needs about 220 iterations, so the first step
+    // is its last; the same under a 50-iteration budget (stopped at a residual of about
+    // 0.2, extrapolated to several hundred).
+    assert_eq!(
+        auto_solvers(&scene, 3, 0.01, 20_000),
+        [JacobiPcg, MgPcg, MgPcg, MgPcg]
+    );
+    assert_eq!(
+        auto_solvers(&scene, 3, 0.01, 50),
+        [JacobiPcg, MgPcg, MgPcg, MgPcg]
+    );
+    // 1,536 tets at dt 2 ms: about 25 iterations, where Jacobi-PCG was the faster.
+    assert_eq!(
+        auto_solvers(&scene, 0, 0.002, 20_000),
+        [JacobiPcg, JacobiPcg, JacobiPcg, JacobiPcg]
+    );
+}
+
+#[test]
+fn auto_keeps_its_first_choice_across_a_refinement_and_for_good() {
+    // Chosen on the first solve (sites that start alike choose alike) and kept across the
+    // FEM rebuild of a refinement, which must not go back to Jacobi-PCG. Both ways: the
+    // rod's beam at dt 10 ms (Jacobi-PCG needs hundreds of iterations) and the plain one
+    // at dt 1 ms (a few dozen), which stays on Jacobi-PCG after the refinement too.
+    for (rod, dt, chosen) in [
+        (true, 0.01, LinearSolver::MgPcg),
+        (false, 0.001, LinearSolver::JacobiPcg),
+    ] {
+        let scene = beam_scene(rod);
+        let mut o = SimOptions::from_scene(&scene.scene);
+        o.dt = dt;
+        o.step.solver.max_iters = 20_000;
+        o.step.solver.tol = 1e-6;
+        let mut sim = Simulation::new(scene, o).unwrap();
+        refine(&mut sim, 1, |_| true);
+        let first = sim.step().unwrap().fem;
+        assert_eq!(first.solver, LinearSolver::JacobiPcg);
+        assert_eq!(sim.step().unwrap().fem.solver, chosen, "rod {rod}");
+        refine(&mut sim, 1, |c| c.x < 0.2);
+        let r = sim.step().unwrap();
+        assert_eq!(r.fem.solver, chosen, "rod {rod}, after the refinement");
+        assert!(r.fem.cg_residual <= 1e-6, "{:?}", r.fem);
+    }
+}

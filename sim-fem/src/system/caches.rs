@@ -28,6 +28,9 @@ pub(super) struct Caches {
     /// Multigrid hierarchy given by the caller, and the preconditioner built on it.
     pub(super) mg_hierarchy: Option<crate::mg::Hierarchy>,
     pub(super) mg: Option<super::multigrid::MgCache>,
+    /// [`crate::LinearSolver::Auto`]'s choice: `None` before its first solve, then
+    /// whether it chose MG-PCG.
+    pub(super) auto_multigrid: Option<bool>,
     /// Symbolic factorisation of [`crate::LinearSolver::Direct`], for the current pattern
     /// and Dirichlet mask.
     pub(super) direct: Option<crate::direct::DirectSolver>,

@@ -10,7 +10,7 @@ use super::{FemSystem, V3};
 use crate::FemError;
 use crate::model::Model;
 use crate::solver::{CgResult, LinearOperator, pcg};
-use crate::system::{OperatorMode, StepParams, StepStats};
+use crate::system::{LinearSolver, OperatorMode, StepParams, StepStats};
 
 impl FemSystem {
     /// The matrix of the linearised step at `x`, `M + dt C + (β dt + dt²) R K Rᵀ + dt² K_c`
@@ -159,10 +159,19 @@ impl FemSystem {
         } else {
             vec![V3::zeros(); n]
         };
-        let res: CgResult = match (mg.as_mut(), &direct) {
-            (Some(c), _) => solve_with_multigrid(c, &op, &fixed, &rhs, &mut dv, dt, p),
-            (None, Some(d)) => solve_direct(d, &op, &fixed, &rhs, &mut dv, &p.solver),
-            (None, None) => pcg(&op, &fixed, &rhs, &mut dv, &p.solver),
+        let (res, solver): (CgResult, _) = match (mg.as_mut(), &direct) {
+            (Some(c), _) => (
+                solve_with_multigrid(c, &op, &fixed, &rhs, &mut dv, dt, p),
+                LinearSolver::MgPcg,
+            ),
+            (None, Some(d)) => (
+                solve_direct(d, &op, &fixed, &rhs, &mut dv, &p.solver),
+                LinearSolver::Direct,
+            ),
+            (None, None) => (
+                pcg(&op, &fixed, &rhs, &mut dv, &p.solver),
+                LinearSolver::JacobiPcg,
+            ),
         };
         self.caches.block_buf = op.into_blocks();
         if let Some(c) = mg {
@@ -173,6 +182,10 @@ impl FemSystem {
         }
         stats.cg_iterations = res.iterations;
         stats.cg_residual = res.relative_residual;
+        stats.solver = solver;
+        if solver == LinearSolver::JacobiPcg {
+            self.auto_observe_jacobi(p, &res);
+        }
         for i in 0..n {
             if !fixed[i] {
                 v[i] += dv[i];

@@ -9,6 +9,15 @@ use crate::mg::{Hierarchy, MgParams, Multigrid};
 use crate::solver::{CgResult, Preconditioner, pcg_with};
 use crate::system::{LinearSolver, StepParams};
 
+/// [`LinearSolver::Auto`] moves from Jacobi-PCG to MG-PCG once a Jacobi-PCG solve needed
+/// (or, stopped by its budget, would have needed) more iterations than this to the
+/// tolerance. Measured with `cosurg bench scale` on the soft and stiff beams from 192 to
+/// 12,288 tets and the default organ at dt 2 and 10 ms, every solve to 1e-6
+/// (docs/RESULTS.md, "Choosing the solver"): MG-PCG was the faster in every row where
+/// Jacobi-PCG needed 75 iterations or more, Jacobi-PCG in every row where it needed 48
+/// or fewer.
+pub const AUTO_MG_ABOVE_JACOBI_ITERATIONS: usize = 64;
+
 /// A built preconditioner and its age.
 #[derive(Clone, Debug)]
 pub(super) struct MgCache {
@@ -39,7 +48,49 @@ impl FemSystem {
 
     /// Whether the step with `p` solves with MG-PCG.
     pub(super) fn uses_multigrid(&self, p: &StepParams) -> bool {
-        p.linear_solver == LinearSolver::MgPcg && self.caches.mg_hierarchy.is_some()
+        self.caches.mg_hierarchy.is_some()
+            && match p.linear_solver {
+                LinearSolver::MgPcg => true,
+                LinearSolver::Auto => self.caches.auto_multigrid == Some(true),
+                LinearSolver::JacobiPcg | LinearSolver::Direct => false,
+            }
+    }
+
+    /// [`LinearSolver::Auto`]'s choice: `None` before its first Jacobi-PCG solve, then
+    /// whether it chose MG-PCG.
+    pub fn auto_chose_multigrid(&self) -> Option<bool> {
+        self.caches.auto_multigrid
+    }
+
+    /// Carries [`LinearSolver::Auto`]'s choice over to a rebuilt system (a topology change
+    /// rebuilds it): the choice is made once, on the first solve, so that sites that
+    /// start from the same state make it alike and no site changes solver in mid-session.
+    pub fn set_auto_multigrid(&mut self, choice: Option<bool>) {
+        self.caches.auto_multigrid = choice;
+    }
+
+    /// After the first Jacobi-PCG solve under [`LinearSolver::Auto`]: chooses MG-PCG for
+    /// good if the solve needed more than [`AUTO_MG_ABOVE_JACOBI_ITERATIONS`] iterations
+    /// and the V-cycle would have a coarse level (a hierarchy is set and there are more
+    /// free nodes than its coarsest level holds), else Jacobi-PCG for good.
+    pub(super) fn auto_observe_jacobi(&mut self, p: &StepParams, res: &CgResult) {
+        if p.linear_solver != LinearSolver::Auto || self.caches.auto_multigrid.is_some() {
+            return;
+        }
+        let free = self.mesh.fixed.iter().filter(|f| !**f).count();
+        let needed = jacobi_iterations_needed(res, p.solver.tol);
+        let multigrid = needed > AUTO_MG_ABOVE_JACOBI_ITERATIONS as f64
+            && self.caches.mg_hierarchy.is_some()
+            && free > MgParams::default().coarsest_nodes;
+        tracing::info!(
+            jacobi_iterations = res.iterations,
+            residual = res.relative_residual,
+            needed,
+            free,
+            "auto solver: {}",
+            if multigrid { "mg-pcg" } else { "jacobi-pcg" }
+        );
+        self.caches.auto_multigrid = Some(multigrid);
     }
 
     /// The preconditioner for the current Dirichlet mask, taken out of the caches (give
@@ -68,6 +119,21 @@ impl FemSystem {
 
     pub(super) fn put_multigrid(&mut self, c: MgCache) {
         self.caches.mg = Some(c);
+    }
+}
+
+/// The iterations a Jacobi-PCG solve needed to reach `tol`: its own count if it got
+/// there, else extrapolated at the rate it had (CG's residual falls about geometrically:
+/// `k · ln tol / ln r` after `k` iterations at relative residual `r`); infinite if it made
+/// no progress.
+fn jacobi_iterations_needed(res: &CgResult, tol: f64) -> f64 {
+    if res.relative_residual <= tol {
+        res.iterations as f64
+    } else if res.iterations == 0 || res.relative_residual.is_nan() || res.relative_residual >= 1.0
+    {
+        f64::INFINITY
+    } else {
+        res.iterations as f64 * tol.ln() / res.relative_residual.ln()
     }
 }
 

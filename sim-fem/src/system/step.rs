@@ -4,7 +4,7 @@
 use super::{FemSystem, V3};
 use crate::FemError;
 use crate::model::Model;
-use crate::system::{StepParams, StiffnessMode};
+use crate::system::{LinearSolver, StepParams, StiffnessMode};
 
 /// What a step did.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -36,6 +36,9 @@ pub struct StepStats {
     /// Largest rotation change of a source since the previous step, as
     /// `‖R_new − R_old‖²_F = 4(1 − cos θ)` (0 when none was extracted).
     pub max_rotation_change_sq: f64,
+    /// The linear solver of the step's linearised solve ([`LinearSolver::Auto`] resolved;
+    /// Newton and fallback steps report the solver asked for).
+    pub solver: LinearSolver,
 }
 
 impl FemSystem {

@@ -52,10 +52,18 @@ pub enum LinearSolver {
     /// kept until the pattern or the fixed nodes change; the numeric factorisation runs
     /// every step. Newton and static solves (tangents that may be indefinite) stay on CG.
     Direct,
+    /// Chosen on the first solve, which runs Jacobi-PCG: MG-PCG from then on if that solve
+    /// needed more than [`crate::AUTO_MG_ABOVE_JACOBI_ITERATIONS`] iterations to the
+    /// tolerance and the V-cycle would have a coarse level, else Jacobi-PCG: the crossover
+    /// measured in `cosurg bench scale` (docs/RESULTS.md, "Choosing the solver"). Chosen
+    /// once, so that sites starting from the same state choose alike;
+    /// [`StepStats::solver`](crate::StepStats) says which solver a step used.
+    Auto,
 }
 
 impl LinearSolver {
-    /// Every solver with its name (`jacobi-pcg`, `mg-pcg`, `direct`).
+    /// Every concrete solver (`jacobi-pcg`, `mg-pcg`, `direct`; not [`LinearSolver::Auto`],
+    /// which picks one of the first two).
     pub const ALL: [LinearSolver; 3] = [
         LinearSolver::JacobiPcg,
         LinearSolver::MgPcg,
@@ -68,13 +76,14 @@ impl LinearSolver {
             LinearSolver::JacobiPcg => "jacobi-pcg",
             LinearSolver::MgPcg => "mg-pcg",
             LinearSolver::Direct => "direct",
+            LinearSolver::Auto => "auto",
         }
     }
 }
 
 /// An unknown linear solver name.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("unknown linear solver {0:?} (expected jacobi-pcg, mg-pcg or direct)")]
+#[error("unknown linear solver {0:?} (expected jacobi-pcg, mg-pcg, direct or auto)")]
 pub struct UnknownLinearSolver(pub String);
 
 impl std::str::FromStr for LinearSolver {
@@ -82,6 +91,7 @@ impl std::str::FromStr for LinearSolver {
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         Self::ALL
             .into_iter()
+            .chain([LinearSolver::Auto])
             .find(|l| l.name() == s)
             .ok_or_else(|| UnknownLinearSolver(s.to_string()))
     }

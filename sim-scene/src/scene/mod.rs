@@ -489,7 +489,8 @@ pub struct SimulationSettings {
     pub cg_iterations: u32,
     /// Relative CG residual tolerance (> 0, default 1e-6).
     pub cg_tolerance: f64,
-    /// Linear solver of the implicit step: `jacobi-pcg` (default), `mg-pcg` (CG
+    /// Linear solver of the implicit step: `auto` (default: chosen on the first step,
+    /// MG-PCG if Jacobi-PCG needed more than 64 iterations there), `jacobi-pcg`, `mg-pcg` (CG
     /// preconditioned by a multigrid V-cycle over the lattice's bisection hierarchy) or
     /// `direct` (sparse Cholesky).
     pub solver: LinearSolver,
@@ -509,7 +510,7 @@ impl Default for SimulationSettings {
             model: Model::Corotational,
             cg_iterations: 50,
             cg_tolerance: 1e-6,
-            solver: LinearSolver::JacobiPcg,
+            solver: LinearSolver::Auto,
             polar: PolarMethod::ByersXu,
             polar_tolerance: 1e-6,
             contact_stiffness: 500.0,

@@ -730,7 +730,7 @@ fn selection() {
 fn unknown_linear_solver_is_named() {
     let e = err(&format!("{EXAMPLE}\n[simulation]\nsolver = \"cholesky\"\n"));
     assert!(
-        e.starts_with("s.toml: `simulation.solver`: unknown variant `cholesky`, expected one of `jacobi-pcg`, `mg-pcg`, `direct`"),
+        e.starts_with("s.toml: `simulation.solver`: unknown variant `cholesky`, expected one of `jacobi-pcg`, `mg-pcg`, `direct`, `auto`"),
         "{e}"
     );
 }
