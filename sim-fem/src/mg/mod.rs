@@ -11,6 +11,7 @@
 //! levels, as is a coarse node no free fine node interpolates from. Coarse levels thus
 //! hold free nodes only and need no projection.
 
+mod full_rows;
 mod galerkin;
 mod smoother;
 #[cfg(test)]

@@ -150,6 +150,27 @@ impl SymRows {
     }
 
     /// `Σ_{j<i} A_ij z_j` of row `i`.
+    /// Row `i`'s lower entries `(slot, column)`: blocks stored in the rows above, to be
+    /// taken transposed.
+    pub fn lower_entries(&self, i: usize) -> impl Iterator<Item = (usize, usize)> + '_ {
+        let (a, b) = (self.lower_ptr[i] as usize, self.lower_ptr[i + 1] as usize);
+        self.lower_slots[a..b]
+            .iter()
+            .zip(&self.lower_cols[a..b])
+            .map(|(&s, &j)| (s as usize, j as usize))
+    }
+
+    /// Row `i`'s upper entries `(slot, column)`, diagonal excluded.
+    pub fn upper_entries(&self, i: usize) -> impl Iterator<Item = (usize, usize)> + '_ {
+        let (a, b) = (self.diag[i] as usize + 1, self.upper_end[i] as usize);
+        (a..b).zip(&self.cols[a..b]).map(|(s, &j)| (s, j as usize))
+    }
+
+    /// Slot of row `i`'s diagonal block.
+    pub fn diagonal_slot(&self, i: usize) -> usize {
+        self.diag[i] as usize
+    }
+
     #[inline]
     fn lower_product(&self, blocks: &[Matrix3<f64>], z: &[V3], i: usize) -> V3 {
         let (a, b) = (self.lower_ptr[i] as usize, self.lower_ptr[i + 1] as usize);

@@ -2,6 +2,7 @@
 
 use nalgebra::{Cholesky, DVector, Dyn, Matrix3, Vector3};
 
+use super::full_rows::FullRows;
 use super::galerkin::{GalerkinPlan, mask_prolongation};
 use super::smoother::{HybridSweeps, SymRows, post_smooth, pre_smooth, symmetric_smooth};
 use super::{Hierarchy, Prolongation};
@@ -58,6 +59,9 @@ pub struct Multigrid {
     fine_dinv: Vec<Matrix3<f64>>,
     /// The finest level's rows split over threads ([`Multigrid::set_fine_parts`]).
     fine_hybrid: Option<HybridSweeps>,
+    /// The finest level's blocks by full rows in f32, for the sequential sweeps of a
+    /// V-cycle with coarse levels (`full_rows.rs`; built with the first refresh).
+    fine_full: Option<FullRows>,
     levels: Vec<Level>,
     coarsest: Option<Cholesky<f64, Dyn>>,
     fine_res: Vec<V3>,
@@ -151,6 +155,7 @@ impl Multigrid {
             fine_rows: SymRows::of_pattern(pattern),
             fine_dinv: Vec::new(),
             fine_hybrid: None,
+            fine_full: None,
             levels,
             coarsest: None,
             fine_res: vec![V3::zeros(); n],
@@ -212,6 +217,15 @@ impl Multigrid {
             }
             _ => self.fine_rows.diagonal_inverses(fine, &self.fixed),
         };
+        // The sequential sweeps of a V-cycle with coarse levels read full rows.
+        if self.fine_hybrid.is_none() && !self.levels.is_empty() {
+            let rows = &self.fine_rows;
+            self.fine_full
+                .get_or_insert_with(|| FullRows::of(rows))
+                .fill(rows, fine);
+        } else {
+            self.fine_full = None;
+        }
     }
 
     /// Splits the finest level's smoothing into the contiguous row ranges `bounds` (first
@@ -234,8 +248,9 @@ impl Multigrid {
         }
     }
 
-    /// One V-cycle: `z ≈ A⁻¹ r` with `fine` the finest operator's upper blocks (those it
-    /// was refreshed from or newer). `r` must be zero on fixed nodes; `z` is.
+    /// One V-cycle: `z ≈ A⁻¹ r` with `fine` the finest operator's upper blocks, those of
+    /// the last [`Multigrid::refresh`] or [`Multigrid::update_fine_diagonal`] (one thread
+    /// sweeps their f32 copy, `full_rows.rs`). `r` must be zero on fixed nodes; `z` is.
     pub fn vcycle(&mut self, fine: &[Matrix3<f64>], r: &[V3], z: &mut [V3]) {
         let nu = self.params.smoothing_steps.max(1);
         let (rows, dinv) = (&self.fine_rows, &self.fine_dinv);
@@ -244,9 +259,10 @@ impl Multigrid {
             return;
         }
         let res = &mut self.fine_res;
-        match &mut self.fine_hybrid {
-            Some(h) => h.pre_smooth(rows, fine, dinv, r, z, res, nu),
-            None => pre_smooth(rows, fine, dinv, r, z, res, nu),
+        match (&mut self.fine_hybrid, &self.fine_full) {
+            (Some(h), _) => h.pre_smooth(rows, fine, dinv, r, z, res, nu),
+            (None, Some(full)) => full.pre_smooth(dinv, r, z, res, nu),
+            (None, None) => pre_smooth(rows, fine, dinv, r, z, res, nu),
         }
         let l0 = &mut self.levels[0];
         restrict(&l0.p, res, &mut l0.r);
@@ -283,9 +299,10 @@ impl Multigrid {
             post_smooth(&l.rows, &l.blocks, &l.dinv, &l.r, &mut l.z, nu);
         }
         prolong_add(&self.levels[0].p, &self.levels[0].z, z);
-        match &mut self.fine_hybrid {
-            Some(h) => h.post_smooth(rows, fine, dinv, r, z, nu),
-            None => post_smooth(rows, fine, dinv, r, z, nu),
+        match (&mut self.fine_hybrid, &self.fine_full) {
+            (Some(h), _) => h.post_smooth(rows, fine, dinv, r, z, nu),
+            (None, Some(full)) => full.post_smooth(dinv, r, z, nu),
+            (None, None) => post_smooth(rows, fine, dinv, r, z, nu),
         }
     }
 }

@@ -88,6 +88,8 @@ impl FemSystem {
             tracing::debug!(
                 gained_j = energy - start.energy - work,
                 inverted = attempt.inverted,
+                cg_iterations = attempt.cg_iterations,
+                cg_residual = attempt.cg_residual,
                 "linearised step created energy; redone with Newton"
             );
         }
