@@ -393,3 +393,63 @@ length = 0.02
         touched.max_depth
     );
 }
+
+/// The blade's and the clip applier's inside-only query (`rest_points_inside`, boxes
+/// first) against the full search (`rest_point_of`, every element), on a grid of points
+/// in and around the cut block, deformed, before and after its cut: the same rest point
+/// for every point inside (exactly: the same element wins), `None` for every point
+/// outside.
+#[test]
+fn the_inside_query_agrees_with_the_full_search_before_and_after_a_cut() {
+    let mut sim = cut_block();
+    let mut interaction = Interaction::new(&sim);
+    let dt = sim.options().dt;
+    let check = |sim: &Simulation| {
+        // The block is 0.12 × 0.04 × 0.04 m; the grid reaches 1 cm beyond it.
+        let mut points = Vec::new();
+        for i in 0..15 {
+            for j in 0..7 {
+                for k in 0..7 {
+                    points.push(V3::new(
+                        -0.01 + 0.14 * i as f64 / 14.0 + 1e-4,
+                        -0.01 + 0.06 * j as f64 / 6.0 + 2e-4,
+                        -0.01 + 0.06 * k as f64 / 6.0 + 3e-4,
+                    ));
+                }
+            }
+        }
+        let inside = sim.rest_points_inside(&points);
+        let (mut n_in, mut n_out) = (0, 0);
+        for (q, fast) in points.iter().zip(&inside) {
+            let (full, is_in) = sim.rest_point_of(q).expect("elements exist");
+            if is_in {
+                n_in += 1;
+                assert_eq!(*fast, Some(full), "{q:?}");
+                assert_eq!(sim.rest_point_inside(q), Some(full), "{q:?}");
+            } else {
+                n_out += 1;
+                assert_eq!(*fast, None, "{q:?}");
+            }
+        }
+        assert!(n_in > 50 && n_out > 50, "{n_in} inside, {n_out} outside");
+    };
+    let steps = (1.2 / dt).round() as usize;
+    let mut checked_before = false;
+    for _ in 0..steps {
+        if !checked_before && sim.time() > 0.3 {
+            check(&sim);
+            checked_before = true;
+        }
+        let inputs = interaction.scripted_inputs(&sim, sim.time());
+        interaction
+            .before_step(&mut sim, &inputs)
+            .expect("before_step");
+        sim.step().expect("step");
+    }
+    assert!(checked_before);
+    assert!(
+        sim.separation().is_some(),
+        "the blade cut the block by 1.2 s"
+    );
+    check(&sim);
+}

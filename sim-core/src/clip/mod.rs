@@ -194,7 +194,7 @@ impl ClipApplication {
             // Tissue between the jaws: a point of the segment inside the lattice's leaves.
             let holds_tissue = (0..=8).any(|k| {
                 let p = a + (b - a) * (k as f64 / 8.0);
-                sim.rest_point_of(&p).is_some_and(|(_, inside)| inside)
+                sim.rest_point_inside(&p).is_some()
             });
             if !holds_tissue {
                 tracing::debug!(tool = %tool.name, "clip applier closed on nothing");

@@ -3,7 +3,7 @@
 //!
 //! Every step the blade's edge (world coordinates) is sampled at [`EDGE_SAMPLES`] points.
 //! Samples inside the body are mapped to rest coordinates through the element that holds
-//! them ([`Simulation::rest_point_of`]); samples outside it take the displacement of the
+//! them ([`Simulation::rest_point_inside`]); samples outside it take the displacement of the
 //! nearest inside sample of the same edge (so the sheet continues straight beyond the
 //! body instead of following an extrapolated element). While the edge is inside the body, a
 //! new edge is kept whenever a sample moved more than `spacing` (m) since the last kept
@@ -92,11 +92,8 @@ impl BladeStrokes {
             };
             let world: Edge =
                 std::array::from_fn(|k| a + (k as f64 / (EDGE_SAMPLES - 1) as f64) * (b - a));
-            let mapped: Vec<Option<(V3, bool)>> =
-                world.iter().map(|q| sim.rest_point_of(q)).collect();
-            let inside: Vec<usize> = (0..EDGE_SAMPLES)
-                .filter(|&k| matches!(mapped[k], Some((_, true))))
-                .collect();
+            let mapped = sim.rest_points_inside(&world);
+            let inside: Vec<usize> = (0..EDGE_SAMPLES).filter(|&k| mapped[k].is_some()).collect();
             if !inside.is_empty() {
                 // Displacement of every sample: its own inside, the nearest inside one's
                 // outside.
@@ -105,7 +102,7 @@ impl BladeStrokes {
                         .iter()
                         .min_by_key(|&&j| (j as isize - k as isize).abs())
                         .expect("non-empty");
-                    world[j] - mapped[j].expect("inside").0
+                    world[j] - mapped[j].expect("inside")
                 });
                 let edge: Edge = std::array::from_fn(|k| world[k] - u[k]);
                 if stroke.edges.is_empty() {
