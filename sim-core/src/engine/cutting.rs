@@ -26,6 +26,10 @@ const INSIDE_TOLERANCE: f64 = -1e-9;
 /// tolerance is relative to the element's size, under a metre here).
 const BOX_MARGIN_M: f64 = 1e-8;
 
+/// A point in an element: its smallest barycentric coordinate, the element's degrees of
+/// freedom and the coordinates.
+type ElementHit = (f64, [usize; 4], [f64; 4]);
+
 /// Cut state of a simulation (present once a cut op is applied).
 #[derive(Clone, Debug)]
 pub(crate) struct CutState {
@@ -529,7 +533,7 @@ impl Simulation {
             return Vec::new();
         };
         let margin = V3::repeat(BOX_MARGIN_M);
-        let mut best: Vec<Option<(f64, [usize; 4], [f64; 4])>> = vec![None; qs.len()];
+        let mut best: Vec<Option<ElementHit>> = vec![None; qs.len()];
         let mut visit = |dofs: [usize; 4]| {
             let p = dofs.map(|d| self.x[d]);
             let lo = p[0].inf(&p[1]).inf(&p[2]).inf(&p[3]) - margin;
@@ -566,8 +570,8 @@ impl Simulation {
 
     /// The element whose smallest barycentric coordinate of `q` is largest: (that
     /// coordinate, its degrees of freedom, the coordinates).
-    fn best_element(&self, q: &V3) -> Option<(f64, [usize; 4], [f64; 4])> {
-        let mut best: Option<(f64, [usize; 4], [f64; 4])> = None;
+    fn best_element(&self, q: &V3) -> Option<ElementHit> {
+        let mut best: Option<ElementHit> = None;
         let mut visit = |dofs: [usize; 4]| {
             let p = dofs.map(|d| self.x[d]);
             // Box pre-test: a point outside this element's box cannot beat a containing
