@@ -181,10 +181,11 @@ pub(crate) fn lattice_hierarchy_with_grids(
 /// freedom `d` belongs to, `d` itself for a slot). A copy takes its node's row of the
 /// finest prolongation, so the coarse levels stay the uncut lattice's: the coarse
 /// correction moves both sides of a cut alike and only the fine smoother separates them.
-/// CG stays exact (the V-cycle is still a symmetric positive definite preconditioner:
-/// a copy's row adds a full-rank row to `P`); only its iteration count can grow, by the
-/// share of the solution the cut makes discontinuous (measured in the tests below and
-/// in `examples/cut_cost.rs`).
+/// CG stays exact: added rows cannot lower `P`'s column rank, so the Galerkin coarse
+/// operators stay positive definite and the V-cycle a valid preconditioner; only the
+/// iteration count grows (the 12,288-tet beam notched through its upper half: 29–30
+/// against 19 uncut, test `mg_pcg_after_a_cut_solves_the_steps_of_jacobi_pcg` in
+/// `tests/multigrid.rs`).
 pub fn hierarchy_with_copies(
     mut hierarchy: Hierarchy,
     dofs: usize,

@@ -167,7 +167,8 @@ impl Simulation {
                 hosts: Vec::new(),
                 surface_errors: Vec::new(),
             });
-            // Rotation sharing and the lattice multigrid index lattice nodes only.
+            // Rotation sharing indexes lattice nodes only (the multigrid hierarchy gives the
+            // virtual nodes their lattice node's rows: `multigrid::hierarchy_with_copies`).
             self.sharing = crate::sharing::RotationSharing::new(None);
         }
         let cut = self.cut.as_mut().expect("set above");
@@ -516,8 +517,7 @@ impl Simulation {
     /// same rest point, found by testing only the elements whose bounding box holds the
     /// point. The blade maps its edge every step and the clip applier tests its jaws when
     /// they close; with the full search (a 3×3 inverse per element for a point outside)
-    /// the blade's idle edge took about 20 % of the default scene's step (`perf`,
-    /// 2026-11-27).
+    /// the blade's idle edge took 17 % of the default scene's step (`perf`, 2026-11-27).
     pub fn rest_point_inside(&self, q: &V3) -> Option<V3> {
         self.rest_points_inside(std::slice::from_ref(q))[0]
     }

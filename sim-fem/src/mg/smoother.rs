@@ -149,7 +149,6 @@ impl SymRows {
             .collect()
     }
 
-    /// `Σ_{j<i} A_ij z_j` of row `i`.
     /// Row `i`'s lower entries `(slot, column)`: blocks stored in the rows above, to be
     /// taken transposed.
     pub fn lower_entries(&self, i: usize) -> impl Iterator<Item = (usize, usize)> + '_ {
@@ -171,6 +170,7 @@ impl SymRows {
         self.diag[i] as usize
     }
 
+    /// `Σ_{j<i} A_ij z_j` of row `i`.
     #[inline]
     fn lower_product(&self, blocks: &[Matrix3<f64>], z: &[V3], i: usize) -> V3 {
         let (a, b) = (self.lower_ptr[i] as usize, self.lower_ptr[i + 1] as usize);

@@ -69,12 +69,17 @@ impl FemSystem {
         self.caches.auto_multigrid = choice;
     }
 
-    /// After the first Jacobi-PCG solve under [`LinearSolver::Auto`]: chooses MG-PCG for
+    /// After the first Jacobi-PCG solve (that iterated) under [`LinearSolver::Auto`]: chooses MG-PCG for
     /// good if the solve needed more than [`AUTO_MG_ABOVE_JACOBI_ITERATIONS`] iterations
     /// and the V-cycle would have a coarse level (a hierarchy is set and there are more
     /// free nodes than its coarsest level holds), else Jacobi-PCG for good.
     pub(super) fn auto_observe_jacobi(&mut self, p: &StepParams, res: &CgResult) {
-        if p.linear_solver != LinearSolver::Auto || self.caches.auto_multigrid.is_some() {
+        // A solve with nothing to solve (a zero right-hand side: no load yet) says
+        // nothing about the system; the next one decides.
+        if p.linear_solver != LinearSolver::Auto
+            || self.caches.auto_multigrid.is_some()
+            || res.iterations == 0
+        {
             return;
         }
         let free = self.mesh.fixed.iter().filter(|f| !**f).count();

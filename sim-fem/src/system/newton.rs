@@ -33,6 +33,7 @@ impl FemSystem {
         s.cg_iterations += attempt.cg_iterations;
         s.inverted = attempt.inverted;
         s.max_rotation_change_sq = attempt.max_rotation_change_sq;
+        s.solver = attempt.solver;
         s.fallback = true;
         Ok(s)
     }

@@ -36,8 +36,9 @@ pub struct StepStats {
     /// Largest rotation change of a source since the previous step, as
     /// `‖R_new − R_old‖²_F = 4(1 − cos θ)` (0 when none was extracted).
     pub max_rotation_change_sq: f64,
-    /// The linear solver of the step's linearised solve ([`LinearSolver::Auto`] resolved;
-    /// Newton and fallback steps report the solver asked for).
+    /// The linear solver of the step's linearised solve ([`LinearSolver::Auto`] resolved).
+    /// A linearised step redone with Newton reports its attempt's; a Newton step (StVK)
+    /// reports Jacobi-PCG, which its CG solves use whatever was asked for.
     pub solver: LinearSolver,
 }
 

@@ -56,8 +56,11 @@ pub enum LinearSolver {
     /// needed more than [`crate::AUTO_MG_ABOVE_JACOBI_ITERATIONS`] iterations to the
     /// tolerance and the V-cycle would have a coarse level, else Jacobi-PCG: the crossover
     /// measured in `cosurg bench scale` (docs/RESULTS.md, "Choosing the solver"). Chosen
-    /// once, so that sites starting from the same state choose alike;
-    /// [`StepStats::solver`](crate::StepStats) says which solver a step used.
+    /// once, so that sites starting from the same state with the same CG budget choose
+    /// alike (a site that joins late decides on the state it joins at, and a budget that
+    /// stops the first solve makes the estimate an extrapolation: near the crossover two
+    /// such sites can choose differently; MG-PCG's smoother also depends on the thread
+    /// count). [`StepStats::solver`](crate::StepStats) says which solver a step used.
     Auto,
 }
 
