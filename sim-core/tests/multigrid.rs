@@ -82,6 +82,16 @@ fn refine(sim: &mut Simulation, rounds: u32, pred: impl Fn(&V3) -> bool) {
     }
 }
 
+/// The scene's options with `solver`, every solve to a relative residual of 1e-6 (budget
+/// 20,000 iterations).
+fn converged(scene: &LoadedScene, solver: LinearSolver) -> SimOptions {
+    let mut o = SimOptions::from_scene(&scene.scene);
+    o.step.linear_solver = solver;
+    o.step.solver.max_iters = 20_000;
+    o.step.solver.tol = 1e-6;
+    o
+}
+
 /// Steps `steps` times with the given solver to a 1e-6 relative residual; returns the
 /// positions and the CG iterations of each step.
 fn run(
@@ -103,11 +113,8 @@ fn run_on(
     pred: impl Fn(&V3) -> bool,
     steps: usize,
 ) -> (Vec<V3>, Vec<usize>, usize) {
-    let mut o = SimOptions::from_scene(&scene.scene);
-    o.step.linear_solver = solver;
+    let mut o = converged(scene, solver);
     o.step.threads = threads;
-    o.step.solver.max_iters = 20_000;
-    o.step.solver.tol = 1e-6;
     let mut sim = Simulation::new(scene.clone(), o).unwrap();
     refine(&mut sim, rounds, pred);
     let tets = sim.lattice().leaf_count();
@@ -190,9 +197,7 @@ fn direct_on_an_adaptive_lattice_with_a_1000x_stiffer_rod_across_a_refinement() 
     let scene = beam_scene(true);
     let half = |c: &V3| c.x < 0.2;
     let stepped = |solver: LinearSolver, tol: f64| {
-        let mut o = SimOptions::from_scene(&scene.scene);
-        o.step.linear_solver = solver;
-        o.step.solver.max_iters = 20_000;
+        let mut o = converged(&scene, solver);
         o.step.solver.tol = tol;
         let mut sim = Simulation::new(scene.clone(), o).unwrap();
         refine(&mut sim, 2, half);
@@ -223,10 +228,7 @@ fn direct_on_an_adaptive_lattice_with_a_1000x_stiffer_rod_across_a_refinement() 
 /// positions, the CG iterations of each step and the number of virtual nodes.
 fn run_notched(solver: LinearSolver) -> (Vec<V3>, Vec<usize>, usize) {
     let scene = beam_scene(false);
-    let mut o = SimOptions::from_scene(&scene.scene);
-    o.step.linear_solver = solver;
-    o.step.solver.max_iters = 20_000;
-    o.step.solver.tol = 1e-6;
+    let o = converged(&scene, solver);
     let mut sim = Simulation::new(scene, o).unwrap();
     refine(&mut sim, 3, |_| true);
     // The sheet lies off the lattice's planes (x = 0.2109 m) and spans the beam's width
@@ -321,10 +323,8 @@ fn auto_keeps_its_first_choice_across_a_refinement_and_for_good() {
         (false, 0.001, LinearSolver::JacobiPcg),
     ] {
         let scene = beam_scene(rod);
-        let mut o = SimOptions::from_scene(&scene.scene);
+        let mut o = converged(&scene, LinearSolver::Auto);
         o.dt = dt;
-        o.step.solver.max_iters = 20_000;
-        o.step.solver.tol = 1e-6;
         let mut sim = Simulation::new(scene, o).unwrap();
         refine(&mut sim, 1, |_| true);
         let first = sim.step().unwrap().fem;

@@ -30,6 +30,19 @@ const BOX_MARGIN_M: f64 = 1e-8;
 /// freedom and the coordinates.
 type ElementHit = (f64, [usize; 4], [f64; 4]);
 
+/// Inverse of the element's edge matrix `[p₁ − p₀, p₂ − p₀, p₃ − p₀]` (`None`: degenerate).
+fn edge_matrix_inverse(p: &[V3; 4]) -> Option<nalgebra::Matrix3<f64>> {
+    nalgebra::Matrix3::from_columns(&[p[1] - p[0], p[2] - p[0], p[3] - p[0]]).try_inverse()
+}
+
+/// Barycentric coordinates of `q` in the element `p` (`inv` from [`edge_matrix_inverse`])
+/// and the smallest of them.
+fn barycentric(p: &[V3; 4], inv: &nalgebra::Matrix3<f64>, q: &V3) -> (f64, [f64; 4]) {
+    let l = inv * (q - p[0]);
+    let w = [1.0 - l.x - l.y - l.z, l.x, l.y, l.z];
+    (w.iter().copied().fold(f64::INFINITY, f64::min), w)
+}
+
 /// Cut state of a simulation (present once a cut op is applied).
 #[derive(Clone, Debug)]
 pub(crate) struct CutState {
@@ -546,14 +559,10 @@ impl Simulation {
                 if (0..3).any(|k| q[k] < lo[k] || q[k] > hi[k]) {
                     continue;
                 }
-                let inv = inv.get_or_insert_with(|| {
-                    nalgebra::Matrix3::from_columns(&[p[1] - p[0], p[2] - p[0], p[3] - p[0]])
-                        .try_inverse()
-                });
-                let Some(inv) = inv else { return };
-                let l = *inv * (q - p[0]);
-                let w = [1.0 - l.x - l.y - l.z, l.x, l.y, l.z];
-                let worst = w.iter().copied().fold(f64::INFINITY, f64::min);
+                let Some(inv) = inv.get_or_insert_with(|| edge_matrix_inverse(&p)) else {
+                    return;
+                };
+                let (worst, w) = barycentric(&p, inv, q);
                 if b.as_ref().is_none_or(|b| worst > b.0) {
                     *b = Some((worst, dofs, w));
                 }
@@ -583,11 +592,10 @@ impl Simulation {
                     return;
                 }
             }
-            let m = nalgebra::Matrix3::from_columns(&[p[1] - p[0], p[2] - p[0], p[3] - p[0]]);
-            let Some(inv) = m.try_inverse() else { return };
-            let l = inv * (q - p[0]);
-            let w = [1.0 - l.x - l.y - l.z, l.x, l.y, l.z];
-            let worst = w.iter().copied().fold(f64::INFINITY, f64::min);
+            let Some(inv) = edge_matrix_inverse(&p) else {
+                return;
+            };
+            let (worst, w) = barycentric(&p, &inv, q);
             if best.as_ref().is_none_or(|b| worst > b.0) {
                 best = Some((worst, dofs, w));
             }

@@ -69,10 +69,11 @@ impl FemSystem {
         self.caches.auto_multigrid = choice;
     }
 
-    /// After the first Jacobi-PCG solve (that iterated) under [`LinearSolver::Auto`]: chooses MG-PCG for
-    /// good if the solve needed more than [`AUTO_MG_ABOVE_JACOBI_ITERATIONS`] iterations
-    /// and the V-cycle would have a coarse level (a hierarchy is set and there are more
-    /// free nodes than its coarsest level holds), else Jacobi-PCG for good.
+    /// After the first Jacobi-PCG solve that iterated, under [`LinearSolver::Auto`]:
+    /// chooses MG-PCG for good if the solve needed more than
+    /// [`AUTO_MG_ABOVE_JACOBI_ITERATIONS`] iterations and the V-cycle would have a coarse
+    /// level (a hierarchy is set and there are more free nodes than its coarsest level
+    /// holds), else Jacobi-PCG for good.
     pub(super) fn auto_observe_jacobi(&mut self, p: &StepParams, res: &CgResult) {
         // A solve with nothing to solve (a zero right-hand side: no load yet) says
         // nothing about the system; the next one decides.
@@ -130,12 +131,11 @@ impl FemSystem {
 /// The iterations a Jacobi-PCG solve needed to reach `tol`: its own count if it got
 /// there, else extrapolated at the rate it had (CG's residual falls about geometrically:
 /// `k · ln tol / ln r` after `k` iterations at relative residual `r`); infinite if it made
-/// no progress.
+/// no progress. Called for solves that iterated (`k > 0`).
 fn jacobi_iterations_needed(res: &CgResult, tol: f64) -> f64 {
     if res.relative_residual <= tol {
         res.iterations as f64
-    } else if res.iterations == 0 || res.relative_residual.is_nan() || res.relative_residual >= 1.0
-    {
+    } else if res.relative_residual.is_nan() || res.relative_residual >= 1.0 {
         f64::INFINITY
     } else {
         res.iterations as f64 * tol.ln() / res.relative_residual.ln()
