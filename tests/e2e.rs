@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 
 use cosurg::divergence::fill_divergence;
 use cosurg::site::SiteReport;
+use sim_core::sim_scene::surf::SurfaceRecording;
 use test_support::link as wire;
 
 const TOKEN: &str = "e2e-secret";
@@ -225,8 +226,18 @@ fn wrong_alpn_is_refused_by_tls() {
     });
 }
 
+/// A directory for one session's logs and recordings, removed afterwards unless
+/// `COSURG_E2E_KEEP` is set (then its path is printed, to read a failed run's site logs).
 fn session_dir() -> tempfile::TempDir {
-    tempfile::tempdir().unwrap()
+    let mut dir = tempfile::Builder::new();
+    if std::env::var_os("COSURG_E2E_KEEP").is_some() {
+        dir.disable_cleanup(true);
+    }
+    let dir = dir.tempdir().unwrap();
+    if std::env::var_os("COSURG_E2E_KEEP").is_some() {
+        eprintln!("session directory kept: {}", dir.path().display());
+    }
+    dir
 }
 
 fn spawn_site(server: &Server, dir: &Path, name: &str, role: &str, extra: &[&str]) -> Child {
@@ -324,11 +335,26 @@ fn assert_receiver_follows(
     check_motion: bool,
     what: &str,
 ) {
+    let bound = check_motion.then_some(MOTION_BOUND_MM);
+    assert_receiver_follows_within(owner, receiver, bound, what);
+}
+
+/// [`assert_receiver_follows`] with the motion bound given (mm; `None`: not checked).
+fn assert_receiver_follows_within(
+    owner: SiteReport,
+    receiver: SiteReport,
+    motion_bound_mm: Option<f64>,
+    what: &str,
+) {
     let mut reports = vec![owner, receiver];
     let series = fill_divergence(&mut reports).unwrap();
-    if check_motion {
+    if let Some(bound) = motion_bound_mm {
         let max = reports[1].divergence_max_mm.unwrap();
-        assert!(max < MOTION_BOUND_MM, "divergence {max} mm {what}");
+        eprintln!("{what}: max divergence {max:.2} mm (bound {bound:.1} mm)");
+        assert!(
+            max < bound,
+            "divergence {max} mm {what} (bound {bound:.1} mm)"
+        );
     }
     let settled = settled_max(&series, 7.0);
     assert!(
@@ -492,10 +518,26 @@ fn garbage_from_one_site_does_not_disturb_the_others() {
     assert_receiver_follows(r_i, r_t, true, "with a rogue site");
 }
 
+/// A keyframe receiver's divergence during motion, relative to the owner's largest motion
+/// within one stale window: the stale view itself (1×) plus at most as much again from
+/// extrapolating a lost keyframe's velocity (the owner re-sends on drift, so one lost
+/// keyframe is replaced within about the same window).
+const KEYFRAME_STALE_MOTION_FACTOR: f64 = 2.0;
+
 /// Bounds under the `poor` preset (200 ± 30 ms one way, 10 % loss, on every site's own
-/// link in both directions): during the lift a receiver may lag the owner by the whole
-/// lift (keyframes arrive late and rarely), so the motion bound is the lift plus margin;
-/// within 1.8 s after the tools stop the sites must agree.
+/// link in both directions), keyframe sync: a receiver's view of the lifted region is
+/// the owner's state from keyframes about one path old (its playout lag hides that only
+/// while the lag covers the path's jitter and the losses), so while the tissue moves it
+/// can be as far from the owner as the owner moved within such a window — at the grasp's
+/// release the gallbladder snaps back 33 mm between two 50 ms marks — plus what its
+/// extrapolation overshoots when a keyframe is lost. The motion bound is therefore
+/// taken from the owner's own recording: [`KEYFRAME_STALE_MOTION_FACTOR`] × the owner's
+/// largest motion within one one-way delay plus 3 σ of jitter. Within 1.8 s after the
+/// tools stop the sites must agree.
+///
+/// Measured (test-profile binaries, seed 5): 4.6–33 mm in 14 runs on 2026-11-27 (the
+/// larger values when the machine was idle: the sites kept real time and the lag was
+/// short), 45.3 mm in one CI run, which failed the earlier fixed bound of 40 mm.
 #[test]
 fn poor_network_keeps_divergence_bounded_and_settles() {
     let _serial = serial();
@@ -538,7 +580,17 @@ fn poor_network_keeps_divergence_bounded_and_settles() {
         r_i.keyframes_sent > 0,
         "keyframes got through the poor path"
     );
-    assert_receiver_follows(r_i, r_t, true, "under the poor preset");
+    let preset = netem::ImpairmentConfig::preset("poor").unwrap();
+    let window_s = (preset.delay_ms + 3.0 * preset.jitter_ms) * 1e-3;
+    let owner_surf = r_i
+        .surf_file
+        .as_ref()
+        .expect("the owner's surface recording");
+    let owner = SurfaceRecording::from_bytes(&std::fs::read(owner_surf).unwrap()).unwrap();
+    let stale_mm = owner.largest_motion_within(window_s) * 1e3;
+    assert!(stale_mm > 1.0, "the owner's tissue moved ({stale_mm} mm)");
+    let bound = KEYFRAME_STALE_MOTION_FACTOR * stale_mm;
+    assert_receiver_follows_within(r_i, r_t, Some(bound), "under the poor preset");
 }
 
 /// Hybrid sync bounds, from the goals of issue 15 (worst over 5 seeds in `cosurg bench

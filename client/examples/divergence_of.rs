@@ -5,7 +5,7 @@ fn main() -> anyhow::Result<()> {
     tracing_subscriber::fmt().with_env_filter("debug").init();
     let dir = std::path::PathBuf::from(std::env::args().nth(1).expect("DIR"));
     let mut reports = Vec::new();
-    for name in ["instructor", "trainee-a", "trainee-b"] {
+    for name in ["instructor", "trainee", "trainee-a", "trainee-b"] {
         let p = dir.join(name).join("report.json");
         if let Ok(text) = std::fs::read_to_string(&p) {
             reports.push(serde_json::from_str::<cosurg::site::SiteReport>(&text)?);

@@ -260,6 +260,28 @@ impl SurfaceRecording {
         })
     }
 
+    /// The largest distance (m) any vertex moved between two marks at most `window_s`
+    /// apart: how far a view of this recording that is up to `window_s` stale can be
+    /// from it (a keyframe receiver's view lags its owner by about one network path).
+    /// 0 for fewer than two records.
+    pub fn largest_motion_within(&self, window_s: f64) -> f64 {
+        let mut max2: f64 = 0.0;
+        for (i, later) in self.records.iter().enumerate() {
+            for earlier in self.records[..i].iter().rev() {
+                if later.time_s - earlier.time_s > window_s + 1e-9 {
+                    break;
+                }
+                for (p, q) in later.vertices.iter().zip(&earlier.vertices) {
+                    let d2: f64 = (0..3)
+                        .map(|k| (f64::from(p[k]) - f64::from(q[k])).powi(2))
+                        .sum();
+                    max2 = max2.max(d2);
+                }
+            }
+        }
+        max2.sqrt()
+    }
+
     /// Divergence at every mark present in both recordings (times equal within 1 µs).
     /// Errors if the scene hashes or surface sizes differ.
     pub fn divergence(&self, other: &SurfaceRecording) -> Result<Vec<DivergenceSample>, SurfError> {

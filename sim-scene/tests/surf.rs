@@ -178,6 +178,40 @@ fn divergence_between_recordings() {
     assert!((rms - 5.0f64.sqrt()).abs() < 1e-12);
 }
 
+/// A vertex moving at 2 m/s along x (marks 50 ms apart) and another jumping 7 m at one
+/// mark: the largest motion within a window is the larger of the speed times the widest
+/// mark gap that fits and the jump (worked out by hand).
+#[test]
+fn largest_motion_within_a_window() {
+    let mut r = SurfaceRecording {
+        scene_hash: "abc".into(),
+        interval_s: 0.05,
+        surface_sizes: vec![2],
+        records: (0..10)
+            .map(|k| {
+                let t = 0.05 * k as f64;
+                let jump = if k >= 6 { 7.0 } else { 0.0 };
+                SurfaceRecord {
+                    time_s: t,
+                    vertices: vec![[(2.0 * t) as f32, 0.0, 0.0], [0.0, jump, 0.0]],
+                }
+            })
+            .collect(),
+    };
+    let near = |a: f64, b: f64| (a - b).abs() < 1e-6;
+    // Within 0.2 s: 4 gaps of 50 ms at 2 m/s = 0.4 m < the 7 m jump.
+    assert!(near(r.largest_motion_within(0.2), 7.0));
+    // Without the jump: the mover's 0.4 m; a window shorter than a gap sees nothing.
+    for rec in &mut r.records {
+        rec.vertices[1] = [0.0; 3];
+    }
+    assert!(near(r.largest_motion_within(0.2), 0.4));
+    assert!(near(r.largest_motion_within(0.12), 0.2));
+    assert_eq!(r.largest_motion_within(0.01), 0.0);
+    r.records.truncate(1);
+    assert_eq!(r.largest_motion_within(1.0), 0.0);
+}
+
 proptest! {
     #![proptest_config(ProptestConfig { failure_persistence: None, ..ProptestConfig::default() })]
 
