@@ -51,14 +51,16 @@ pub(super) fn mask_prolongation(
     let nc = p.coarse_len();
     let mut image_of_fixed = vec![false; nc];
     let mut used = vec![false; nc];
-    for (i, &free) in fine_free.iter().enumerate() {
-        let mut row = p.row(i);
+    // `p`'s rows are numbered as the finer level was before its own masking: fine node
+    // `i` (this level's numbering) is `p`'s row `fine_rows[i]`.
+    for (&orig, &free) in fine_rows.iter().zip(fine_free) {
+        let mut row = p.row(orig);
         match (row.next(), row.next()) {
             (Some((c, w)), None) if !free && w == 1.0 => image_of_fixed[c] = true,
             _ => {}
         }
         if free {
-            for (c, _) in p.row(i) {
+            for (c, _) in p.row(orig) {
                 used[c] = true;
             }
         }

@@ -67,6 +67,16 @@ impl LinearOperator for Assembled {
 /// whose centre lies in the rod `|y − y_c|, |z − z_c| < 1 cell` stiffer by `contrast`;
 /// a penalty spring (1e4 N/m) on the free end's corner. Matrix at a bent state, dt (s).
 fn beam_matrix(cells: [usize; 3], contrast: f64, dt: f64) -> (BoxMesh, Assembled) {
+    beam_matrix_fixed_to(cells, contrast, dt, 1e-9)
+}
+
+/// [`beam_matrix`] with every node at `x ≤ fixed_x` (m) fixed (cells of 2 cm).
+fn beam_matrix_fixed_to(
+    cells: [usize; 3],
+    contrast: f64,
+    dt: f64,
+    fixed_x: f64,
+) -> (BoxMesh, Assembled) {
     let h = 0.02;
     let size = cells.map(|c| c as f64 * h);
     let mesh = kuhn_box(cells, size, V3::zeros());
@@ -78,7 +88,7 @@ fn beam_matrix(cells: [usize; 3], contrast: f64, dt: f64) -> (BoxMesh, Assembled
         }
     }
     let soft = Material::new(1e5, 0.45, 1000.0);
-    let fixed = mesh.nodes_with_x_at_most(1e-9);
+    let fixed = mesh.nodes_with_x_at_most(fixed_x);
     let mut sys = FemSystem::new(&FemDesc {
         rest: mesh.rest.clone(),
         elements,
@@ -448,6 +458,33 @@ fn vcycle_contraction_does_not_grow_with_the_level_count_also_with_a_stiff_inclu
             "contrast {contrast}: {rates:?}"
         );
     }
+}
+
+/// Coarse levels below a level that dropped fixed nodes: the beam is fixed up to x = 2
+/// cells (the nodes numbered first), so the first coarsening drops their images and
+/// renumbers the rest, and the second must read the kept nodes' own prolongation rows. The
+/// coarse nodes at x = 0 of the second coarsening are interpolated only from dropped
+/// nodes: reading the rows by the renumbered index kept them with empty columns (a zero
+/// row in the coarse operator, a singular coarsest matrix). Every coarse operator must
+/// have a positive diagonal and the coarsest must be factored.
+#[test]
+fn coarse_levels_below_dropped_fixed_nodes_stay_positive_definite() {
+    let cells = [16, 8, 8];
+    let (_, a) = beam_matrix_fixed_to(cells, 1.0, 0.01, 0.04 + 1e-9);
+    let h = box_hierarchy(cells);
+    let params = MgParams {
+        smoothing_steps: 1,
+        coarsest_nodes: 20,
+        direct_max_nodes: 800,
+    };
+    let mut mg = Multigrid::new(&h, &a.fixed, &a.pattern, params).unwrap();
+    mg.refresh(&a.blocks);
+    // 17·9·9 fine nodes; 9·5·5 coarse less the 2·25 images of fixed ones; 5·3·3 less
+    // the x = 0 layer (only dropped nodes interpolate from it); 3·2·2.
+    assert_eq!(mg.level_sizes(), [1377, 175, 36, 12]);
+    let mins = mg.coarse_diagonal_min();
+    assert!(mins.iter().all(|m| *m > 0.0), "coarse diagonals {mins:?}");
+    assert!(mg.coarsest_factored());
 }
 
 /// Splits of the rows into 2 and 3 uneven parts.

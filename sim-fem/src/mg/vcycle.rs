@@ -174,6 +174,34 @@ impl Multigrid {
             .collect()
     }
 
+    /// Whether the coarsest level is solved by its Cholesky factor (after
+    /// [`Multigrid::refresh`]): false when it is larger than
+    /// [`MgParams::direct_max_nodes`] or its operator was not positive definite (then it
+    /// is smoothed instead, a weaker V-cycle).
+    pub fn coarsest_factored(&self) -> bool {
+        self.coarsest.is_some()
+    }
+
+    /// Smallest diagonal entry of every coarse level's operator, coarsest last (after
+    /// [`Multigrid::refresh`]): positive for a positive definite fine matrix and a
+    /// prolongation without empty columns.
+    pub fn coarse_diagonal_min(&self) -> Vec<f64> {
+        self.levels
+            .iter()
+            .map(|l| {
+                let rows = &l.plan.coarse.row_ptr;
+                rows[..rows.len() - 1]
+                    .iter()
+                    .map(|&s| {
+                        // Each row of the upper CSR starts with its diagonal block.
+                        let b = &l.blocks[s];
+                        b[(0, 0)].min(b[(1, 1)]).min(b[(2, 2)])
+                    })
+                    .fold(f64::INFINITY, f64::min)
+            })
+            .collect()
+    }
+
     /// The Dirichlet mask it was built for.
     pub fn fixed(&self) -> &[bool] {
         &self.fixed
