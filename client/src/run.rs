@@ -66,9 +66,9 @@ pub struct RunArgs {
     #[arg(long, conflicts_with_all = ["headless", "screenshot"])]
     pub stats_json: Option<PathBuf>,
     /// Lattice cell size (m) of every body, instead of the scene's: a finer or coarser
-    /// organ (the default scene has 2 cm; 1.33 cm, about 4,700 tets, is the finest its
-    /// gallbladder bed allows, since the bed needs one empty cell between liver and
-    /// gallbladder). The scene's hash changes with it.
+    /// organ (the default scene has 2 cm; 1.33 cm gives about 4,700 tets, 1 cm about
+    /// 8,500; 1.5 cm is refused, since the gallbladder bed needs one empty cell between
+    /// liver and gallbladder). The scene's hash changes with it.
     #[arg(long, value_name = "M")]
     pub cell: Option<f64>,
     #[command(flatten)]
