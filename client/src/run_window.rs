@@ -304,6 +304,12 @@ pub struct WindowRun {
 /// What a `cosurg run` with a window measured.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct WindowRunStats {
+    /// The scene's label and hash (a scene changed on the command line, e.g. `--cell`,
+    /// has its own hash).
+    #[serde(default)]
+    pub scene: String,
+    #[serde(default)]
+    pub scene_hash: String,
     pub window: bool,
     pub size: (u32, u32),
     pub sim_seconds: f64,
@@ -359,6 +365,7 @@ pub fn run_with_window(
     run: &WindowRun,
 ) -> Result<WindowRunStats> {
     let title = format!("cosurg run — {}", scene.file);
+    let (scene_label, scene_hash) = (scene.file.clone(), scene.hash.clone());
     let mut site = LocalSite::new(scene, options, run.scripted)?;
     let mut builder = FrameBuilder::new(&site.sim)?;
     let slot = ViewSlot::new(site.frame(&mut builder, false, None));
@@ -444,6 +451,8 @@ pub fn run_with_window(
     };
     let p = |v: &[f64], q: f64| if v.is_empty() { 0.0 } else { percentile(v, q) };
     Ok(WindowRunStats {
+        scene: scene_label,
+        scene_hash,
         window: run.window,
         size: run.size,
         sim_seconds: site.sim.time(),

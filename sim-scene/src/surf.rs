@@ -260,26 +260,47 @@ impl SurfaceRecording {
         })
     }
 
-    /// The largest distance (m) any vertex moved between two marks at most `window_s`
-    /// apart: how far a view of this recording that is up to `window_s` stale can be
-    /// from it (a keyframe receiver's view lags its owner by about one network path).
-    /// 0 for fewer than two records.
-    pub fn largest_motion_within(&self, window_s: f64) -> f64 {
-        let mut max2: f64 = 0.0;
-        for (i, later) in self.records.iter().enumerate() {
-            for earlier in self.records[..i].iter().rev() {
-                if later.time_s - earlier.time_s > window_s + 1e-9 {
-                    break;
-                }
-                for (p, q) in later.vertices.iter().zip(&earlier.vertices) {
-                    let d2: f64 = (0..3)
+    /// For every mark, the largest distance (m) between it and any mark at most
+    /// `window_s` before or after it, over all vertices: how far from this recording a
+    /// view can be that shows it up to `window_s` early or late (a keyframe receiver
+    /// shows its owner about one network path late, and early when it interpolates
+    /// towards a keyframe its clock has not reached). Returns `(time_s, distance_m)` per
+    /// mark. Every record holds the same vertices ([`SurfaceRecording::from_bytes`]
+    /// checks it).
+    pub fn motion_around(&self, window_s: f64) -> Vec<(f64, f64)> {
+        let dist2 = |a: &SurfaceRecord, b: &SurfaceRecord| -> f64 {
+            a.vertices
+                .iter()
+                .zip(&b.vertices)
+                .map(|(p, q)| {
+                    (0..3)
                         .map(|k| (f64::from(p[k]) - f64::from(q[k])).powi(2))
-                        .sum();
-                    max2 = max2.max(d2);
-                }
-            }
-        }
-        max2.sqrt()
+                        .sum::<f64>()
+                })
+                .fold(0.0, f64::max)
+        };
+        self.records
+            .iter()
+            .map(|r| {
+                let max2 = self
+                    .records
+                    .iter()
+                    .filter(|o| (o.time_s - r.time_s).abs() <= window_s + 1e-9)
+                    .map(|o| dist2(r, o))
+                    .fold(0.0, f64::max);
+                (r.time_s, max2.sqrt())
+            })
+            .collect()
+    }
+
+    /// The largest distance (m) any vertex moved between two marks at most `window_s`
+    /// apart (the largest of [`SurfaceRecording::motion_around`]); 0 for fewer than two
+    /// records.
+    pub fn largest_motion_within(&self, window_s: f64) -> f64 {
+        self.motion_around(window_s)
+            .iter()
+            .map(|m| m.1)
+            .fold(0.0, f64::max)
     }
 
     /// Divergence at every mark present in both recordings (times equal within 1 µs).

@@ -208,6 +208,12 @@ fn largest_motion_within_a_window() {
     assert!(near(r.largest_motion_within(0.2), 0.4));
     assert!(near(r.largest_motion_within(0.12), 0.2));
     assert_eq!(r.largest_motion_within(0.01), 0.0);
+    // Around each mark: the mover covers 0.1 m in one 50 ms gap, at the ends too.
+    let around = r.motion_around(0.05);
+    assert_eq!(around.len(), 10);
+    assert!(near(around[0].1, 0.1) && near(around[9].1, 0.1));
+    assert!(around[1..9].iter().all(|m| near(m.1, 0.1)));
+    assert!(near(around[3].0, 0.15));
     r.records.truncate(1);
     assert_eq!(r.largest_motion_within(1.0), 0.0);
 }

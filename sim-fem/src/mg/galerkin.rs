@@ -40,20 +40,22 @@ impl UpperCsr {
 
 /// A prolongation restricted to the free nodes: rows of fixed fine nodes emptied, and the
 /// coarse nodes renumbered to those kept (not the weight-1 image of a fixed fine node, and
-/// interpolated from by at least one free fine node). `fine_free` says which fine nodes
-/// are free; the returned mask says which coarse nodes were kept (indexed by the original
-/// coarse numbering), so that the next level can drop the rows of the others.
+/// interpolated from by at least one free fine node). The fine level may itself have been
+/// renumbered by the masking above it: its node `i` is `p`'s row `orig_index[i]`, and
+/// `fine_free[i]` says whether it is free. Returns the masked prolongation and the kept
+/// coarse nodes' indices in `p`'s coarse numbering (the next level's `orig_index`).
 pub(super) fn mask_prolongation(
     p: &Prolongation,
-    fine_rows: &[usize],
+    orig_index: &[usize],
     fine_free: &[bool],
-) -> (Prolongation, Vec<bool>, Vec<usize>) {
+) -> (Prolongation, Vec<usize>) {
+    debug_assert_eq!(orig_index.len(), fine_free.len());
     let nc = p.coarse_len();
     let mut image_of_fixed = vec![false; nc];
     let mut used = vec![false; nc];
-    // `p`'s rows are numbered as the finer level was before its own masking: fine node
-    // `i` (this level's numbering) is `p`'s row `fine_rows[i]`.
-    for (&orig, &free) in fine_rows.iter().zip(fine_free) {
+    // Reading `p`'s rows by this level's own index `i` instead kept coarse nodes that no
+    // kept node interpolates from (zero rows, a singular coarsest matrix).
+    for (&orig, &free) in orig_index.iter().zip(fine_free) {
         let mut row = p.row(orig);
         match (row.next(), row.next()) {
             (Some((c, w)), None) if !free && w == 1.0 => image_of_fixed[c] = true,
@@ -74,8 +76,8 @@ pub(super) fn mask_prolongation(
             kept.push(c);
         }
     }
-    // Rows: the fine level's own rows (`fine_rows` maps its numbering to the original).
-    let rows: Vec<Vec<(usize, f64)>> = fine_rows
+    // Rows: the fine level's own rows (`orig_index` maps its numbering to `p`'s).
+    let rows: Vec<Vec<(usize, f64)>> = orig_index
         .iter()
         .enumerate()
         .map(|(i, &orig)| {
@@ -89,7 +91,7 @@ pub(super) fn mask_prolongation(
         })
         .collect();
     let masked = Prolongation::from_rows(kept.len(), &rows).expect("columns renumbered in range");
-    (masked, keep, kept)
+    (masked, kept)
 }
 
 /// One term of the Galerkin product: `coarse[dst] += w · fine[src]` (transposed if `t`).

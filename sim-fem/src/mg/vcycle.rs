@@ -115,14 +115,15 @@ impl Multigrid {
             );
         }
         let mut free: Vec<bool> = fixed.iter().map(|f| !f).collect();
-        let mut rows: Vec<usize> = (0..n).collect();
+        // Each level's nodes as indices into the unmasked hierarchy's level above.
+        let mut orig_index: Vec<usize> = (0..n).collect();
         let mut levels = Vec::new();
         let mut finer_len = free.iter().filter(|f| **f).count();
         for p in &hierarchy.levels {
             if finer_len <= params.coarsest_nodes {
                 break;
             }
-            let (masked, _keep, kept) = mask_prolongation(p, &rows, &free);
+            let (masked, kept) = mask_prolongation(p, &orig_index, &free);
             if masked.coarse_len() == 0 {
                 break;
             }
@@ -130,7 +131,7 @@ impl Multigrid {
             upper = plan.coarse_upper();
             let nc = masked.coarse_len();
             finer_len = nc;
-            rows = kept;
+            orig_index = kept;
             free = vec![true; nc];
             let rows = SymRows::of_upper(&plan.coarse);
             levels.push(Level {
@@ -182,13 +183,16 @@ impl Multigrid {
         self.coarsest.is_some()
     }
 
-    /// Smallest diagonal entry of every coarse level's operator, coarsest last (after
-    /// [`Multigrid::refresh`]): positive for a positive definite fine matrix and a
-    /// prolongation without empty columns.
+    /// Smallest diagonal entry of every coarse level's operator, coarsest last: positive
+    /// for a positive definite fine matrix and a prolongation without empty columns (NaN
+    /// for a level before the first [`Multigrid::refresh`]).
     pub fn coarse_diagonal_min(&self) -> Vec<f64> {
         self.levels
             .iter()
             .map(|l| {
+                if l.blocks.is_empty() {
+                    return f64::NAN; // not refreshed yet
+                }
                 let rows = &l.plan.coarse.row_ptr;
                 rows[..rows.len() - 1]
                     .iter()
