@@ -2,7 +2,8 @@
 //! hierarchy) and the sparse direct solver on the soft (E = 1e5 Pa) and stiff (1e6 Pa)
 //! cantilever beams at 1,536 and 12,288 tets (finer with `--cells`), dt 1 and 10 ms, every
 //! step solved to a relative residual of 1e-6, then the default organ scene (the liver and
-//! its gallbladder at their lattice's resolution, no tool touching) the same way: CG
+//! its gallbladder at their lattice's resolution, or at the cells of `--organ-cells`, no
+//! tool touching) the same way: CG
 //! iterations, wall time per step (p50, p99, one thread) and the most heap each row held;
 //! and the exponent of p50 time against tets between the beam sizes run. Each scene
 //! runs with its own features (the beams share no rotations) unless `--sharing-angle`
@@ -39,6 +40,11 @@ pub struct ScaleArgs {
     /// Leave out the default organ scene's rows (run after the beams).
     #[arg(long)]
     pub no_organ: bool,
+    /// Lattice cell sizes (m) of the organ's rows, comma-separated: every body's cell, as
+    /// `cosurg run --cell` (e.g. 0.02,0.013333333 for the default 2 cm and the 1.33 cm
+    /// organ). Default: the scene's own.
+    #[arg(long, value_delimiter = ',')]
+    pub organ_cells: Vec<f64>,
     /// Rotation-sharing angle θ_tol (degrees) for every row; 0 turns sharing off. Default:
     /// each scene's own (the beams share no rotations, the organ shares within 5°); 5 is
     /// the product's configuration (`cosurg bench cantilever`'s all-on).
@@ -103,6 +109,9 @@ pub struct ScaleRow {
     pub material: &'static str,
     /// The beam's Young's modulus (Pa); `None` for the organ.
     pub young_pa: Option<f64>,
+    /// Lattice cell size (m): the beam's, or the organ's bodies' (the first body's when
+    /// they differ).
+    pub cell_m: f64,
     pub tets: usize,
     pub dt_s: f64,
     pub solver: &'static str,
@@ -138,8 +147,11 @@ enum Subject {
         young: f64,
         cell: f64,
     },
-    /// The built-in default scene (the liver with the gallbladder), untouched by tools.
-    Organ,
+    /// The built-in default scene (the liver with the gallbladder), untouched by tools;
+    /// with `cell`, every body on that lattice cell (m) instead of the scene's.
+    Organ {
+        cell: Option<f64>,
+    },
 }
 
 fn run_one(
@@ -154,8 +166,17 @@ fn run_one(
         Subject::Beam { young, cell } => {
             cantilever_with(young, cell).context("cantilever scene")?
         }
-        Subject::Organ => sim_core::sim_scene::builtin::default_scene(),
+        Subject::Organ { cell } => {
+            let mut scene = sim_core::sim_scene::builtin::default_scene();
+            if let Some(cell) = cell {
+                scene
+                    .modify(|s| s.bodies.iter_mut().for_each(|b| b.cell = cell))
+                    .with_context(|| format!("the organ at --organ-cells {cell}"))?;
+            }
+            scene
+        }
     };
+    let cell_m = scene.scene.bodies.first().map_or(f64::NAN, |b| b.cell);
     let mut o = SimOptions::from_scene(&scene.scene);
     o.dt = dt;
     o.step.linear_solver = solver;
@@ -186,8 +207,9 @@ fn run_one(
         material: "",
         young_pa: match subject {
             Subject::Beam { young, .. } => Some(young),
-            Subject::Organ => None,
+            Subject::Organ { .. } => None,
         },
+        cell_m,
         tets,
         dt_s: dt,
         solver: solver.name(),
@@ -228,7 +250,12 @@ pub fn run(args: ScaleArgs) -> Result<()> {
         }
     }
     if !args.no_organ {
-        subjects.push(("organ", Subject::Organ));
+        if args.organ_cells.is_empty() {
+            subjects.push(("organ", Subject::Organ { cell: None }));
+        }
+        for &cell in &args.organ_cells {
+            subjects.push(("organ", Subject::Organ { cell: Some(cell) }));
+        }
     }
     let mut rows = Vec::new();
     for &(material, subject) in &subjects {

@@ -217,6 +217,46 @@ fn scale_json_every_solver_converges_and_the_exponents_are_reported() {
     }
 }
 
+/// `--organ-cells`: the organ's rows at the default 2 cm and at 1.33 cm (the finer organ
+/// of `cosurg run --cell`), each converged; the finer has about 3.3× the tets.
+#[test]
+fn scale_json_runs_the_organ_at_each_requested_cell() {
+    let out = Command::new(env!("CARGO_BIN_EXE_cosurg"))
+        .args([
+            "bench", "scale", "--json", "--cells", "0.05", "--dts", "0.01",
+        ])
+        .args(["--steps", "1", "--solvers", "mg-pcg"])
+        .args(["--organ-cells", "0.02,0.013333333"])
+        .output()
+        .expect("run cosurg");
+    assert!(
+        out.status.success(),
+        "cosurg bench scale failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r: Value = serde_json::from_slice(&out.stdout).expect("JSON");
+    let rows = r["rows"].as_array().expect("rows");
+    let organ: Vec<&Value> = rows.iter().filter(|w| w["material"] == "organ").collect();
+    assert_eq!(organ.len(), 2, "{r}");
+    assert_eq!(num(organ[0], "cell_m"), 0.02);
+    assert_eq!(num(organ[1], "cell_m"), 0.013333333);
+    for row in &organ {
+        assert!(num(row, "residual_max") <= 1e-6, "not converged: {row}");
+    }
+    let (coarse, fine) = (num(organ[0], "tets"), num(organ[1], "tets"));
+    assert!(
+        fine > 2.5 * coarse,
+        "{fine} tets at 1.33 cm against {coarse} at 2 cm"
+    );
+    // The beams report their own cell.
+    assert!(
+        rows.iter()
+            .filter(|w| w["material"] != "organ")
+            .all(|w| num(w, "cell_m") == 0.05),
+        "{r}"
+    );
+}
+
 #[test]
 fn coordinator_quick_json() {
     // The bench starts `cosurg-server` (another package's binary) as its coordinator.
