@@ -343,21 +343,6 @@ enum MotionBound {
 fn assert_receiver_follows(
     owner: SiteReport,
     receiver: SiteReport,
-    check_motion: bool,
-    what: &str,
-) {
-    let motion = if check_motion {
-        MotionBound::Fixed(MOTION_BOUND_MM)
-    } else {
-        MotionBound::Unchecked
-    };
-    assert_receiver_follows_within(owner, receiver, motion, what);
-}
-
-/// [`assert_receiver_follows`] with the motion bound given.
-fn assert_receiver_follows_within(
-    owner: SiteReport,
-    receiver: SiteReport,
     motion: MotionBound,
     what: &str,
 ) {
@@ -496,7 +481,12 @@ fn killed_site_rejoins_and_resynchronises() {
         "the rejoined site applied the snapshot and later keyframes"
     );
     // The rejoined site started at the session's time: compare where both recorded.
-    assert_receiver_follows(r_instructor, r_trainee, false, "after rejoining");
+    assert_receiver_follows(
+        r_instructor,
+        r_trainee,
+        MotionBound::Unchecked,
+        "after rejoining",
+    );
 }
 
 #[test]
@@ -566,7 +556,12 @@ fn garbage_from_one_site_does_not_disturb_the_others() {
         dir.path().join("trainee.log"),
     );
     assert!(r_t.keyframes_applied > 0 && r_i.keyframes_sent > 0);
-    assert_receiver_follows(r_i, r_t, true, "with a rogue site");
+    assert_receiver_follows(
+        r_i,
+        r_t,
+        MotionBound::Fixed(MOTION_BOUND_MM),
+        "with a rogue site",
+    );
 }
 
 /// A keyframe receiver's divergence during motion, relative to how far the owner's
@@ -641,7 +636,7 @@ fn poor_network_keeps_divergence_bounded_and_settles() {
     let preset = netem::ImpairmentConfig::preset("poor").unwrap();
     let window_s = (preset.delay_ms + 3.0 * preset.jitter_ms) * 1e-3;
     let motion = MotionBound::OwnerMotion { window_s };
-    assert_receiver_follows_within(r_i, r_t, motion, "under the poor preset");
+    assert_receiver_follows(r_i, r_t, motion, "under the poor preset");
 }
 
 /// Hybrid sync bounds, from the goals of issue 15 (worst over 5 seeds in `cosurg bench
@@ -792,7 +787,7 @@ fn total_outage_then_recovery_resynchronises() {
         r_t.reconnects >= 1,
         "the trainee reconnected after the outage"
     );
-    assert_receiver_follows(r_i, r_t, false, "after the outage");
+    assert_receiver_follows(r_i, r_t, MotionBound::Unchecked, "after the outage");
 }
 
 /// A site that joins, runs one simulated second and leaves: exit code 0.

@@ -170,7 +170,7 @@ fn run_one(
             let mut scene = sim_core::sim_scene::builtin::default_scene();
             if let Some(cell) = cell {
                 scene
-                    .modify(|s| s.bodies.iter_mut().for_each(|b| b.cell = cell))
+                    .set_cell(cell)
                     .with_context(|| format!("the organ at --organ-cells {cell}"))?;
             }
             scene

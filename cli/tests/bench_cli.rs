@@ -154,19 +154,24 @@ fn stress_quick_json() {
     }
 }
 
-#[test]
-fn scale_json_every_solver_converges_and_the_exponents_are_reported() {
+/// `cosurg bench scale --json ARGS` (it writes no files), parsed.
+fn scale_json(args: &[&str]) -> Value {
     let out = Command::new(env!("CARGO_BIN_EXE_cosurg"))
-        .args(["bench", "scale", "--json", "--cells", "0.05,0.025"])
-        .args(["--dts", "0.01", "--steps", "2"])
+        .args(["bench", "scale", "--json"])
+        .args(args)
         .output()
         .expect("run cosurg");
     assert!(
         out.status.success(),
-        "cosurg bench scale failed: {}",
+        "cosurg bench scale {args:?} failed: {}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let r: Value = serde_json::from_slice(&out.stdout).expect("JSON");
+    serde_json::from_slice(&out.stdout).expect("JSON")
+}
+
+#[test]
+fn scale_json_every_solver_converges_and_the_exponents_are_reported() {
+    let r = scale_json(&["--cells", "0.05,0.025", "--dts", "0.01", "--steps", "2"]);
     let rows = r["rows"].as_array().expect("rows");
     // 2 beams × 2 meshes × 1 dt × 3 solvers, then the organ × 1 dt × 3 solvers.
     assert_eq!(rows.len(), 15, "{r}");
@@ -221,20 +226,18 @@ fn scale_json_every_solver_converges_and_the_exponents_are_reported() {
 /// of `cosurg run --cell`), each converged; the finer has about 3.3× the tets.
 #[test]
 fn scale_json_runs_the_organ_at_each_requested_cell() {
-    let out = Command::new(env!("CARGO_BIN_EXE_cosurg"))
-        .args([
-            "bench", "scale", "--json", "--cells", "0.05", "--dts", "0.01",
-        ])
-        .args(["--steps", "1", "--solvers", "mg-pcg"])
-        .args(["--organ-cells", "0.02,0.013333333"])
-        .output()
-        .expect("run cosurg");
-    assert!(
-        out.status.success(),
-        "cosurg bench scale failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let r: Value = serde_json::from_slice(&out.stdout).expect("JSON");
+    let r = scale_json(&[
+        "--cells",
+        "0.05",
+        "--dts",
+        "0.01",
+        "--steps",
+        "1",
+        "--solvers",
+        "mg-pcg",
+        "--organ-cells",
+        "0.02,0.013333333",
+    ]);
     let rows = r["rows"].as_array().expect("rows");
     let organ: Vec<&Value> = rows.iter().filter(|w| w["material"] == "organ").collect();
     assert_eq!(organ.len(), 2, "{r}");

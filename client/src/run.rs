@@ -83,7 +83,7 @@ pub fn run(args: RunArgs) -> Result<()> {
     let mut scene = load_scene(args.scene.as_deref())?;
     if let Some(cell) = args.cell {
         scene
-            .modify(|s| s.bodies.iter_mut().for_each(|b| b.cell = cell))
+            .set_cell(cell)
             .with_context(|| format!("--cell {cell}"))?;
     }
     let label = scene.file.clone();

@@ -293,16 +293,6 @@ impl SurfaceRecording {
             .collect()
     }
 
-    /// The largest distance (m) any vertex moved between two marks at most `window_s`
-    /// apart (the largest of [`SurfaceRecording::motion_around`]); 0 for fewer than two
-    /// records.
-    pub fn largest_motion_within(&self, window_s: f64) -> f64 {
-        self.motion_around(window_s)
-            .iter()
-            .map(|m| m.1)
-            .fold(0.0, f64::max)
-    }
-
     /// Divergence at every mark present in both recordings (times equal within 1 µs).
     /// Errors if the scene hashes or surface sizes differ.
     pub fn divergence(&self, other: &SurfaceRecording) -> Result<Vec<DivergenceSample>, SurfError> {

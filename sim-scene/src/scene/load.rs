@@ -293,6 +293,12 @@ impl LoadedScene {
         Ok(())
     }
 
+    /// Every body on a lattice of `cell` (m) instead of its own, through
+    /// [`LoadedScene::modify`] (validated, re-hashed).
+    pub fn set_cell(&mut self, cell: f64) -> Result<(), SceneError> {
+        self.modify(|s| s.bodies.iter_mut().for_each(|b| b.cell = cell))
+    }
+
     /// [`Scene::validate_selection`] with this scene's file label.
     pub fn validate_selection(&self, nodes: &[Vector3<f64>]) -> Result<NodeSelection, SceneError> {
         self.scene.validate_selection(&self.file, nodes)
