@@ -1,175 +1,21 @@
 //! End-to-end tests: the real `cosurg-server` and `cosurg` binaries as separate processes,
-//! speaking QUIC with TLS on 127.0.0.1. Every child is killed when its test ends; every
-//! wait is bounded.
+//! speaking QUIC with TLS on 127.0.0.1 (helpers in `common`): admission, the grasp-and-lift
+//! session under impairment, a killed site's rejoin. Scenes, cuts and the demo are in
+//! `e2e_scenes.rs`.
 
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+mod common;
+
+use std::path::Path;
+use std::process::{Child, Command};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use cosurg::divergence::fill_divergence;
 use cosurg::site::SiteReport;
 use sim_core::sim_scene::surf::SurfaceRecording;
 use test_support::link as wire;
 
-const TOKEN: &str = "e2e-secret";
-
-/// The tests run one at a time: each starts several real-time simulations, and a 2-core
-/// machine running them all at once would measure its own overload, not the protocol.
-fn serial() -> std::sync::MutexGuard<'static, ()> {
-    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
-    LOCK.lock().unwrap_or_else(|e| e.into_inner())
-}
-const SESSION: &str = "e2e";
-
-fn cosurg() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_cosurg"));
-    c.env("COSURG_LOG", "warn");
-    c
-}
-
-/// A coordinator process (killed on drop) and its state directory.
-struct Server {
-    _process: test_support::server::ServerProcess,
-    addr: String,
-    fingerprint: String,
-    _state: tempfile::TempDir,
-}
-
-fn start_server() -> Server {
-    start_server_in(tempfile::tempdir().unwrap())
-}
-
-/// A coordinator with `state` as its state directory (certificate, invitation key,
-/// revocations).
-fn start_server_in(state: tempfile::TempDir) -> Server {
-    let scene = sim_core::sim_scene::builtin::cholecystectomy();
-    start_server_for(state, &scene.hash)
-}
-
-/// A coordinator for the scene whose hash is `scene_hash`.
-fn start_server_for(state: tempfile::TempDir, scene_hash: &str) -> Server {
-    // `cosurg-server` belongs to another package: no CARGO_BIN_EXE_ for it here.
-    let server_exe = test_support::exe::sibling_exe(env!("CARGO_BIN_EXE_cosurg"), "cosurg-server");
-    let mut command = Command::new(server_exe);
-    command
-        .args([
-            "--listen",
-            "127.0.0.1:0",
-            "--session",
-            SESSION,
-            "--token",
-            TOKEN,
-        ])
-        .args(["--scene-hash", scene_hash, "--seconds", "300"])
-        .arg("--state-dir")
-        .arg(state.path())
-        .env("COSURG_LOG", "warn")
-        .stderr(Stdio::null());
-    let process = test_support::server::spawn(command, &[]);
-    Server {
-        addr: process.addr.clone(),
-        fingerprint: process.fingerprint.clone(),
-        _process: process,
-        _state: state,
-    }
-}
-
-impl Server {
-    /// `cosurg-server invite` on the coordinator's state directory: an invitation for
-    /// `role`, bound to `site` if given.
-    fn invite(&self, role: &str, site: Option<&str>, expires: &str) -> String {
-        let mut c = Command::new(test_support::exe::sibling_exe(
-            env!("CARGO_BIN_EXE_cosurg"),
-            "cosurg-server",
-        ));
-        c.args(["invite", "--role", role, "--expires", expires])
-            .arg("--state-dir")
-            .arg(self._state.path());
-        if let Some(s) = site {
-            c.args(["--site", s]);
-        }
-        let out = c.output().expect("cosurg-server invite");
-        assert!(out.status.success(), "{out:?}");
-        let text = String::from_utf8(out.stdout).unwrap();
-        assert_eq!(text.lines().count(), 1, "one line: {text}");
-        text.trim().to_string()
-    }
-}
-
-/// `cosurg join` for `server` with the common flags: the instructor with the token, the
-/// other roles with an invitation bound to their site name.
-fn join(server: &Server, site: &str, role: &str) -> Command {
-    if role == "instructor" {
-        join_with_token(server, site, role, TOKEN)
-    } else {
-        join_with_invite(server, site, role, &server.invite(role, Some(site), "1h"))
-    }
-}
-
-fn join_base(server: &Server, site: &str, role: &str) -> Command {
-    let mut c = cosurg();
-    c.arg("join")
-        .args(["--server", &server.addr, "--session", SESSION])
-        .args(["--role", role, "--site", site, "--pin", &server.fingerprint])
-        .args(["--dt", "0.004", "--no-haptics", "--vtu-interval", "0"])
-        // never a window, whatever the environment's DISPLAY
-        .arg("--headless")
-        // the one-body scene (the server's scene hash) and keyframe sync, unless a test
-        // asks for another (clap takes the last of a repeated option)
-        .args([
-            "--scene",
-            "builtin:cholecystectomy",
-            "--strategy",
-            "keyframe",
-        ])
-        .env_remove("COSURG_TOKEN")
-        .env_remove("COSURG_INVITE");
-    c
-}
-
-fn join_with_token(server: &Server, site: &str, role: &str, token: &str) -> Command {
-    let mut c = join_base(server, site, role);
-    c.args(["--token", token]);
-    c
-}
-
-fn join_with_invite(server: &Server, site: &str, role: &str, invite: &str) -> Command {
-    let mut c = join_base(server, site, role);
-    c.args(["--invite", invite]);
-    c
-}
-
-fn report_of(out: &Output) -> SiteReport {
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let line = stdout
-        .lines()
-        .rev()
-        .find(|l| l.starts_with('{'))
-        .unwrap_or_else(|| {
-            panic!(
-                "no JSON report; status {:?}\nstdout: {stdout}\nstderr: {}",
-                out.status,
-                String::from_utf8_lossy(&out.stderr)
-            )
-        });
-    serde_json::from_str(line).expect("site report JSON")
-}
-
-fn refused(mut cmd: Command, expect: &str) {
-    cmd.args(["--seconds", "1", "--no-tool"]);
-    let out = test_support::run::run_bounded(cmd, Duration::from_secs(60));
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(
-        out.status.code(),
-        Some(3),
-        "exit code 3 = refused; stderr: {stderr}"
-    );
-    assert!(
-        stderr.contains("refused by the coordinator") && stderr.contains(expect),
-        "stderr names the reason {expect}: {stderr}"
-    );
-}
+use common::*;
 
 #[test]
 fn wrong_token_version_and_scene_are_refused_with_reasons() {
@@ -226,32 +72,6 @@ fn wrong_alpn_is_refused_by_tls() {
     });
 }
 
-/// A directory for one session's logs and recordings, removed afterwards unless
-/// `COSURG_E2E_KEEP` is set (then its path is printed, to read a failed run's site logs).
-fn session_dir() -> tempfile::TempDir {
-    let mut dir = tempfile::Builder::new();
-    let keep = std::env::var_os("COSURG_E2E_KEEP").is_some();
-    dir.disable_cleanup(keep);
-    let dir = dir.tempdir().unwrap();
-    if keep {
-        eprintln!("session directory kept: {}", dir.path().display());
-    }
-    dir
-}
-
-fn spawn_site(server: &Server, dir: &Path, name: &str, role: &str, extra: &[&str]) -> Child {
-    let mut c = join(server, name, role);
-    c.args(extra)
-        .arg("--out")
-        .arg(dir.join(name))
-        .arg("--json")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::from(
-            std::fs::File::create(dir.join(format!("{name}.log"))).unwrap(),
-        ));
-    c.spawn().expect("spawn site")
-}
-
 /// Simulated seconds of the grasp-and-lift sessions.
 const SESSION_SECONDS: &str = "8.0";
 
@@ -284,28 +104,6 @@ fn spawn_watcher(server: &Server, dir: &Path, name: &str, sites: usize) -> Child
         "--no-tool",
     ];
     spawn_site(server, dir, name, "trainee", &args)
-}
-
-fn wait_report(mut child: Child, limit: Duration, log: PathBuf) -> SiteReport {
-    let deadline = Instant::now() + limit;
-    loop {
-        if child.try_wait().unwrap().is_some() {
-            break;
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let out = child.wait_with_output().unwrap();
-    assert!(
-        out.status.success(),
-        "site failed: {:?}\n{}",
-        out.status,
-        std::fs::read_to_string(log).unwrap_or_default()
-    );
-    report_of(&out)
 }
 
 /// Divergence bounds of the grasp-and-lift session (mm): during the motion a receiver
@@ -790,17 +588,6 @@ fn total_outage_then_recovery_resynchronises() {
     assert_receiver_follows(r_i, r_t, MotionBound::Unchecked, "after the outage");
 }
 
-/// A site that joins, runs one simulated second and leaves: exit code 0.
-fn joins(mut cmd: Command) {
-    cmd.args(["--seconds", "1", "--no-tool", "--no-realtime"]);
-    let out = test_support::run::run_bounded(cmd, Duration::from_secs(60));
-    assert!(
-        out.status.success(),
-        "joined and left; stderr: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
 #[test]
 fn invitations_admit_their_site_and_every_bad_credential_is_refused() {
     let _serial = serial();
@@ -932,115 +719,4 @@ fn restarted_coordinator_keeps_its_fingerprint_and_honours_earlier_invitations()
     let server = start_server_in(state);
     assert_eq!(server.fingerprint, fingerprint);
     joins(join_with_invite(&server, "kyoto", "trainee", &invitation));
-}
-
-/// `cosurg demo --seconds 12 --reset-at 4 --json`: the instructor resets the scene at 4 s;
-/// every site ends in the same epoch (one reset: epoch 1), and the divergence from the
-/// owner stays as bounded after the reset as before it.
-#[test]
-fn demo_scene_reset_keeps_the_sites_together() {
-    let _serial = serial();
-    let out = tempfile::tempdir().unwrap();
-    let mut cmd = cosurg();
-    cmd.args(["demo", "--seconds", "12", "--reset-at", "4", "--json"])
-        .args(["--scene", "cholecystectomy", "--strategy", "keyframe"])
-        .args(["--vtu-interval", "100"])
-        .arg("--out")
-        .arg(out.path())
-        .args(["--", "--no-haptics"]);
-    let summary = test_support::run::json_summary(cmd, Duration::from_secs(300));
-    let sites = summary["sites"].as_array().expect("sites");
-    assert_eq!(sites.len(), 3);
-    for s in sites {
-        assert_eq!(s["epoch"], 1, "site {} did not end in epoch 1", s["name"]);
-    }
-    // Divergence per recording mark, from the sites' own recordings.
-    let mut reports: Vec<SiteReport> = sites
-        .iter()
-        .map(|s| {
-            let dir = out.path().join(s["name"].as_str().unwrap());
-            let text = std::fs::read_to_string(dir.join("report.json")).unwrap();
-            serde_json::from_str(&text).unwrap()
-        })
-        .collect();
-    for r in &reports {
-        assert_eq!(r.resets, 1, "{} reset {} times", r.name, r.resets);
-    }
-    let series = fill_divergence(&mut reports).unwrap();
-    let max_in = |from: f64, to: f64| {
-        series
-            .iter()
-            .flat_map(|s| s.points.iter().filter(|p| p.0 >= from && p.0 < to))
-            .map(|p| p.1)
-            .fold(0.0, f64::max)
-    };
-    let before = max_in(0.0, 4.0);
-    let after = max_in(4.0, 12.0);
-    eprintln!("divergence before the reset {before:.2} mm, after {after:.2} mm");
-    assert!(
-        before < LOOPBACK_MOTION_BOUND_MM,
-        "before the reset: {before} mm"
-    );
-    assert!(
-        after < LOOPBACK_MOTION_BOUND_MM,
-        "after the reset: {after} mm"
-    );
-}
-
-/// `scenes/cut-block.toml`: the instructor's blade cuts the block at 0.65 s of simulated
-/// time; a trainee joining after the cut receives it in its join snapshot and ends with the
-/// same topology (epoch and digest of the ops and the separated element set).
-#[test]
-fn late_joiner_after_a_cut_has_the_cut() {
-    let _serial = serial();
-    let scene_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/cut-block.toml");
-    let scene = sim_core::sim_scene::Scene::load(&scene_path).expect("cut-block scene");
-    let server = start_server_for(tempfile::tempdir().unwrap(), &scene.hash);
-    let dir = session_dir();
-    let scene_arg = scene_path.to_str().unwrap();
-    let instructor = spawn_site(
-        &server,
-        dir.path(),
-        "instructor",
-        "instructor",
-        &[
-            "--scene",
-            scene_arg,
-            "--tool",
-            "blade",
-            "--script",
-            "--seconds",
-            "3.0",
-            "--expect-sites",
-            "1",
-        ],
-    );
-    // Join once the instructor's clock is past the cut (0.65 s simulated; real-time pacing
-    // plus start-up).
-    std::thread::sleep(Duration::from_millis(2500));
-    let trainee = spawn_site(
-        &server,
-        dir.path(),
-        "trainee",
-        "trainee",
-        &["--scene", scene_arg, "--no-tool", "--seconds", "3.0"],
-    );
-    let r_instructor = wait_report(
-        instructor,
-        Duration::from_secs(120),
-        dir.path().join("instructor.log"),
-    );
-    let r_trainee = wait_report(
-        trainee,
-        Duration::from_secs(120),
-        dir.path().join("trainee.log"),
-    );
-    assert_eq!(
-        r_instructor.topology_epoch, 1,
-        "the instructor's blade cut once"
-    );
-    assert!(r_instructor.topology_bytes_sent > 0);
-    assert_eq!(r_trainee.topology_epoch, 1, "the late joiner has the cut");
-    assert_eq!(r_trainee.topology_ops_received, 1);
-    assert_eq!(r_trainee.topology_digest, r_instructor.topology_digest);
 }

@@ -72,6 +72,10 @@ pub struct SyncArgs {
     /// (0: followers run at the owner's simulated time and extrapolate).
     #[arg(long, default_value = "auto")]
     pub playout_lag: cosurg::site::PlayoutLag,
+    /// Lattice cell size (m) of every body on every site, instead of the scene's (the
+    /// sync of a finer organ; `cosurg join --cell`).
+    #[arg(long, value_name = "M")]
+    pub cell: Option<f64>,
 }
 
 /// One case: strategy, preset and the receivers' machines.
@@ -172,6 +176,8 @@ pub struct SyncRow {
 #[derive(Debug, Serialize)]
 pub struct SyncBench {
     pub scene_hash: String,
+    /// The lattice cell (m) of every body when `--cell` replaced the scene's.
+    pub cell_m: Option<f64>,
     pub seconds: f64,
     pub seeds: u64,
     pub rows: Vec<SyncRow>,
@@ -233,7 +239,8 @@ pub fn run(args: SyncArgs) -> Result<()> {
         }
     }
     let out = out_dir(&args.out, "bench-sync");
-    let scene = sim_core::sim_scene::builtin::cholecystectomy();
+    let scene =
+        cosurg::scene_arg::load_scene_with_cell(Some("builtin:cholecystectomy"), args.cell)?;
     let cases = cases(&args);
     let bar = ProgressBar::new(cases.len() as u64 * args.seeds).with_style(
         ProgressStyle::with_template("{bar:30} {pos}/{len} runs  {msg}").expect("template"),
@@ -256,6 +263,7 @@ pub fn run(args: SyncArgs) -> Result<()> {
     write_plots(&out, &rows)?;
     let bench = SyncBench {
         scene_hash: scene.hash.clone(),
+        cell_m: args.cell,
         seconds: args.seconds,
         seeds: args.seeds,
         rows,
@@ -304,6 +312,7 @@ fn run_case(
         extra: vec!["--playout-lag".into(), args.playout_lag.to_string()],
         reset_at: None,
         view: false,
+        cell: args.cell,
     };
     let (reports, series) = run_session(&run)?;
     let receivers: Vec<_> = reports

@@ -81,6 +81,10 @@ pub struct DemoArgs {
     /// lift, probe, trainee A repeats the lift).
     #[arg(long, default_value = "cholecystectomy-bodies")]
     pub scene: String,
+    /// Lattice cell size (m) of every body on every site, instead of the scene's (a finer
+    /// organ).
+    #[arg(long, value_name = "M", long_help = crate::scene_arg::CELL_HELP)]
+    pub cell: Option<f64>,
     /// Extra arguments passed to every site's `cosurg join` (after `--`).
     #[arg(last = true)]
     pub site_args: Vec<String>,
@@ -211,6 +215,8 @@ pub struct SiteRow {
 #[derive(Debug, Clone, Serialize)]
 pub struct DemoSummary {
     pub scene_hash: String,
+    /// The lattice cell (m) of every body when `--cell` replaced the scene's.
+    pub cell_m: Option<f64>,
     pub seconds: f64,
     pub strategy: String,
     pub preset: Option<String>,
@@ -265,6 +271,8 @@ pub struct SessionRun {
     pub reset_at: Option<f64>,
     /// Every site opens its window (else every site runs headless).
     pub view: bool,
+    /// Every body on a lattice of this cell (m) on every site (`cosurg join --cell`).
+    pub cell: Option<f64>,
 }
 
 /// Runs a coordinator in-process and every site as a child process on the built-in
@@ -280,8 +288,7 @@ pub fn run_session_on(
     scene_name: &str,
 ) -> Result<(Vec<SiteReport>, Vec<Series>)> {
     let exe = std::env::current_exe().context("locating the cosurg executable")?;
-    let scene = sim_core::sim_scene::builtin::by_name(scene_name)
-        .with_context(|| format!("unknown built-in scene {scene_name:?}"))?;
+    let scene = builtin_scene(scene_name, run.cell)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
         .enable_all()
@@ -323,6 +330,11 @@ pub fn run_session_on(
             .args(["--vtu-interval", &run.vtu_interval.to_string()])
             .args(["--seed", &run.seed.to_string()])
             .args(["--scene", &format!("builtin:{scene_name}")])
+            .args(
+                run.cell
+                    .iter()
+                    .flat_map(|c| ["--cell".to_string(), c.to_string()]),
+            )
             .arg("--out")
             .arg(&dir)
             .args(["--json", "--progress-lines"])
@@ -440,15 +452,28 @@ pub fn run_session_on(
     Ok((reports, series))
 }
 
+/// The built-in scene `name`, on a lattice of `cell` (m) when given.
+fn builtin_scene(name: &str, cell: Option<f64>) -> Result<sim_core::sim_scene::LoadedScene> {
+    if sim_core::sim_scene::builtin::by_name(name).is_none() {
+        bail!(
+            "unknown built-in scene {name:?} (known: {})",
+            sim_core::sim_scene::builtin::NAMES.join(", ")
+        );
+    }
+    let scene = crate::scene_arg::load_scene_with_cell(Some(&format!("builtin:{name}")), cell)?;
+    if let Some(cell) = cell {
+        // Some cells pass the scene's checks but not the lattice's (bodies that touch):
+        // say so here rather than in every site's log.
+        let options = sim_core::SimOptions::from_scene(&scene.scene);
+        sim_core::Simulation::new(scene.clone(), options)
+            .with_context(|| format!("--cell {cell}"))?;
+    }
+    Ok(scene)
+}
+
 pub fn demo(args: DemoArgs) -> Result<()> {
     let out = out_dir(&args.out, "demo");
-    let scene = sim_core::sim_scene::builtin::by_name(&args.scene).with_context(|| {
-        format!(
-            "unknown built-in scene {:?} (known: {})",
-            args.scene,
-            sim_core::sim_scene::builtin::NAMES.join(", ")
-        )
-    })?;
+    let scene = builtin_scene(&args.scene, args.cell)?;
     let run = SessionRun {
         cast: cast_for(&args.scene, args.sites, args.slowdown),
         seconds: args.seconds,
@@ -462,15 +487,18 @@ pub fn demo(args: DemoArgs) -> Result<()> {
         extra: args.site_args.clone(),
         reset_at: args.reset_at,
         view: args.view,
+        cell: args.cell,
     };
     if args.view && !crate::run_window::display_available() {
         bail!("--view needs a display (DISPLAY is not set)");
     }
     if !args.json {
         eprintln!(
-            "cosurg demo: coordinator + {} sites on 127.0.0.1 (QUIC/TLS), scene builtin:{} {}, strategy {}, {} s simulated",
+            "cosurg demo: coordinator + {} sites on 127.0.0.1 (QUIC/TLS), scene builtin:{}{} {}, strategy {}, {} s simulated",
             run.cast.len(),
             args.scene,
+            args.cell
+                .map_or(String::new(), |c| format!(" (cell {c} m)")),
             &scene.hash[..12],
             args.strategy.name(),
             args.seconds
@@ -519,6 +547,7 @@ pub fn demo(args: DemoArgs) -> Result<()> {
     };
     let summary = DemoSummary {
         scene_hash: scene.hash.clone(),
+        cell_m: args.cell,
         seconds: args.seconds,
         strategy: args.strategy.name().into(),
         preset: args.preset.clone(),

@@ -38,11 +38,16 @@ pub fn fill_divergence(reports: &mut [SiteReport]) -> Result<Vec<Series>> {
     if reports.len() < 2 {
         return Ok(Vec::new());
     }
-    let scene = sim_core::sim_scene::builtin::NAMES
-        .iter()
-        .filter_map(|n| sim_core::sim_scene::builtin::by_name(n))
-        .find(|s| s.hash == reports[0].scene_hash)
-        .context("divergence: the runs' scene is not a built-in scene")?;
+    let scene = crate::scene_arg::builtin_by_hash(&reports[0].scene_hash, reports[0].cell_m)
+        .with_context(|| {
+            format!(
+                "divergence: the runs' scene (hash {}{}) is not a built-in scene",
+                reports[0].scene_hash,
+                reports[0]
+                    .cell_m
+                    .map_or(String::new(), |c| format!(", cell {c} m"))
+            )
+        })?;
     let regions = vertex_regions(scene)?;
     let mut recs = Vec::new();
     for r in reports.iter() {

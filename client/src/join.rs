@@ -11,7 +11,7 @@ use sim_core::sim_scene::ToolScript;
 
 use crate::cli::SimKnobs;
 use crate::link::{LinkConfig, LinkImpairment, Trust};
-use crate::scene_arg::load_scene;
+use crate::scene_arg::load_scene_with_cell;
 use crate::site::{SiteConfig, SiteReport, SiteView, run_site};
 use sim_core::sync::SyncStrategy;
 
@@ -93,6 +93,10 @@ pub struct JoinArgs {
     /// Scene file or builtin:NAME (must match the session's scene hash).
     #[arg(long)]
     pub scene: Option<String>,
+    /// Lattice cell size (m) of every body, instead of the scene's (a finer organ; every
+    /// site of the session gives the same).
+    #[arg(long, value_name = "M", long_help = crate::scene_arg::CELL_HELP)]
+    pub cell: Option<f64>,
     /// Tool this site drives (scene tool name); default: the script's or the first tool.
     /// Several (`--tool "forceps,clip applier,blade"`): the site exchanges the
     /// instrument in hand as the script's tracks for them begin, the first in hand at the
@@ -212,7 +216,7 @@ pub fn resolve(server: &str) -> Result<SocketAddr> {
 }
 
 pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
-    let scene = load_scene(args.scene.as_deref())?;
+    let scene = load_scene_with_cell(args.scene.as_deref(), args.cell)?;
     let mut options = SimOptions::from_scene(&scene.scene);
     args.knobs.apply(&mut options);
     let mut script = match &args.script {
@@ -422,7 +426,8 @@ pub fn join(args: JoinArgs) -> Result<()> {
     if args.progress_lines {
         cfg.on_progress = Some(Box::new(|t, msg| println!("PROGRESS {t:.3} {msg}")));
     }
-    let report = run_site(cfg)?;
+    let mut report = run_site(cfg)?;
+    report.cell_m = args.cell;
     if let Some(p) = &report.screenshot_file
         && !args.json
     {

@@ -13,7 +13,7 @@ use sim_core::{Interaction, SimOptions, Simulation};
 
 use crate::cli::{SimKnobs, out_dir};
 use crate::output::{SeriesWriter, ToolFrame};
-use crate::scene_arg::load_scene;
+use crate::scene_arg::load_scene_with_cell;
 use crate::stats::percentile;
 
 #[derive(Debug, Args)]
@@ -65,11 +65,8 @@ pub struct RunArgs {
     /// end, with the local site at the start and end and every command of the hands.
     #[arg(long, conflicts_with_all = ["headless", "screenshot"])]
     pub stats_json: Option<PathBuf>,
-    /// Lattice cell size (m) of every body, instead of the scene's: a finer or coarser
-    /// organ (the default scene has 2 cm; 1.33 cm gives about 4,700 tets, 1 cm about
-    /// 8,500; 1.5 cm is refused, since the gallbladder bed needs one empty cell between
-    /// liver and gallbladder). The scene's hash changes with it.
-    #[arg(long, value_name = "M")]
+    /// Lattice cell size (m) of every body, instead of the scene's (a finer organ).
+    #[arg(long, value_name = "M", long_help = crate::scene_arg::CELL_HELP)]
     pub cell: Option<f64>,
     #[command(flatten)]
     pub knobs: SimKnobs,
@@ -80,12 +77,7 @@ const DEFAULT_SECONDS: f64 = 2.0;
 
 pub fn run(args: RunArgs) -> Result<()> {
     let seconds = args.seconds.unwrap_or(DEFAULT_SECONDS);
-    let mut scene = load_scene(args.scene.as_deref())?;
-    if let Some(cell) = args.cell {
-        scene
-            .set_cell(cell)
-            .with_context(|| format!("--cell {cell}"))?;
-    }
+    let scene = load_scene_with_cell(args.scene.as_deref(), args.cell)?;
     let label = scene.file.clone();
     let hash = scene.hash.clone();
     let mut options = SimOptions::from_scene(&scene.scene);

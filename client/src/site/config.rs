@@ -106,6 +106,10 @@ pub struct SiteReport {
     pub strategy: String,
     pub site_id: Option<u16>,
     pub scene_hash: String,
+    /// The lattice cell (m) every body was put on instead of the scene's (`--cell`), if
+    /// any: with the hash, what finds a built-in scene again.
+    #[serde(default)]
+    pub cell_m: Option<f64>,
     /// Simulated seconds and the wall-clock seconds they took.
     pub sim_seconds: f64,
     pub wall_seconds: f64,
