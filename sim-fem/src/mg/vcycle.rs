@@ -291,7 +291,7 @@ impl Multigrid {
             return;
         }
         let res = &mut self.fine_res;
-        match (&mut self.fine_hybrid, &self.fine_full) {
+        match (&mut self.fine_hybrid, &mut self.fine_full) {
             (Some(h), _) => h.pre_smooth(rows, fine, dinv, r, z, res, nu),
             (None, Some(full)) => full.pre_smooth(dinv, r, z, res, nu),
             (None, None) => pre_smooth(rows, fine, dinv, r, z, res, nu),
@@ -331,7 +331,7 @@ impl Multigrid {
             post_smooth(&l.rows, &l.blocks, &l.dinv, &l.r, &mut l.z, nu);
         }
         prolong_add(&self.levels[0].p, &self.levels[0].z, z);
-        match (&mut self.fine_hybrid, &self.fine_full) {
+        match (&mut self.fine_hybrid, &mut self.fine_full) {
             (Some(h), _) => h.post_smooth(rows, fine, dinv, r, z, nu),
             (None, Some(full)) => full.post_smooth(dinv, r, z, nu),
             (None, None) => post_smooth(rows, fine, dinv, r, z, nu),
