@@ -3,6 +3,9 @@
 
 use nalgebra::{Matrix3, Vector3};
 
+mod full_product;
+pub use full_product::PaddedBlock;
+
 type V3 = Vector3<f64>;
 
 /// CG control.
@@ -232,6 +235,8 @@ pub struct BlockPattern {
     row_ptr: Vec<usize>,
     cols: Vec<usize>,
     diag: Vec<usize>,
+    /// Per slot, the slot of its mirror block (row and column swapped).
+    mirror: Vec<usize>,
     elem_slots: Vec<[usize; 16]>,
     /// Per element, bit `4a + b` set when block `(a, b)` lies on or above the diagonal
     /// (row node ≤ column node): the blocks a symmetric assembly stores.
@@ -263,6 +268,10 @@ impl BlockPattern {
             row_ptr[r] + s.binary_search(&c).expect("in pattern")
         };
         let diag = (0..n).map(|i| find(i, i)).collect();
+        let mirror = (0..n)
+            .flat_map(|i| (row_ptr[i]..row_ptr[i + 1]).map(move |s| (i, s)))
+            .map(|(i, s)| find(cols[s], i))
+            .collect();
         let elem_slots = tets
             .iter()
             .map(|t| {
@@ -293,6 +302,7 @@ impl BlockPattern {
             row_ptr,
             cols,
             diag,
+            mirror,
             elem_slots,
             elem_upper,
         }

@@ -173,7 +173,8 @@ impl FemSystem {
                 LinearSolver::JacobiPcg,
             ),
         };
-        self.caches.block_buf = op.into_blocks();
+        let buffers = op.into_buffers();
+        self.caches.recycle(buffers);
         if let Some(c) = mg {
             self.put_multigrid(c);
         }

@@ -184,7 +184,8 @@ impl FemSystem {
             let rhs: Vec<V3> = grad.iter().map(|g| -g).collect();
             let mut dx = vec![V3::zeros(); n];
             let res = pcg(&op, &fixed, &rhs, &mut dx, &p.solver);
-            self.caches.block_buf = op.into_blocks();
+            let buffers = op.into_buffers();
+            self.caches.recycle(buffers);
             stats.cg_iterations += res.iterations;
             stats.cg_residual = res.relative_residual;
             let (nv, nr, ng) = line_search(self, x, &dx, &grad, val, |s, xt, g| {

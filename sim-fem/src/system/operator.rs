@@ -2,12 +2,14 @@
 //! ext_coef K_c`: element-by-element products (matrix-free) or the assembled 3×3-block CSR
 //! (built in the assembly order of `caches.rs`, which keeps rotation sharing cheap).
 
+use std::sync::{Mutex, OnceLock};
+
 use nalgebra::Matrix3;
 
 use super::{FemSystem, V3, gather};
 use crate::element::{Mat12, apply_dense};
 use crate::parallel::{multiply_upper_parts, split_ranges};
-use crate::solver::LinearOperator;
+use crate::solver::{LinearOperator, PaddedBlock};
 use crate::system::{OperatorMode, StiffnessMode};
 
 /// Element matrices entering a linear operator.
@@ -34,6 +36,7 @@ impl FemSystem {
             self.refresh_order();
         }
         let buf = std::mem::take(&mut self.caches.block_buf);
+        let full_spare = Mutex::new(std::mem::take(&mut self.caches.full_buf));
         let this: &'a FemSystem = self;
         let mut op = SysOp {
             sys: this,
@@ -42,12 +45,20 @@ impl FemSystem {
             ext_coef,
             mode,
             assembled: None,
+            full: OnceLock::new(),
+            full_spare,
         };
         if operator == OperatorMode::Assembled {
             op.assemble(buf);
         }
         op
     }
+}
+
+/// The storage an operator hands back for the next one ([`SysOp::into_buffers`]).
+pub(super) struct OperatorBuffers {
+    pub(super) blocks: Vec<Matrix3<f64>>,
+    pub(super) full: Vec<PaddedBlock>,
 }
 
 /// The operator `A p = diag(mass_coef) p + Σ_e (element matrix) p_e + ext_coef K_c p`.
@@ -58,6 +69,11 @@ pub(super) struct SysOp<'a> {
     ext_coef: f64,
     mode: StiffnessMode,
     pub(super) assembled: Option<Vec<Matrix3<f64>>>,
+    /// The assembled blocks by full rows for the one-thread product
+    /// ([`crate::solver::BlockPattern::full_rows_into`]), made at the first product in the
+    /// storage of `full_spare` (the previous step's).
+    full: OnceLock<Vec<PaddedBlock>>,
+    full_spare: Mutex<Vec<PaddedBlock>>,
 }
 
 /// Smallest mesh (nodes) whose sparse products are split over threads: on 2 cores the
@@ -137,9 +153,16 @@ pub(super) fn scatter_blocks(
 }
 
 impl SysOp<'_> {
-    /// Hands back the assembled block storage (for reuse by the next step).
-    pub(super) fn into_blocks(self) -> Vec<Matrix3<f64>> {
-        self.assembled.unwrap_or_default()
+    /// Hands back the assembled block storage and its full-row copy (for reuse by the
+    /// next step: [`super::caches::Caches::recycle`]).
+    pub(super) fn into_buffers(self) -> OperatorBuffers {
+        OperatorBuffers {
+            blocks: self.assembled.unwrap_or_default(),
+            full: match self.full.into_inner() {
+                Some(full) => full,
+                None => self.full_spare.into_inner().unwrap_or_default(),
+            },
+        }
     }
 
     /// Adds `coef_e · R_e K_e R_eᵀ` (upper blocks) of `elements` (grouped by rotation
@@ -279,7 +302,16 @@ impl LinearOperator for SysOp<'_> {
                 {
                     multiply_upper_parts(pat, blocks, p, out, part)
                 }
-                (ElemMats::Rotated { .. }, _) => pat.multiply_upper(blocks, p, out),
+                (ElemMats::Rotated { .. }, _) => {
+                    let full = self.full.get_or_init(|| {
+                        let mut full = std::mem::take(
+                            &mut *self.full_spare.lock().unwrap_or_else(|e| e.into_inner()),
+                        );
+                        pat.full_rows_into(blocks, &mut full);
+                        full
+                    });
+                    pat.multiply_full(full, p, out)
+                }
                 (ElemMats::Dense(_), _) => pat.multiply(blocks, p, out),
             }
             return;
