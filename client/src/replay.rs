@@ -36,6 +36,10 @@ pub struct ReplayArgs {
     /// geometry, camera. Default: the built-in cholecystectomy.
     #[arg(long)]
     pub scene: Option<String>,
+    /// Lattice cell size (m) the recorded session's sites gave (`cosurg join --cell`), so
+    /// that the scene is the one recorded.
+    #[arg(long, value_name = "M", long_help = crate::scene_arg::CELL_HELP)]
+    pub cell: Option<f64>,
     /// Render the picture at `--at` off-screen into this PNG file (no window).
     #[arg(long, value_name = "FILE.png", requires = "at")]
     pub screenshot: Option<PathBuf>,
@@ -107,7 +111,7 @@ pub fn replay(args: ReplayArgs) -> Result<()> {
     } else {
         args.sites.clone()
     };
-    let scene = crate::scene_arg::load_scene(args.scene.as_deref())?;
+    let scene = crate::scene_arg::load_scene_with_cell(args.scene.as_deref(), args.cell)?;
     let t0 = Instant::now();
     let mut source = RecordedSession::new(&scene, &session, &sites)?;
     let (a, b) = source.span();

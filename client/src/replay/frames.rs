@@ -97,7 +97,7 @@ impl RecordedSession {
             };
             if !rec.header.scene.contains(&scene.hash) {
                 tracing::warn!(
-                    "recording {} was made with scene {:?}; drawing it with {} ({})",
+                    "recording {} was made with scene {:?}; drawing it with {} ({}; a session on another lattice needs its --cell here)",
                     rec.path
                         .as_ref()
                         .map_or("?".into(), |p| p.display().to_string()),
