@@ -111,10 +111,6 @@ fn spawn_watcher(server: &Server, dir: &Path, name: &str, sites: usize) -> Child
 /// once the tools stop and the tissue has settled the sites must agree.
 const MOTION_BOUND_MM: f64 = 40.0;
 const SETTLED_BOUND_MM: f64 = 1.0;
-/// On loopback, receivers keep a playout lag behind the owner, so keyframes arrive before
-/// they are due and the region is interpolated between them rather than extrapolated:
-/// 2–12 mm measured with debug binaries (the grasp release is the largest transient).
-const LOOPBACK_MOTION_BOUND_MM: f64 = 25.0;
 
 fn settled_max(series: &[cosurg::plot::Series], from: f64) -> f64 {
     series

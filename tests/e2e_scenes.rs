@@ -10,11 +10,6 @@ use common::*;
 use cosurg::divergence::fill_divergence;
 use cosurg::site::SiteReport;
 
-/// On loopback, receivers keep a playout lag behind the owner, so keyframes arrive before
-/// they are due and the region is interpolated between them rather than extrapolated:
-/// 2–12 mm measured with debug binaries (the grasp release is the largest transient).
-const LOOPBACK_MOTION_BOUND_MM: f64 = 25.0;
-
 /// `cosurg demo --seconds 12 --reset-at 4 --json`: the instructor resets the scene at 4 s;
 /// every site ends in the same epoch (one reset: epoch 1), and the divergence from the
 /// owner stays as bounded after the reset as before it.

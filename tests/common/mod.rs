@@ -228,3 +228,8 @@ pub fn joins(mut cmd: Command) {
         String::from_utf8_lossy(&out.stderr)
     );
 }
+
+/// On loopback, receivers keep a playout lag behind the owner, so keyframes arrive before
+/// they are due and the region is interpolated between them rather than extrapolated:
+/// 2–12 mm measured with debug binaries (the grasp release is the largest transient).
+pub const LOOPBACK_MOTION_BOUND_MM: f64 = 25.0;
