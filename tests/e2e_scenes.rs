@@ -177,6 +177,15 @@ fn a_session_on_a_finer_lattice_admits_only_that_lattice() {
     for r in [&owner, &receiver] {
         assert_eq!(r.scene_hash, scene.hash, "{} ran the finer scene", r.name);
         assert_eq!(r.cell_m, Some(CELL.parse().unwrap()));
+        // The report on disk too, which `divergence_of` reads after the run.
+        let text = std::fs::read_to_string(dir.path().join(&r.name).join("report.json"))
+            .expect("report.json");
+        let on_disk: SiteReport = serde_json::from_str(&text).unwrap();
+        assert_eq!(
+            on_disk.cell_m, r.cell_m,
+            "{}'s report.json names the cell",
+            r.name
+        );
     }
     let mut reports = vec![owner, receiver];
     let series = fill_divergence(&mut reports).unwrap();

@@ -241,6 +241,7 @@ pub fn run(args: SyncArgs) -> Result<()> {
     let out = out_dir(&args.out, "bench-sync");
     let scene =
         cosurg::scene_arg::load_scene_with_cell(Some("builtin:cholecystectomy"), args.cell)?;
+    cosurg::demo::check_cell(&scene, args.cell)?;
     let cases = cases(&args);
     let bar = ProgressBar::new(cases.len() as u64 * args.seeds).with_style(
         ProgressStyle::with_template("{bar:30} {pos}/{len} runs  {msg}").expect("template"),

@@ -387,6 +387,7 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
         hands: view.is_some(),
         view,
         scene,
+        cell_m: args.cell,
     })
 }
 
@@ -426,8 +427,7 @@ pub fn join(args: JoinArgs) -> Result<()> {
     if args.progress_lines {
         cfg.on_progress = Some(Box::new(|t, msg| println!("PROGRESS {t:.3} {msg}")));
     }
-    let mut report = run_site(cfg)?;
-    report.cell_m = args.cell;
+    let report = run_site(cfg)?;
     if let Some(p) = &report.screenshot_file
         && !args.json
     {

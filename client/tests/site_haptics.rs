@@ -26,6 +26,7 @@ fn site(scene: &LoadedScene, name: &str, role: Role, tool: &str, seconds: f64) -
         name: name.into(),
         role,
         scene: scene.clone(),
+        cell_m: None,
         options,
         tools: vec![tool.into()],
         script: None,

@@ -22,6 +22,9 @@ pub struct SiteConfig {
     pub name: String,
     pub role: Role,
     pub scene: LoadedScene,
+    /// The lattice cell (m) `scene`'s bodies were put on instead of their own
+    /// (`--cell`), reported with the scene's hash.
+    pub cell_m: Option<f64>,
     pub options: SimOptions,
     /// The scene tools this site drives (by name), the one in hand at the start first; a
     /// script with tracks for several exchanges them as its tracks begin. Empty: no local

@@ -52,6 +52,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         role: cfg.role.to_string(),
         strategy: cfg.strategy.to_string(),
         scene_hash: cfg.scene.hash.clone(),
+        cell_m: cfg.cell_m,
         ..Default::default()
     };
 

@@ -8,9 +8,9 @@
 //! which gather every block from the row that stores it, against 10 % for the upper part
 //! that reads its own row in order. Here both parts are read in order, once per sweep,
 //! and each block takes 48 bytes instead of 72. A preconditioner needs no more precision:
-//! CG's own products stay in f64, and the blocks' rounding (relative 6e-8) keeps the
-//! smoothed matrix symmetric (a lower block is the rounded upper one, transposed) and
-//! positive definite, so the V-cycle stays a valid CG preconditioner.
+//! CG's own products stay in f64; the smoothed matrix's blocks are rounded to f32 (a lower
+//! block is the rounded upper one, transposed), and the sweeps read the iterate in f32 too,
+//! so the V-cycle is symmetric and linear only to single precision (below).
 //!
 //! The products are 4-lane single-precision vectors ([`wide::f32x4`]: SSE on x86-64, NEON
 //! on aarch64, scalar elsewhere): a block is its three columns, each padded to four lanes,
@@ -20,8 +20,10 @@
 //! blocks spent most of their instructions converting the nine entries to f64 (callgrind,
 //! 12,288-tet soft beam, 2026-11-27: see docs/RESULTS.md). Summing in f32 makes the
 //! V-cycle symmetric to single precision (about 1e-7 relative) rather than to f64; CG to
-//! the step's 1e-6 takes the same iterations as with f64 sums (the V-cycle symmetry test
-//! allows 1e-6 on this path).
+//! the step's 1e-6 takes the same iterations as with f64 sums, and MG-PCG still matches
+//! the dense Cholesky solve at 1e-9 (the V-cycle symmetry test allows 1e-6 on this path).
+//! The sums multiply then add (no fused multiply-add, whatever the build's target
+//! features), so that every site computes the same bits.
 
 use nalgebra::{Matrix3, Vector3};
 use wide::f32x4;
@@ -138,9 +140,11 @@ impl FullRows {
         let (mut a0, mut a1, mut a2) = (f32x4::ZERO, f32x4::ZERO, f32x4::ZERO);
         for (b, &j) in self.blocks[from..to].iter().zip(&self.cols[from..to]) {
             let zj = &self.z32[j as usize];
-            a0 = b[0].mul_add(f32x4::splat(zj[0]), a0);
-            a1 = b[1].mul_add(f32x4::splat(zj[1]), a1);
-            a2 = b[2].mul_add(f32x4::splat(zj[2]), a2);
+            // Multiply, then add: `mul_add` would fuse in builds with FMA enabled and
+            // change the bits between sites built differently.
+            a0 = a0 + b[0] * f32x4::splat(zj[0]);
+            a1 = a1 + b[1] * f32x4::splat(zj[1]);
+            a2 = a2 + b[2] * f32x4::splat(zj[2]);
         }
         to_v3(a0 + a1 + a2)
     }

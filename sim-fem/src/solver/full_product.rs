@@ -59,7 +59,11 @@ impl BlockPattern {
     /// with the same result bit for bit elsewhere.
     pub fn multiply_full(&self, full: &[PaddedBlock], p: &[V3], out: &mut [V3]) {
         assert_eq!(full.len(), self.cols.len(), "full rows of this pattern");
-        assert!(p.len() == out.len() && out.len() + 1 == self.row_ptr.len());
+        assert!(
+            p.len() == out.len() && out.len() + 1 == self.row_ptr.len(),
+            "vectors of the pattern's {} nodes",
+            self.row_ptr.len() - 1
+        );
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx") {
             // SAFETY: the CPU has AVX (checked just above).
@@ -200,6 +204,10 @@ mod tests {
             let n = p.len();
             let mut portable = vec![V3::zeros(); n];
             pat.multiply_full_portable(&full, &p, &mut portable);
+            #[cfg(target_arch = "x86_64")]
+            if !std::arch::is_x86_feature_detected!("avx") {
+                eprintln!("no AVX on this CPU: only the portable path was run");
+            }
             #[cfg(target_arch = "x86_64")]
             if std::arch::is_x86_feature_detected!("avx") {
                 let mut avx = vec![V3::zeros(); n];

@@ -6,7 +6,7 @@ use super::operator::SysOp;
 use super::{FemSystem, V3};
 use crate::FemError;
 use crate::direct::DirectSolver;
-use crate::solver::{CgResult, LinearOperator, SolverParams, pcg};
+use crate::solver::{CgResult, SolverParams, pcg};
 use crate::system::{LinearSolver, StepParams};
 
 impl FemSystem {
@@ -49,7 +49,7 @@ pub(super) fn solve_direct(
         return pcg(op, fixed, rhs, dv, solver);
     }
     let mut a_dv = vec![V3::zeros(); dv.len()];
-    op.apply(dv, &mut a_dv);
+    op.apply_once(dv, &mut a_dv);
     let (mut rr, mut bb) = (0.0, 0.0);
     for ((r, b), f) in a_dv.iter().zip(rhs).zip(fixed) {
         if !f {

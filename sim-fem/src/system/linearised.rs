@@ -9,7 +9,7 @@ use super::operator::ElemMats;
 use super::{FemSystem, V3};
 use crate::FemError;
 use crate::model::Model;
-use crate::solver::{CgResult, LinearOperator, pcg};
+use crate::solver::{CgResult, pcg};
 use crate::system::{LinearSolver, OperatorMode, StepParams, StepStats};
 
 impl FemSystem {
@@ -145,7 +145,7 @@ impl FemSystem {
             operator,
         );
         let mut av = vec![V3::zeros(); n];
-        op.apply(v, &mut av);
+        op.apply_once(v, &mut av);
         let mut rhs = vec![V3::zeros(); n];
         for i in 0..n {
             if fixed[i] {

@@ -23,7 +23,7 @@ pub(super) enum ElemMats {
 impl FemSystem {
     /// The operator of one linear solve; assembled now when `operator` says so (reusing the
     /// block storage of the previous solve, to be handed back with
-    /// [`SysOp::into_blocks`]).
+    /// [`SysOp::into_buffers`]).
     pub(super) fn build_operator<'a>(
         &'a mut self,
         mass_coef: Vec<f64>,
@@ -71,7 +71,8 @@ pub(super) struct SysOp<'a> {
     pub(super) assembled: Option<Vec<Matrix3<f64>>>,
     /// The assembled blocks by full rows for the one-thread product
     /// ([`crate::solver::BlockPattern::full_rows_into`]), made at the first product in the
-    /// storage of `full_spare` (the previous step's).
+    /// storage of `full_spare` (the previous step's). `assembled` must not change after
+    /// that product (only [`SysOp::assemble`], in `build_operator`, writes it).
     full: OnceLock<Vec<PaddedBlock>>,
     full_spare: Mutex<Vec<PaddedBlock>>,
 }
@@ -153,6 +154,22 @@ pub(super) fn scatter_blocks(
 }
 
 impl SysOp<'_> {
+    /// `out = A p` for a product made once, such as the step's right-hand side: where
+    /// [`LinearOperator::apply`] would copy the blocks into full rows for its one-thread
+    /// product, the symmetric upper product instead (a direct solve makes no other).
+    pub(super) fn apply_once(&self, p: &[V3], out: &mut [V3]) {
+        if let (Some(blocks), ElemMats::Rotated { .. }) = (&self.assembled, &self.elem) {
+            let pat = self.sys.caches.pattern.as_ref().expect("pattern");
+            let split =
+                self.sys.active_partition().is_some() && out.len() >= PARALLEL_PRODUCT_MIN_NODES;
+            if !split {
+                pat.multiply_upper(blocks, p, out);
+                return;
+            }
+        }
+        self.apply(p, out);
+    }
+
     /// Hands back the assembled block storage and its full-row copy (for reuse by the
     /// next step: [`super::caches::Caches::recycle`]).
     pub(super) fn into_buffers(self) -> OperatorBuffers {
