@@ -142,9 +142,9 @@ impl FullRows {
             let zj = &self.z32[j as usize];
             // Multiply, then add: `mul_add` would fuse in builds with FMA enabled and
             // change the bits between sites built differently.
-            a0 = a0 + b[0] * f32x4::splat(zj[0]);
-            a1 = a1 + b[1] * f32x4::splat(zj[1]);
-            a2 = a2 + b[2] * f32x4::splat(zj[2]);
+            a0 += b[0] * f32x4::splat(zj[0]);
+            a1 += b[1] * f32x4::splat(zj[1]);
+            a2 += b[2] * f32x4::splat(zj[2]);
         }
         to_v3(a0 + a1 + a2)
     }
