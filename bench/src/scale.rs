@@ -166,15 +166,8 @@ fn run_one(
         Subject::Beam { young, cell } => {
             cantilever_with(young, cell).context("cantilever scene")?
         }
-        Subject::Organ { cell } => {
-            let mut scene = sim_core::sim_scene::builtin::default_scene();
-            if let Some(cell) = cell {
-                scene
-                    .set_cell(cell)
-                    .with_context(|| format!("the organ at --organ-cells {cell}"))?;
-            }
-            scene
-        }
+        Subject::Organ { cell } => cosurg::scene_arg::load_scene_with_cell(None, cell)
+            .context("the organ at --organ-cells")?,
     };
     let cell_m = scene.scene.bodies.first().map_or(f64::NAN, |b| b.cell);
     let mut o = SimOptions::from_scene(&scene.scene);

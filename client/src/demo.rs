@@ -456,12 +456,7 @@ pub fn run_session_on(
 
 /// The built-in scene `name`, on a lattice of `cell` (m) when given.
 fn builtin_scene(name: &str, cell: Option<f64>) -> Result<sim_core::sim_scene::LoadedScene> {
-    if sim_core::sim_scene::builtin::by_name(name).is_none() {
-        bail!(
-            "unknown built-in scene {name:?} (known: {})",
-            sim_core::sim_scene::builtin::NAMES.join(", ")
-        );
-    }
+    // `load_scene` names an unknown built-in scene and lists the known ones.
     crate::scene_arg::load_scene_with_cell(Some(&format!("builtin:{name}")), cell)
 }
 

@@ -158,16 +158,23 @@ impl SysOp<'_> {
     /// [`LinearOperator::apply`] would copy the blocks into full rows for its one-thread
     /// product, the symmetric upper product instead (a direct solve makes no other).
     pub(super) fn apply_once(&self, p: &[V3], out: &mut [V3]) {
-        if let (Some(blocks), ElemMats::Rotated { .. }) = (&self.assembled, &self.elem) {
+        if let (Some(blocks), ElemMats::Rotated { .. }) = (&self.assembled, &self.elem)
+            && self.product_partition(out.len()).is_none()
+        {
             let pat = self.sys.caches.pattern.as_ref().expect("pattern");
-            let split =
-                self.sys.active_partition().is_some() && out.len() >= PARALLEL_PRODUCT_MIN_NODES;
-            if !split {
-                pat.multiply_upper(blocks, p, out);
-                return;
-            }
+            pat.multiply_upper(blocks, p, out);
+            return;
         }
         self.apply(p, out);
+    }
+
+    /// The partition an assembled product of `n` nodes is split over, if any: below
+    /// [`PARALLEL_PRODUCT_MIN_NODES`] a product is a few µs of work, less than forking and
+    /// joining costs, and one thread does it.
+    fn product_partition(&self, n: usize) -> Option<&crate::parallel::Partition> {
+        self.sys
+            .active_partition()
+            .filter(|_| n >= PARALLEL_PRODUCT_MIN_NODES)
     }
 
     /// Hands back the assembled block storage and its full-row copy (for reuse by the
@@ -311,12 +318,8 @@ impl LinearOperator for SysOp<'_> {
     fn apply(&self, p: &[V3], out: &mut [V3]) {
         if let Some(blocks) = &self.assembled {
             let pat = self.sys.caches.pattern.as_ref().expect("pattern");
-            match (&self.elem, self.sys.active_partition()) {
-                // Below PARALLEL_PRODUCT_MIN_NODES a product is a few µs of work, less than
-                // forking and joining costs: one thread does it.
-                (ElemMats::Rotated { .. }, Some(part))
-                    if out.len() >= PARALLEL_PRODUCT_MIN_NODES =>
-                {
+            match (&self.elem, self.product_partition(out.len())) {
+                (ElemMats::Rotated { .. }, Some(part)) => {
                     multiply_upper_parts(pat, blocks, p, out, part)
                 }
                 (ElemMats::Rotated { .. }, _) => {
