@@ -76,6 +76,12 @@ pub struct SyncArgs {
     /// sync of a finer organ; `cosurg join --cell`).
     #[arg(long, value_name = "M")]
     pub cell: Option<f64>,
+    /// Run every session this many times slower than real time, the impairment stretched
+    /// to match (time dilation; `cosurg demo --time-scale`): the sync of three sites
+    /// measured, in session time, as on a machine this much faster. Use it where the sites
+    /// do not keep real time (their `sim_rate_hz` below 1/dt).
+    #[arg(long, default_value = "1", value_name = "FACTOR")]
+    pub time_scale: server::TimeScale,
 }
 
 /// One case: strategy, preset and the receivers' machines.
@@ -113,6 +119,10 @@ pub struct SyncRun {
     /// delay (ms; site → coordinator → site). Above the preset's when it has jitter: the
     /// presets keep packet order, so a packet waits for the earlier ones.
     pub measured_path_ms: f64,
+    /// The slowest site's simulated steps per second of session time, a follower's counted
+    /// with its playout lag: below 1/dt (250 Hz) a site did not keep up, and its lag and delay say more of the machine than of the
+    /// sync (then run with `--time-scale`).
+    pub slowest_site_hz: f64,
 }
 
 /// Median and worst (largest) of one measure over a row's seeds.
@@ -170,6 +180,8 @@ pub struct SyncRow {
     /// and the display delay above that (ms).
     pub measured_path_ms: Spread,
     pub delay_above_measured_path_ms: Spread,
+    /// The slowest site's step rate over the row's runs (Hz of session time).
+    pub slowest_site_hz: f64,
     pub runs: Vec<SyncRun>,
 }
 
@@ -180,6 +192,8 @@ pub struct SyncBench {
     pub cell_m: Option<f64>,
     pub seconds: f64,
     pub seeds: u64,
+    /// The sessions' time dilation (`--time-scale`; 1: real time).
+    pub time_scale: f64,
     pub rows: Vec<SyncRow>,
 }
 
@@ -267,6 +281,7 @@ pub fn run(args: SyncArgs) -> Result<()> {
         cell_m: args.cell,
         seconds: args.seconds,
         seeds: args.seeds,
+        time_scale: args.time_scale.factor(),
         rows,
     };
     std::fs::write(
@@ -314,6 +329,7 @@ fn run_case(
         reset_at: None,
         view: false,
         cell: args.cell,
+        time_scale: args.time_scale,
     };
     let (reports, series) = run_session(&run)?;
     let receivers: Vec<_> = reports
@@ -352,6 +368,14 @@ fn run_case(
         display_delay_ms: mean(receivers.iter().map(|r| r.playout_lag_ms)),
         measured_path_ms: mean(reports.iter().filter_map(|r| r.link_up_delay_ms))
             + mean(reports.iter().filter_map(|r| r.link_down_delay_ms)),
+        // A follower runs its playout lag behind by design: its clock kept up if its
+        // simulated time plus that lag did.
+        slowest_site_hz: reports
+            .iter()
+            .map(|r| {
+                r.sim_rate_hz * (r.sim_seconds + r.playout_lag_ms * 1e-3) / r.sim_seconds.max(1e-9)
+            })
+            .fold(f64::INFINITY, f64::min),
         apply_us_per_keyframe: if applied == 0 {
             0.0
         } else {
@@ -381,6 +405,10 @@ fn summarise(case: SyncCase, runs: Vec<SyncRun>) -> SyncRow {
         delay_above_path_ms: Spread::of(runs.iter().map(|r| r.display_delay_ms - path_one_way_ms)),
         measured_path_ms: spread(|r| r.measured_path_ms),
         delay_above_measured_path_ms: spread(|r| r.display_delay_ms - r.measured_path_ms),
+        slowest_site_hz: runs
+            .iter()
+            .map(|r| r.slowest_site_hz)
+            .fold(f64::INFINITY, f64::min),
         case,
         runs,
     }
@@ -393,7 +421,7 @@ fn table(bench: &SyncBench) -> String {
     let _ = writeln!(
         t,
         "{} seed(s) per row; each cell median / worst over them\n\
-         {:<11} {:<17} {:>4} {:>4} {:>17} {:>15} {:>15} {:>17} {:>13} {:>6} {:>13} {:>9} {:>13}",
+         {:<11} {:<17} {:>4} {:>4} {:>17} {:>15} {:>15} {:>17} {:>13} {:>6} {:>13} {:>9} {:>13} {:>7}",
         bench.seeds,
         "strategy",
         "preset",
@@ -407,13 +435,14 @@ fn table(bench: &SyncBench) -> String {
         "path",
         "above path",
         "measured",
-        "above it"
+        "above it",
+        "site Hz"
     );
     for r in &bench.rows {
         let c = &r.case;
         let _ = writeln!(
             t,
-            "{:<11} {:<17} {:>4} {:>4} {:>8.2} / {:<6.2} {:>6.2} / {:<6.2} {:>6.2} / {:<6.2} {:>8.0} / {:<8.0}{:>5.0} / {:<5.0} {:>6.0} {:>5.0} / {:<5.0} {:>9.0} {:>5.0} / {:<5.0}",
+            "{:<11} {:<17} {:>4} {:>4} {:>8.2} / {:<6.2} {:>6.2} / {:<6.2} {:>6.2} / {:<6.2} {:>8.0} / {:<8.0}{:>5.0} / {:<5.0} {:>6.0} {:>5.0} / {:<5.0} {:>9.0} {:>5.0} / {:<5.0} {:>7.0}",
             c.strategy,
             c.preset,
             c.slowdown,
@@ -435,6 +464,14 @@ fn table(bench: &SyncBench) -> String {
             r.measured_path_ms.median,
             r.delay_above_measured_path_ms.median,
             r.delay_above_measured_path_ms.worst,
+            r.slowest_site_hz,
+        );
+    }
+    if bench.time_scale != 1.0 {
+        let _ = writeln!(
+            t,
+            "time-dilated ×{}: every time and rate above is in session time",
+            bench.time_scale
         );
     }
     t

@@ -85,6 +85,12 @@ pub struct DemoArgs {
     /// organ).
     #[arg(long, value_name = "M", long_help = crate::scene_arg::CELL_HELP)]
     pub cell: Option<f64>,
+    /// Run the coordinator and every site this many times slower than real time, the
+    /// impairment stretched to match (time dilation): the session on a machine too slow
+    /// to step every site in real time behaves, in its own time, as on one this much
+    /// faster. Reported times and rates are in session time.
+    #[arg(long, default_value = "1", value_name = "FACTOR")]
+    pub time_scale: server::TimeScale,
     /// Extra arguments passed to every site's `cosurg join` (after `--`).
     #[arg(last = true)]
     pub site_args: Vec<String>,
@@ -273,6 +279,8 @@ pub struct SessionRun {
     pub view: bool,
     /// Every body on a lattice of this cell (m) on every site (`cosurg join --cell`).
     pub cell: Option<f64>,
+    /// Every party runs this many times slower than real time (`--time-scale`).
+    pub time_scale: server::TimeScale,
 }
 
 /// Runs a coordinator in-process and every site as a child process on the built-in
@@ -303,6 +311,7 @@ pub fn run_session_on(
     let mut config = server::CoordinatorConfig::ephemeral(session)?;
     // The coordinator's recording of the session: `<out>/coordinator/demo.cosrec`.
     config.record_dir = Some(run.out.join("coordinator"));
+    config.time_scale = run.time_scale;
     let (handle, addr) = runtime.block_on(async { server::Coordinator::bind(config) })?;
     let fingerprint = handle.fingerprint().to_string();
     std::fs::create_dir_all(&run.out)?;
@@ -389,6 +398,9 @@ pub fn run_session_on(
         {
             cmd.args(["--reset-at", &at.to_string()]);
         }
+        if !run.time_scale.is_real() {
+            cmd.args(["--time-scale", &run.time_scale.to_string()]);
+        }
         cmd.args(&run.extra);
         cmd.args(&site.extra);
         let mut child = cmd
@@ -421,7 +433,10 @@ pub fn run_session_on(
 
     // Sites that fall behind real time still finish; a finer lattice is slower.
     let deadline = Instant::now()
-        + Duration::from_secs_f64(run.seconds * 4.0 * cell_slowdown(scene_name, run.cell) + 60.0);
+        + Duration::from_secs_f64(
+            run.seconds * 4.0 * cell_slowdown(scene_name, run.cell) * run.time_scale.factor()
+                + 60.0,
+        );
     let mut reports = Vec::new();
     let mut failures = Vec::new();
     for (site, mut child, reader) in children {
@@ -501,6 +516,7 @@ pub fn demo(args: DemoArgs) -> Result<()> {
         reset_at: args.reset_at,
         view: args.view,
         cell: args.cell,
+        time_scale: args.time_scale,
     };
     if args.view && !crate::run_window::display_available() {
         bail!("--view needs a display (DISPLAY is not set)");

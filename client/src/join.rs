@@ -140,6 +140,12 @@ pub struct JoinArgs {
     /// Seed of the impairment.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Run this site this many times slower than real time, as the coordinator
+    /// (`cosurg serve --time-scale`): time-dilated measurement of a session on a machine
+    /// too slow for its sites. The impairment (`--preset`, `--outage`) is stretched to
+    /// match, so the session sees the path it names.
+    #[arg(long, default_value = "1", value_name = "FACTOR")]
+    pub time_scale: server::TimeScale,
     /// Cut this site's link completely (100 % loss both ways) for DURATION seconds,
     /// START seconds after it starts: `--outage START,DURATION`.
     #[arg(long, value_name = "START,DURATION")]
@@ -319,6 +325,7 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
     if let Some(v) = args.protocol_version {
         link.protocol_version = v;
     }
+    link.time_scale = args.time_scale;
     if let Some(p) = &args.preset {
         link.impairment = Some(LinkImpairment::preset(p, args.seed)?);
     }
@@ -388,6 +395,7 @@ pub fn site_config(args: &JoinArgs) -> Result<SiteConfig> {
         view,
         scene,
         cell_m: args.cell,
+        time_scale: args.time_scale,
     })
 }
 

@@ -27,6 +27,7 @@ fn site(scene: &LoadedScene, name: &str, role: Role, tool: &str, seconds: f64) -
         role,
         scene: scene.clone(),
         cell_m: None,
+        time_scale: server::TimeScale::REAL,
         options,
         tools: vec![tool.into()],
         script: None,

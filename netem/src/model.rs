@@ -208,6 +208,22 @@ impl ImpairmentConfig {
         Self::default()
     }
 
+    /// The same path for a session run `factor` times slower than real time (time
+    /// dilation, `cosurg bench sync --time-scale`): delays, jitter and the outage
+    /// stretched by `factor`, the rate cap divided by it; losses are per packet and stay.
+    /// In the session's own time the dilated path is the original one.
+    pub fn dilated(&self, factor: f64) -> Self {
+        let mut c = self.clone();
+        c.delay_ms *= factor;
+        c.jitter_ms *= factor;
+        c.rate_kbps = c.rate_kbps.map(|r| r / factor);
+        c.outage = c.outage.map(|o| Outage {
+            start_s: o.start_s * factor,
+            duration_s: o.duration_s * factor,
+        });
+        c
+    }
+
     /// Preset by name; delays are one-way per direction (see module docs).
     ///
     /// | name | one-way delay | jitter (sd) | loss |

@@ -260,6 +260,11 @@ pub struct Args {
     /// (`cosurg score`, `cosurg replay`).
     #[arg(long, value_name = "DIR")]
     pub record: Option<PathBuf>,
+    /// Run the session's clock this many times slower than real time (time-dilated
+    /// measurement on a machine too slow for its sites; every site joins with the same
+    /// `--time-scale`)
+    #[arg(long, default_value = "1", value_name = "FACTOR")]
+    pub time_scale: crate::TimeScale,
 }
 
 /// Run the coordinator with the given arguments until Ctrl-C or `--seconds`.
@@ -361,6 +366,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         rate_per_s: args.relay_rate,
         burst: (args.relay_rate / 2.0).max(1.0),
     };
+    config.time_scale = args.time_scale;
     let (handle, addr) = Coordinator::bind(config)?;
     println!("listening: {addr}");
     println!("fingerprint: {}", handle.fingerprint());

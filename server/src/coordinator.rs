@@ -44,7 +44,7 @@ use tokio::task::JoinSet;
 use tracing::{debug, info, warn};
 
 use crate::admission::Admission;
-pub use crate::clock::WallClock;
+pub use crate::clock::{SessionClock, TimeScale, WallClock};
 use crate::ratelimit::RateLimitConfig;
 use crate::recording::CoordinatorRecording;
 use crate::session::{Action, DatagramVerdict, DropReason, RelayBudget, Session, Target};
@@ -120,6 +120,8 @@ pub struct CoordinatorConfig {
     pub record_dir: Option<PathBuf>,
     /// Datagrams per second each site may have relayed ([`RelayBudget`]).
     pub relay_budget: RelayBudget,
+    /// The session clock's dilation ([`TimeScale`]); every site must use the same.
+    pub time_scale: TimeScale,
 }
 
 impl CoordinatorConfig {
@@ -140,6 +142,7 @@ impl CoordinatorConfig {
             metrics: None,
             record_dir: None,
             relay_budget: RelayBudget::default(),
+            time_scale: TimeScale::REAL,
         }
     }
 

@@ -28,6 +28,7 @@ mod stats;
 pub mod tls;
 
 pub use coordinator::{
-    Coordinator, CoordinatorConfig, CoordinatorHandle, CoordinatorStats, ServerError, WallClock,
+    Coordinator, CoordinatorConfig, CoordinatorHandle, CoordinatorStats, ServerError, SessionClock,
+    TimeScale, WallClock,
 };
 pub use proto;

@@ -48,6 +48,21 @@ pub fn start_server_in(state: tempfile::TempDir) -> Server {
 
 /// A coordinator for the scene whose hash is `scene_hash`.
 pub fn start_server_for(state: tempfile::TempDir, scene_hash: &str) -> Server {
+    start_server_with(state, scene_hash, &[])
+}
+
+/// A coordinator on the built-in scene whose session runs `factor` times slower than real
+/// time (`--time-scale`; its sites must join with the same).
+pub fn start_server_dilated(factor: &str) -> Server {
+    let scene = sim_core::sim_scene::builtin::cholecystectomy();
+    start_server_with(
+        tempfile::tempdir().unwrap(),
+        &scene.hash,
+        &["--time-scale", factor],
+    )
+}
+
+fn start_server_with(state: tempfile::TempDir, scene_hash: &str, extra: &[&str]) -> Server {
     // `cosurg-server` belongs to another package: no CARGO_BIN_EXE_ for it here.
     let server_exe = test_support::exe::sibling_exe(env!("CARGO_BIN_EXE_cosurg"), "cosurg-server");
     let mut command = Command::new(server_exe);
@@ -61,6 +76,7 @@ pub fn start_server_for(state: tempfile::TempDir, scene_hash: &str) -> Server {
             TOKEN,
         ])
         .args(["--scene-hash", scene_hash, "--seconds", "300"])
+        .args(extra)
         .arg("--state-dir")
         .arg(state.path())
         .env("COSURG_LOG", "warn")

@@ -65,17 +65,20 @@ struct SimClock {
     base: Instant,
     sim_bits: AtomicU64,
     at_ns: AtomicU64,
+    /// The session's time dilation: real time since a step is that much less session time.
+    scale: server::TimeScale,
 }
 
 impl SimClock {
     /// Extrapolation limit past the newest published step (s).
     const MAX_AHEAD: f64 = 0.05;
 
-    fn new() -> Self {
+    fn new(scale: server::TimeScale) -> Self {
         SimClock {
             base: Instant::now(),
             sim_bits: AtomicU64::new(0f64.to_bits()),
             at_ns: AtomicU64::new(0),
+            scale,
         }
     }
 
@@ -90,7 +93,10 @@ impl SimClock {
     fn now(&self) -> f64 {
         let t = f64::from_bits(self.sim_bits.load(Ordering::Acquire));
         let at = Duration::from_nanos(self.at_ns.load(Ordering::Relaxed));
-        let ahead = self.base.elapsed().saturating_sub(at).as_secs_f64();
+        let ahead = self
+            .scale
+            .to_session(self.base.elapsed().saturating_sub(at))
+            .as_secs_f64();
         t + ahead.min(Self::MAX_AHEAD)
     }
 }
@@ -207,8 +213,9 @@ impl HapticLoop {
         script_start: f64,
         tools: &Tools,
         rt_priority: Option<i32>,
+        time_scale: server::TimeScale,
     ) -> Result<Self> {
-        let clock = Arc::new(SimClock::new());
+        let clock = Arc::new(SimClock::new(time_scale));
         let follows_device = device.is_device();
         let dev = match device {
             DeviceSpec::Udp(d) => SiteDevice::Udp(*d),

@@ -145,6 +145,9 @@ pub struct LinkConfig {
     /// Protocol version announced in Join (tests of version refusal only; normally
     /// [`proto::PROTOCOL_VERSION`]).
     pub protocol_version: u16,
+    /// The session clock's dilation (the coordinator's; [`server::TimeScale`]): the
+    /// link's clock and its in-process impairment run this many times slower.
+    pub time_scale: server::TimeScale,
 }
 
 impl LinkConfig {
@@ -178,6 +181,7 @@ impl LinkConfig {
             datagram_queue: DATAGRAM_QUEUE,
             max_frame: proto::DEFAULT_MAX_FRAME,
             protocol_version: proto::PROTOCOL_VERSION,
+            time_scale: server::TimeScale::REAL,
         }
     }
 
@@ -456,11 +460,12 @@ impl Link {
         let bind_err = |source| LinkError::Bind { addr: bind, source };
         let (mut endpoint, impaired) = match &cfg.impairment {
             Some(imp) => {
+                let f = cfg.time_scale.factor();
                 let (e, l) = netem::impaired_endpoint(
                     bind,
                     None,
-                    imp.up.clone(),
-                    imp.down.clone(),
+                    imp.up.dilated(f),
+                    imp.down.dilated(f),
                     imp.seed,
                 )
                 .map_err(bind_err)?;
@@ -475,7 +480,7 @@ impl Link {
             outbox: Mutex::new(Outbox::default()),
             wake: Notify::new(),
             clock: Mutex::new(ClockFilter::default()),
-            local: server::WallClock::new(),
+            local: server::WallClock::dilated(cfg.time_scale),
             counters: Counters::default(),
             site: AtomicU32::new(0),
             datagram_queue: cfg.datagram_queue.max(1),

@@ -27,7 +27,8 @@
 //!   arrivals put the owner up to 0.4 s ahead of where it was (measured under `poor`:
 //!   the follower then held back twice the path's delay, 1.0–1.1 s).
 //! * The lag is reached and kept by slewing the step rate within
-//!   [`MIN_RATE`]–[`MAX_RATE`] of real time, never by jumps.
+//!   [`MIN_RATE`]–[`MAX_RATE`] of real time (under hybrid up to [`HYBRID_MAX_RATE`], and
+//!   [`HYBRID_CATCH_UP_RATE`] when far behind), never by jumps.
 //! * A *leading* site (it owns a region, has claimed one, or its own tool is being driven)
 //!   keeps no lag: it runs level with the other leaders it follows, so two owners
 //!   following each other never wait for each other. When ownership moves, the new leader
@@ -88,6 +89,16 @@ pub const MAX_RATE: f64 = 1.05;
 /// time): a follower that built too large a lag (early delay estimates are high) gets back
 /// to it in seconds, not tens of seconds.
 pub const HYBRID_MAX_RATE: f64 = 1.25;
+/// Under hybrid: a follower more than this (s) behind its target lag catches up at up to
+/// [`HYBRID_CATCH_UP_RATE`], as fast as its processor allows. It is that far behind when it
+/// learned late that the session started (the message that completes it travels on a
+/// reliable stream, and under `poor` a lost packet and its retransmission timeouts cost a
+/// site up to 1.6 s: measured with `cosurg bench sync --time-scale 3`, 2026-11-27), and at
+/// 1.25× such a start took 6 s to make up, raising the run's mean display delay by
+/// 230 ms. The view fast-forwards for a fraction of a second instead.
+const HYBRID_CATCH_UP_BEYOND: f64 = 0.25;
+/// Under hybrid: fastest step rate while far behind the target lag (× real time).
+pub const HYBRID_CATCH_UP_RATE: f64 = 3.0;
 /// Rate change per second of lag error (1/s): an error of 0.1 s slews at 0.8× or 1.02×.
 const GAIN: f64 = 2.0;
 /// A remote tool counts as active (its site is followed) this long after its last pose
@@ -504,10 +515,12 @@ impl PeerClocks {
             if self.lag.enabled() {
                 let target = if leading { 0.0 } else { self.target_lag() };
                 let error = behind - target;
-                let max_rate = if self.inputs_only {
-                    HYBRID_MAX_RATE
-                } else {
+                let max_rate = if !self.inputs_only {
                     MAX_RATE
+                } else if error > HYBRID_CATCH_UP_BEYOND {
+                    HYBRID_CATCH_UP_RATE
+                } else {
+                    HYBRID_MAX_RATE
                 };
                 pace.rate = (1.0 + GAIN * error).clamp(MIN_RATE, max_rate);
                 if !realtime && error < 0.0 {
@@ -706,9 +719,13 @@ mod tests {
         let now = 399.0 * 0.05 + 0.43;
         let pace = c.pace(399.0 * 0.05 + 0.43, now, false, true);
         assert!(pace.hold > 0.0, "waits to build the lag: {pace:?}");
-        // Far behind its target it catches up faster than the keyframe strategy may.
-        let pace = c.pace(399.0 * 0.05 - 2.0, now, false, true);
+        // Behind its target it catches up faster than the keyframe strategy may, and far
+        // behind (a late start) faster still.
+        // (The owner's time now is about `now`: its stamps carry its wall time.)
+        let pace = c.pace(now - lag - 0.2, now, false, true);
         assert_eq!(pace.rate, HYBRID_MAX_RATE);
+        let pace = c.pace(now - lag - 1.5, now, false, true);
+        assert_eq!(pace.rate, HYBRID_CATCH_UP_RATE);
     }
 
     /// Over a jittery path that keeps packet order (a delayed stamp holds back the next

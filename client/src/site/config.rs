@@ -76,6 +76,9 @@ pub struct SiteConfig {
     pub view: Option<SiteView>,
     /// The window's mouse and keyboard drive the local tool (no script, no device).
     pub hands: bool,
+    /// The session's time dilation (`--time-scale`; the coordinator's): the site paces,
+    /// stamps and measures in session time.
+    pub time_scale: server::TimeScale,
 }
 
 /// What a site did, printed by `cosurg join` and collected by `cosurg demo`.
@@ -113,6 +116,10 @@ pub struct SiteReport {
     /// any: with the hash, what finds a built-in scene again.
     #[serde(default)]
     pub cell_m: Option<f64>,
+    /// The session's time dilation when not real time (`--time-scale`): times and rates
+    /// in this report are in session time.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time_scale: Option<f64>,
     /// Simulated seconds and the wall-clock seconds they took.
     pub sim_seconds: f64,
     pub wall_seconds: f64,

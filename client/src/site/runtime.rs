@@ -6,6 +6,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use tracing::{debug, info, warn};
 
+use server::SessionClock;
 use sim_core::Simulation;
 use sim_core::sync::SyncStrategy;
 
@@ -34,6 +35,8 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     let dt = cfg.options.dt;
     let steps = (cfg.seconds / dt).round().max(1.0) as u64;
     let mut sim = Simulation::new(cfg.scene.clone(), cfg.options.clone())?;
+    // The session's time: real time, or dilated by `--time-scale` (as the coordinator's).
+    let clock = SessionClock::new(cfg.time_scale);
     // A hybrid site that shows keyframes does not simulate the others' tools either: the
     // regions they act on come from their owners' keyframes, as under keyframe sync.
     let tools_strategy = if cfg.shows_keyframes && cfg.strategy == SyncStrategy::Hybrid {
@@ -53,6 +56,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         strategy: cfg.strategy.to_string(),
         scene_hash: cfg.scene.hash.clone(),
         cell_m: cfg.cell_m,
+        time_scale: (!cfg.time_scale.is_real()).then(|| cfg.time_scale.factor()),
         ..Default::default()
     };
 
@@ -79,10 +83,10 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
             shows_keyframes: cfg.shows_keyframes,
         },
         &sim,
-        Instant::now(),
+        clock.now(),
     );
     if let Some(link) = &link {
-        wait_for_session(&cfg, link, &mut session, &mut sim)?;
+        wait_for_session(&cfg, &clock, link, &mut session, &mut sim)?;
     }
     report.site_id = session.site_id();
     let follows_device = cfg.device.is_device();
@@ -96,6 +100,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
             cfg.script_start,
             &tools,
             cfg.rt_priority,
+            cfg.time_scale,
         )?)
     } else {
         None
@@ -136,7 +141,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     // Instructor: the trajectory whose replay the window started.
     let mut replaying: Option<u32> = None;
 
-    let start = Instant::now();
+    let start = clock.now();
     session.start(start, link.as_ref().and_then(|l| l.clock().rtt_us));
     let mut reset_at = cfg.reset_at.clone();
     reset_at.sort_by(f64::total_cmp);
@@ -205,7 +210,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         // 1. Network input, without waiting, and what the session makes of it.
         if let Some(link) = &link {
             while let Some(ev) = link.try_recv() {
-                let now = now_of(Some(link));
+                let now = now_of(&clock, Some(link));
                 match ev {
                     LinkEvent::Message(m) => session.handle_message(&mut sim, m, now)?,
                     LinkEvent::Refused(r) => {
@@ -226,7 +231,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                 SessionEvent::RemotePose(p) => {
                     let at = sim.time() + sim.options().dt;
                     if let Some(late) = tools.remote_pose(&p, at) {
-                        session.input_lateness(late, at, now_of(link.as_ref()));
+                        session.input_lateness(late, at, now_of(&clock, link.as_ref()));
                     }
                 }
                 SessionEvent::SceneReset { epoch } => {
@@ -339,7 +344,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         teaching.playback_step(t, tip, haptic.as_ref());
 
         // 3. Ownership of the regions our tool touches.
-        session.handle_touched(&sim, &touched, now_of(link.as_ref()));
+        session.handle_touched(&sim, &touched, now_of(&clock, link.as_ref()));
         flush(link.as_ref(), &mut session);
 
         // 4. Remote regions follow their owners; then the step.
@@ -365,7 +370,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         {
             session.send_pose(pose);
         }
-        session.after_step(&sim, now_of(link.as_ref()));
+        session.after_step(&sim, now_of(&clock, link.as_ref()));
         flush(link.as_ref(), &mut session);
 
         // 6. Recordings.
@@ -403,7 +408,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         }
 
         // 7. Pacing (`session::pacing`), and the state for a window to read.
-        let pace = session.end_step(t, tools.local_active(), Instant::now());
+        let pace = session.end_step(t, tools.local_active(), clock.now());
         if let Some(board) = &cfg.status {
             board.publish(SiteStatus {
                 sim_time: t,
@@ -440,13 +445,14 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
             }
         }
         if let Some(wake) = session.poll_timeout() {
-            let now = Instant::now();
-            if wake > now {
-                std::thread::sleep(wake - now);
+            let wait = clock.real_until(wake);
+            if !wait.is_zero() {
+                std::thread::sleep(wait);
             }
         }
     }
-    let wall = start.elapsed().as_secs_f64();
+    // Session seconds (real seconds over a dilated session's time scale).
+    let wall = (clock.now() - start).as_secs_f64();
     if let Some(v) = view.take() {
         v.finish(
             FrameContext {
@@ -531,8 +537,10 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         report.rtt_us = clock.rtt_us;
         if let Some(impaired) = link.impaired() {
             let c = impaired.counters();
-            report.link_up_delay_ms = c.up.model.mean_delay_ms();
-            report.link_down_delay_ms = c.down.model.mean_delay_ms();
+            // The impairment runs in real time: its delays in session time.
+            let f = cfg.time_scale.factor();
+            report.link_up_delay_ms = c.up.model.mean_delay_ms().map(|d| d / f);
+            report.link_down_delay_ms = c.down.model.mean_delay_ms().map(|d| d / f);
         }
         link.close();
     }
@@ -562,6 +570,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
 /// then start their simulation clocks within about one round trip of each other.
 fn wait_for_session(
     cfg: &SiteConfig,
+    clock: &SessionClock,
     link: &Link,
     session: &mut SiteSession,
     sim: &mut Simulation,
@@ -577,7 +586,7 @@ fn wait_for_session(
             );
         }
         let event = link.recv_timeout(Duration::from_millis(50));
-        let now = now_of(Some(link));
+        let now = now_of(clock, Some(link));
         match event {
             Some(LinkEvent::Welcome(w)) => session.handle_welcome(&w, now),
             Some(LinkEvent::Refused(r)) => {
@@ -595,7 +604,7 @@ fn wait_for_session(
             None => {}
         }
         flush(Some(link), session);
-        if session.is_ready(cfg.expect_sites, Instant::now()) {
+        if session.is_ready(cfg.expect_sites, clock.now()) {
             info!(site = %cfg.name, id = ?session.site_id(), sites = session.sites().len(), "session complete, starting");
             return Ok(());
         }
@@ -603,8 +612,8 @@ fn wait_for_session(
 }
 
 /// The time now, as the session takes it: wall time and the coordinator's clock.
-fn now_of(link: Option<&Link>) -> Now {
-    let wall = Instant::now();
+fn now_of(clock: &SessionClock, link: Option<&Link>) -> Now {
+    let wall = clock.now();
     match link {
         Some(l) => Now {
             wall,

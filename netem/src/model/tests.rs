@@ -421,3 +421,47 @@ proptest::proptest! {
         }
     }
 }
+
+/// A path dilated by F, fed the same packets at F times their times, drops the same
+/// packets and releases the rest at F times the original release times (to the µs
+/// rounding of the sampled delays): in a session's own time it is the same path.
+#[test]
+fn a_dilated_path_is_the_original_in_dilated_time() {
+    const F: u64 = 3;
+    for name in ["poor", "burst", "outage", "intercontinental"] {
+        let mut cfg = ImpairmentConfig::preset(name).unwrap();
+        // A rate cap too, so that the token bucket is stretched as well.
+        cfg.rate_kbps = Some(2_000.0);
+        let dilated = cfg.dilated(F as f64);
+        dilated.validate().unwrap();
+        let mut original = Impairment::new(cfg, 7);
+        let mut slow = Impairment::new(dilated, 7);
+        let (mut delivered, mut dropped) = (0, 0);
+        for i in 0..20_000u64 {
+            // 1,200-byte packets every 2 ms for 40 s, spanning the outage preset's cut.
+            let t = i * 2_000;
+            let a = original.on_packet(t, 1_200);
+            let b = slow.on_packet(t * F, 1_200);
+            match (&a, &b) {
+                (Verdict::Drop(x), Verdict::Drop(y)) => {
+                    assert_eq!(x, y, "{name}: packet {i}");
+                    dropped += 1;
+                }
+                (Verdict::Deliver { .. }, Verdict::Deliver { .. }) => {
+                    let (a, b) = (deliver(&a), deliver(&b));
+                    assert_eq!(a.len(), b.len(), "{name}: packet {i}");
+                    for (x, y) in a.iter().zip(b) {
+                        let err = (*y as i64 - (*x * F) as i64).abs();
+                        assert!(err <= 2 * F as i64, "{name}: packet {i}: {x} µs vs {y} µs");
+                    }
+                    delivered += 1;
+                }
+                _ => panic!("{name}: packet {i}: {a:?} against {b:?}"),
+            }
+        }
+        assert!(
+            delivered > 5_000 && dropped > 100,
+            "{name}: {delivered} / {dropped}"
+        );
+    }
+}

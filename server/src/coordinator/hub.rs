@@ -52,7 +52,7 @@ pub(super) struct Hub {
 impl Hub {
     pub(super) fn new(config: &CoordinatorConfig) -> Self {
         Self {
-            clock: WallClock::new(),
+            clock: WallClock::dilated(config.time_scale),
             sessions: RwLock::new(BTreeMap::new()),
             counters: Counters::default(),
             admission: Admission::new(
