@@ -835,7 +835,7 @@ impl SiteSession {
     /// with the other leaders; a follower keeps the playout lag behind the sites it
     /// follows by slewing its step rate. The next step is due at [`Self::poll_timeout`].
     pub fn end_step(&mut self, t: f64, tool_active: bool, now: Instant) -> Pace {
-        let leading = self.claims.any() || tool_active;
+        let leading = self.leads(tool_active);
         let pace = self
             .clocks
             .pace(t, self.wall(now), leading, self.cfg.realtime);
@@ -869,6 +869,12 @@ impl SiteSession {
         }
         self.wake = Some(wake);
         pace
+    }
+
+    /// Whether this site leads (owns or claims a region, or drives its own tool: it then
+    /// keeps no playout lag, see [`pacing`]) rather than follows.
+    pub fn leads(&self, tool_active: bool) -> bool {
+        self.claims.any() || tool_active
     }
 
     // ----- outputs -----------------------------------------------------------------

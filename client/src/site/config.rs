@@ -116,6 +116,10 @@ pub struct SiteReport {
     /// any: with the hash, what finds a built-in scene again.
     #[serde(default)]
     pub cell_m: Option<f64>,
+    /// Under hybrid: session seconds the simulation waited for late inputs of remote tools
+    /// touching tissue (instead of carrying them on).
+    #[serde(default)]
+    pub input_wait_s: f64,
     /// The session's time dilation when not real time (`--time-scale`): times and rates
     /// in this report are in session time.
     #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -27,6 +27,12 @@ pub const RECORD_INTERVAL: f64 = 0.05;
 /// Simulated time after a teaching start request at which trainees start the replay (s):
 /// the command reaches them first.
 const TEACHING_START_MARGIN: f64 = 0.3;
+/// Under hybrid: the longest a step waits for a late input of a remote tool that touches
+/// tissue (s of session time; `Tools::input_awaited`), and the latest such an input may be
+/// (s of simulated time) for the wait to start; how often it looks again. Without the
+/// second bound every step of a 3 s outage waited (measured: display delay 1.35 s).
+const MAX_INPUT_WAIT_S: f64 = 0.05;
+const INPUT_POLL: Duration = Duration::from_millis(1);
 /// Time a site waits for its session to be complete before giving up.
 const JOIN_WAIT: Duration = Duration::from_secs(20);
 
@@ -155,8 +161,10 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     // Run until the session's simulated time reaches `seconds` (a late joiner starts
     // from the session's time, not from zero).
     let mut k: u64 = 0;
+    // The newest remote sample (its simulated time) a step last waited past, and since
+    // when (step 1b).
+    let mut input_wait: Option<(f64, Instant)> = None;
     'run: while sim.time() + 0.5 * dt < cfg.seconds {
-        k += 1;
         // 0. The window's requests (instructor controls; closing it ends the run).
         if let Some(v) = view.as_mut() {
             let t = sim.time();
@@ -294,6 +302,32 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         }
         flush(link.as_ref(), &mut session);
 
+        // 1b. Under hybrid, on a follower: a remote tool that touches tissue and whose next
+        // input is late is waited for rather than carried on (see `Tools::input_awaited`),
+        // at most `MAX_INPUT_WAIT_S` for each newest sample, and only for a sample at most
+        // that late: a stream silent for longer (a burst of losses, an outage) is carried on
+        // at once, as before. The pacing then makes the wait up. A leader never waits:
+        // leaders run level, and would wait for each other.
+        if !session.leads(tools.local_active())
+            && let Some((short, newest)) = tools.input_awaited(sim.time() + dt)
+            && short <= MAX_INPUT_WAIT_S
+        {
+            let now = clock.now();
+            let since = match input_wait {
+                Some((sample, since)) if sample == newest => since,
+                _ => {
+                    input_wait = Some((newest, now));
+                    now
+                }
+            };
+            if (now - since).as_secs_f64() < MAX_INPUT_WAIT_S {
+                tracing::trace!(short_ms = short * 1e3, "waiting for a remote input");
+                std::thread::sleep(clock.scale().to_real(INPUT_POLL));
+                report.input_wait_s += (clock.now() - now).as_secs_f64();
+                continue 'run;
+            }
+        }
+
         // 2. Tools and contact.
         let local = if follows_device {
             haptic.as_mut().and_then(|h| h.device_input())
@@ -349,6 +383,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
 
         // 4. Remote regions follow their owners; then the step.
         session.before_step(&mut sim);
+        k += 1;
         let t0 = Instant::now();
         sim.step()
             .with_context(|| format!("site {} at t = {:.3} s", cfg.name, t))?;

@@ -316,6 +316,41 @@ impl Tools {
         None
     }
 
+    /// How far (s) the newest sample of a remote tool this site simulates falls short of
+    /// `at` (the next step's input time), for a tool that is being driven (its newest two
+    /// samples within [`PoseTrack::RATE_FROM_WITHIN_S`]) and touches or holds tissue. There
+    /// a jaw that closes or opens decides what the tissue does, and a tool carried on past
+    /// its newest sample grasps or lets go late: in `cosurg bench sync` (hybrid, `average`,
+    /// 2026-11-27) every divergence above 0.1 mm on equal sites came at the grasp (2.0 s)
+    /// or the release (5.25 s), with inputs 40–56 ms late. Returns the largest shortfall
+    /// and that tool's newest sample time; `None`: nothing to wait for.
+    pub fn input_awaited(&self, at: f64) -> Option<(f64, f64)> {
+        if !self.remote_contact {
+            return None;
+        }
+        let state = self.interaction.state();
+        self.remote_track
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| Some(*i) != self.local)
+            .filter(|(i, _)| {
+                state
+                    .tools
+                    .get(*i)
+                    .is_some_and(|c| c.grasped > 0 || !c.contacts.is_empty())
+            })
+            .filter_map(|(_, track)| {
+                let n = track.poses.len();
+                let (t1, t0) = (
+                    track.poses.get(n.checked_sub(1)?)?.0,
+                    track.poses.get(n.checked_sub(2)?)?.0,
+                );
+                let driven = t1 - t0 <= PoseTrack::RATE_FROM_WITHIN_S;
+                (driven && at > t1).then_some((at - t1, t1))
+            })
+            .reduce(|a, b| if b.0 > a.0 { b } else { a })
+    }
+
     /// The site that last sent a pose of tool `i` (the one that moves it), if any.
     pub fn remote_site(&self, i: usize) -> Option<proto::SiteId> {
         self.remote_site.get(i).copied().flatten()
