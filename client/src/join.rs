@@ -141,7 +141,7 @@ pub struct JoinArgs {
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Run this site this many times slower than real time, as the coordinator
-    /// (`cosurg serve --time-scale`): time-dilated measurement of a session on a machine
+    /// (`cosurg-server --time-scale`): time-dilated measurement of a session on a machine
     /// too slow for its sites. The impairment (`--preset`, `--outage`) is stretched to
     /// match, so the session sees the path it names.
     #[arg(long, default_value = "1", value_name = "FACTOR")]

@@ -121,7 +121,9 @@ pub struct SiteReport {
     #[serde(default)]
     pub input_wait_s: f64,
     /// The session's time dilation when not real time (`--time-scale`): times and rates
-    /// in this report are in session time.
+    /// in this report are in session time, except the CPU costs (`step_ms_*`,
+    /// `recording_ms_*`, `apply_us_*`, `topology_apply_us_mean`) and the haptic loop's
+    /// figures, which are real.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub time_scale: Option<f64>,
     /// Simulated seconds and the wall-clock seconds they took.

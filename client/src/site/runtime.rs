@@ -306,11 +306,11 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         // input is late is waited for rather than carried on (see `Tools::input_awaited`),
         // at most `MAX_INPUT_WAIT_S` for each newest sample, and only for a sample at most
         // that late: a stream silent for longer (a burst of losses, an outage) is carried on
-        // at once, as before. The pacing then makes the wait up. A leader never waits:
-        // leaders run level, and would wait for each other.
+        // at once, as before. The schedule is not moved: after a wait the follower steps
+        // without pause until it is back on it. A leader never waits: leaders run level,
+        // and would wait for each other.
         if !session.leads(tools.local_active())
-            && let Some((short, newest)) = tools.input_awaited(sim.time() + dt)
-            && short <= MAX_INPUT_WAIT_S
+            && let Some((short, newest)) = tools.input_awaited(sim.time() + dt, MAX_INPUT_WAIT_S)
         {
             let now = clock.now();
             let since = match input_wait {

@@ -42,6 +42,8 @@ pub struct Tools {
     /// (one instrument at a time, as through one port).
     instruments: Vec<usize>,
     remote_contact: bool,
+    /// Under hybrid a follower waits briefly for a late input ([`Tools::input_awaited`]).
+    waits_for_inputs: bool,
     /// Poses of each tool from other sites, by their simulation time.
     remote_track: Vec<PoseTrack>,
     /// Each remote pose sampled at this step's simulation time (what is simulated and
@@ -87,6 +89,7 @@ impl Tools {
             local: instruments.first().copied(),
             instruments,
             remote_contact: strategy.simulates_remote_tools(),
+            waits_for_inputs: strategy == SyncStrategy::Hybrid,
             local_active: false,
             idle_announce: None,
             touch_radius: 2.0 * sim.lattice().params().cell,
@@ -322,10 +325,13 @@ impl Tools {
     /// a jaw that closes or opens decides what the tissue does, and a tool carried on past
     /// its newest sample grasps or lets go late: in `cosurg bench sync` (hybrid, `average`,
     /// 2026-11-27) every divergence above 0.1 mm on equal sites came at the grasp (2.0 s)
-    /// or the release (5.25 s), with inputs 40–56 ms late. Returns the largest shortfall
-    /// and that tool's newest sample time; `None`: nothing to wait for.
-    pub fn input_awaited(&self, at: f64) -> Option<(f64, f64)> {
-        if !self.remote_contact {
+    /// or the release (5.25 s), with inputs 40–56 ms late. Only a shortfall of at most
+    /// `within` (s) counts (a stream silent for longer has stopped or lost samples for
+    /// good, and is carried on); only under hybrid (input-only's lag keeps a margin, and
+    /// its rows were measured without waiting). Returns the largest such shortfall and that
+    /// tool's newest sample time; `None`: nothing to wait for.
+    pub fn input_awaited(&self, at: f64, within: f64) -> Option<(f64, f64)> {
+        if !self.waits_for_inputs {
             return None;
         }
         let state = self.interaction.state();
@@ -346,7 +352,7 @@ impl Tools {
                     track.poses.get(n.checked_sub(2)?)?.0,
                 );
                 let driven = t1 - t0 <= PoseTrack::RATE_FROM_WITHIN_S;
-                (driven && at > t1).then_some((at - t1, t1))
+                (driven && at > t1 && at - t1 <= within).then_some((at - t1, t1))
             })
             .reduce(|a, b| if b.0 > a.0 { b } else { a })
     }
