@@ -549,11 +549,10 @@ fn hybrid_follows_under(preset: &str) {
     // The display delay is the sync's only if both sites kept real time: a site that steps
     // slower than the wall clock falls behind the owner by what the machine lacks, which
     // no lag can make up. Then the bound is not checked, and the run says so.
-    // A follower runs its playout lag behind by design: its clock kept real time if its
-    // simulated time plus that lag did.
+    // A follower runs its playout lag behind by design (`SiteReport::kept_real_time`).
     let real_time = reports
         .iter()
-        .map(|r| (r.sim_seconds + r.playout_lag_ms * 1e-3) / r.wall_seconds.max(1e-9))
+        .map(SiteReport::kept_real_time)
         .fold(f64::INFINITY, f64::min);
     for r in &reports {
         eprintln!(

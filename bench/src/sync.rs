@@ -120,8 +120,9 @@ pub struct SyncRun {
     /// presets keep packet order, so a packet waits for the earlier ones.
     pub measured_path_ms: f64,
     /// The slowest site's simulated steps per second of session time, a follower's counted
-    /// with its playout lag: below 1/dt (250 Hz) a site did not keep up, and its lag and delay say more of the machine than of the
-    /// sync (then run with `--time-scale`).
+    /// with its playout lag ([`cosurg::site::SiteReport::kept_real_time`]): below 1/dt (250 Hz) a site
+    /// did not keep up, and its lag and delay say more of the machine than of the sync
+    /// (then run with `--time-scale`).
     pub slowest_site_hz: f64,
 }
 
@@ -368,13 +369,10 @@ fn run_case(
         display_delay_ms: mean(receivers.iter().map(|r| r.playout_lag_ms)),
         measured_path_ms: mean(reports.iter().filter_map(|r| r.link_up_delay_ms))
             + mean(reports.iter().filter_map(|r| r.link_down_delay_ms)),
-        // A follower runs its playout lag behind by design: its clock kept up if its
-        // simulated time plus that lag did.
+        // Steps per simulated second times the simulated (plus lag) per session second.
         slowest_site_hz: reports
             .iter()
-            .map(|r| {
-                r.sim_rate_hz * (r.sim_seconds + r.playout_lag_ms * 1e-3) / r.sim_seconds.max(1e-9)
-            })
+            .map(|r| r.sim_rate_hz * r.wall_seconds / r.sim_seconds.max(1e-9) * r.kept_real_time())
             .fold(f64::INFINITY, f64::min),
         apply_us_per_keyframe: if applied == 0 {
             0.0

@@ -40,10 +40,6 @@ impl WallClock {
     pub fn now_us(&self) -> u64 {
         self.base_us + self.scale.to_session(self.start.elapsed()).as_micros() as u64
     }
-
-    pub fn scale(&self) -> TimeScale {
-        self.scale
-    }
 }
 
 impl Default for WallClock {

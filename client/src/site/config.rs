@@ -226,3 +226,11 @@ pub struct SiteReport {
     #[serde(default)]
     pub resets: u64,
 }
+
+impl SiteReport {
+    /// Simulated seconds per session second, a follower's counted with its (mean) playout
+    /// lag, which it runs behind by design: about 1 for a site that kept real time.
+    pub fn kept_real_time(&self) -> f64 {
+        (self.sim_seconds + self.playout_lag_ms * 1e-3) / self.wall_seconds.max(1e-9)
+    }
+}

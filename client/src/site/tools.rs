@@ -346,11 +346,8 @@ impl Tools {
                     .is_some_and(|c| c.grasped > 0 || !c.contacts.is_empty())
             })
             .filter_map(|(_, track)| {
-                let n = track.poses.len();
-                let (t1, t0) = (
-                    track.poses.get(n.checked_sub(1)?)?.0,
-                    track.poses.get(n.checked_sub(2)?)?.0,
-                );
+                let mut times = track.poses.iter().rev().map(|p| p.0);
+                let (t1, t0) = (times.next()?, times.next()?);
                 let driven = t1 - t0 <= PoseTrack::RATE_FROM_WITHIN_S;
                 (driven && at > t1 && at - t1 <= within).then_some((at - t1, t1))
             })
