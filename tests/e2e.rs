@@ -18,7 +18,7 @@ use test_support::link as wire;
 use common::*;
 
 #[test]
-fn wrong_token_version_and_scene_are_refused_with_reasons() {
+fn wrong_token_version_scene_and_time_scale_are_refused_with_reasons() {
     let _serial = serial();
     let server = start_server();
     refused(
@@ -33,6 +33,11 @@ fn wrong_token_version_and_scene_are_refused_with_reasons() {
     let mut wrong_scene = join(&server, "other-scene", "trainee");
     wrong_scene.args(["--scene", "builtin:cantilever"]);
     refused(wrong_scene, "WrongScene");
+
+    // A site dilated ×2 at a coordinator in real time: its clock estimate would drift.
+    let mut wrong_time_scale = join(&server, "dilated", "trainee");
+    wrong_time_scale.args(["--time-scale", "2"]);
+    refused(wrong_time_scale, "WrongTimeScale");
 }
 
 #[test]

@@ -31,6 +31,7 @@ fn python_join_encoding_matches_proto() {
         site_name: "kyōto-1".into(),
         session: "lap-chole".into(),
         credential: proto::Credential::Invitation("csi1.abc".into()),
+        time_scale_milli: proto::TIME_SCALE_REAL_MILLI,
     };
     let out = Command::new("python3")
         .arg(repo().join("deploy/interop/aioquic_join.py"))

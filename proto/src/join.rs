@@ -13,10 +13,11 @@
 //!      [`RefusalReason::InvitationRevoked`];
 //! 4. scene hash (case-insensitive hex) → [`RefusalReason::WrongScene`]; checked after the
 //!    token so that the expected hash is only revealed to token holders
-//! 5. site name empty / too long / control characters → [`RefusalReason::Malformed`]
-//! 6. name kicked earlier in this session → [`RefusalReason::Kicked`]
-//! 7. name already in use → [`RefusalReason::NameTaken`]
-//! 8. capacity → [`RefusalReason::Full`]
+//! 5. time scale ([`Join::time_scale_milli`]) → [`RefusalReason::WrongTimeScale`]
+//! 6. site name empty / too long / control characters → [`RefusalReason::Malformed`]
+//! 7. name kicked earlier in this session → [`RefusalReason::Kicked`]
+//! 8. name already in use → [`RefusalReason::NameTaken`]
+//! 9. capacity → [`RefusalReason::Full`]
 //!
 //! If the configuration has no scene hash, the first accepted site fixes it for the session.
 
@@ -27,7 +28,7 @@ use subtle::ConstantTimeEq;
 use crate::invite::{InviteKey, Nonce};
 use crate::msg::{
     AdminRequest, Credential, Join, Refusal, RefusalReason, Role, SessionInfo, SiteEntry, SiteId,
-    Welcome,
+    TIME_SCALE_REAL_MILLI, Welcome,
 };
 
 /// Maximum site-name length in bytes.
@@ -47,6 +48,9 @@ pub struct SessionConfig {
     pub scene_hash: Option<String>,
     pub max_sites: u16,
     pub heartbeat_interval_us: u64,
+    /// The session's time scale in thousandths ([`Join::time_scale_milli`]); a site at
+    /// another scale is refused.
+    pub time_scale_milli: u32,
 }
 
 impl SessionConfig {
@@ -58,6 +62,7 @@ impl SessionConfig {
             scene_hash: None,
             max_sites: 16,
             heartbeat_interval_us: DEFAULT_HEARTBEAT_INTERVAL_US,
+            time_scale_milli: TIME_SCALE_REAL_MILLI,
         }
     }
 }
@@ -281,6 +286,21 @@ impl JoinHandshake {
                 format!(
                     "scene hash {} does not match the session's {}",
                     join.scene_hash, expected
+                ),
+            );
+        }
+        if join.time_scale_milli != self.config.time_scale_milli {
+            let scale = |m: u32| f64::from(m) / 1000.0;
+            return refuse(
+                RefusalReason::WrongTimeScale {
+                    server_milli: self.config.time_scale_milli,
+                    client_milli: join.time_scale_milli,
+                },
+                format!(
+                    "the site runs at time scale {} but the session at {} (give both the \
+                     same --time-scale)",
+                    scale(join.time_scale_milli),
+                    scale(self.config.time_scale_milli)
                 ),
             );
         }

@@ -50,7 +50,9 @@ pub mod streams;
 /// Version 6: clips (`TopologyKind::Clip`, the clip applier).
 /// Version 7: a keyframe acknowledgement says whether its site shows the owner's keyframes
 /// instead of simulating the region (`KeyframeAck::shows_keyframes`).
-pub const PROTOCOL_VERSION: u16 = 7;
+/// Version 8: a join says its time scale (`Join::time_scale_milli`), and a site whose scale
+/// differs from the session's is refused (`RefusalReason::WrongTimeScale`).
+pub const PROTOCOL_VERSION: u16 = 8;
 
 /// A keyframe stream is reset in favour of a newer keyframe of the same region only after
 /// it has been in flight this long. Resetting younger streams starves paths whose round
@@ -93,6 +95,7 @@ pub mod close_code {
     pub const WRONG_ROLE: u32 = 16;
     pub const WRONG_SITE: u32 = 17;
     pub const RATE_LIMITED: u32 = 18;
+    pub const WRONG_TIME_SCALE: u32 = 19;
 }
 
 /// QUIC stream error codes (`SendStream::reset`, `RecvStream::stop`).

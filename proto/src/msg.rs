@@ -81,7 +81,15 @@ pub struct Join {
     pub session: String,
     /// What admits the site: the instructor's token or an invitation.
     pub credential: Credential,
+    /// The sender's time scale in thousandths ([`TIME_SCALE_REAL_MILLI`]: real time;
+    /// 2000: every party runs twice slower than real time, `--time-scale 2`). Every party
+    /// of a session must run at the same scale, or a site's clock estimate drifts from the
+    /// coordinator's by the ratio.
+    pub time_scale_milli: u32,
 }
+
+/// [`Join::time_scale_milli`] of a session in real time.
+pub const TIME_SCALE_REAL_MILLI: u32 = 1000;
 
 /// A site's credential in [`Join`].
 #[derive(Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -165,6 +173,11 @@ pub enum RefusalReason {
     RateLimited {
         retry_after_ms: u64,
     },
+    /// The site runs at another time scale than the session ([`Join::time_scale_milli`]).
+    WrongTimeScale {
+        server_milli: u32,
+        client_milli: u32,
+    },
 }
 
 impl RefusalReason {
@@ -187,6 +200,7 @@ impl RefusalReason {
             RefusalReason::WrongRole => WRONG_ROLE,
             RefusalReason::WrongSite => WRONG_SITE,
             RefusalReason::RateLimited { .. } => RATE_LIMITED,
+            RefusalReason::WrongTimeScale { .. } => WRONG_TIME_SCALE,
         }
     }
 }

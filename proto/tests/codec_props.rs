@@ -45,6 +45,12 @@ fn reason() -> impl Strategy<Value = RefusalReason> {
         Just(RefusalReason::WrongRole),
         Just(RefusalReason::WrongSite),
         any::<u64>().prop_map(|retry_after_ms| RefusalReason::RateLimited { retry_after_ms }),
+        (any::<u32>(), any::<u32>()).prop_map(|(server_milli, client_milli)| {
+            RefusalReason::WrongTimeScale {
+                server_milli,
+                client_milli,
+            }
+        }),
     ]
 }
 fn nodes() -> impl Strategy<Value = QuantisedNodes> {
@@ -146,8 +152,17 @@ fn command() -> impl Strategy<Value = Command> {
 
 fn message() -> impl Strategy<Value = Message> {
     prop_oneof![
-        (any::<u16>(), s(), role(), s(), s(), s(), any::<bool>()).prop_map(
-            |(v, h, role, n, sess, tok, invited)| {
+        (
+            any::<u16>(),
+            s(),
+            role(),
+            s(),
+            s(),
+            s(),
+            any::<bool>(),
+            any::<u32>()
+        )
+            .prop_map(|(v, h, role, n, sess, tok, invited, time_scale_milli)| {
                 Message::Join(Join {
                     protocol_version: v,
                     scene_hash: h,
@@ -159,9 +174,9 @@ fn message() -> impl Strategy<Value = Message> {
                     } else {
                         Credential::Token(tok)
                     },
+                    time_scale_milli,
                 })
-            }
-        ),
+            }),
         (s(), role(), proptest::option::of(s()), any::<u64>(), s()).prop_map(
             |(sess, role, site, valid_for_s, tok)| {
                 Message::Admin(AdminRequest {

@@ -37,6 +37,11 @@ impl WallClock {
         }
     }
 
+    /// The dilation this clock was made with.
+    pub fn time_scale(&self) -> TimeScale {
+        self.scale
+    }
+
     pub fn now_us(&self) -> u64 {
         self.base_us + self.scale.to_session(self.start.elapsed()).as_micros() as u64
     }
@@ -93,6 +98,11 @@ impl TimeScale {
 
     pub fn is_real(self) -> bool {
         self.0 == 1.0
+    }
+
+    /// The factor in thousandths, as a join states it ([`proto::Join::time_scale_milli`]).
+    pub fn milli(self) -> u32 {
+        (self.0 * 1000.0).round() as u32
     }
 
     /// Real time elapsed → session time elapsed.

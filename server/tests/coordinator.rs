@@ -203,7 +203,7 @@ async fn join_gets_welcome_and_empty_snapshot() {
 }
 
 #[tokio::test]
-async fn wrong_token_version_scene_session_are_refused() {
+async fn wrong_token_version_scene_session_time_scale_are_refused() {
     tokio::time::timeout(T, async {
         let f = start();
         let cases: Vec<(Join, RefusalReason, u32)> = vec![
@@ -243,6 +243,18 @@ async fn wrong_token_version_scene_session_are_refused() {
                 },
                 RefusalReason::WrongSession,
                 close_code::WRONG_SESSION,
+            ),
+            (
+                // A site started with `--time-scale 2` at a coordinator in real time.
+                Join {
+                    time_scale_milli: 2000,
+                    ..join_msg("a", Role::Trainee)
+                },
+                RefusalReason::WrongTimeScale {
+                    server_milli: 1000,
+                    client_milli: 2000,
+                },
+                close_code::WRONG_TIME_SCALE,
             ),
         ];
         for (join, reason, code) in cases {
@@ -284,7 +296,7 @@ async fn wrong_token_version_scene_session_are_refused() {
         let _a = f.join("dup", Role::Trainee).await;
         let (r, _) = refused_with(&f, join_msg("dup", Role::Trainee)).await;
         assert_eq!(r.reason, RefusalReason::NameTaken);
-        assert_eq!(f.handle.stats().refused, 6);
+        assert_eq!(f.handle.stats().refused, 7);
         f.handle.shutdown().await;
     })
     .await

@@ -83,6 +83,7 @@ pub fn join_message(
         site_name: site_name.to_string(),
         session: session.to_string(),
         credential,
+        time_scale_milli: proto::TIME_SCALE_REAL_MILLI,
     }
 }
 

@@ -521,6 +521,7 @@ async fn run_load(server_exe: &Path, load: Load, args: &CoordinatorArgs) -> Resu
                     site_name: format!("site-{k}"),
                     session: session_name(s),
                     credential,
+                    time_scale_milli: proto::TIME_SCALE_REAL_MILLI,
                 };
                 links.push(connect(&ep, addr, &join).await?);
             }

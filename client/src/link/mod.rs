@@ -193,6 +193,7 @@ impl LinkConfig {
             site_name: self.site_name.clone(),
             session: self.session.clone(),
             credential: self.credential.clone(),
+            time_scale_milli: self.time_scale.milli(),
         }
     }
 }

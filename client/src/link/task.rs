@@ -86,6 +86,10 @@ fn refusal_from_close(code: u64, text: &str) -> Option<Refusal> {
         close_code::WRONG_ROLE => RefusalReason::WrongRole,
         close_code::WRONG_SITE => RefusalReason::WrongSite,
         close_code::RATE_LIMITED => RefusalReason::RateLimited { retry_after_ms: 0 },
+        close_code::WRONG_TIME_SCALE => RefusalReason::WrongTimeScale {
+            server_milli: 0,
+            client_milli: 0,
+        },
         _ => return None,
     };
     Some(Refusal {

@@ -48,6 +48,7 @@ fn join(name: &str) -> Join {
         site_name: name.into(),
         session: "lap-chole".into(),
         credential: Credential::Token("s3cret".into()),
+        time_scale_milli: TIME_SCALE_REAL_MILLI,
     }
 }
 
@@ -96,6 +97,23 @@ fn refusals_in_order() {
             expected: SCENE.into()
         }
     );
+    // The time scale is checked after the scene and before the name.
+    let mut j = join("");
+    j.scene_hash = "ffff".into();
+    j.time_scale_milli = 2000;
+    assert!(matches!(
+        reason(&mut h, j),
+        RefusalReason::WrongScene { .. }
+    ));
+    let mut j = join("");
+    j.time_scale_milli = 2000;
+    assert_eq!(
+        reason(&mut h, j),
+        RefusalReason::WrongTimeScale {
+            server_milli: TIME_SCALE_REAL_MILLI,
+            client_milli: 2000
+        }
+    );
     assert_eq!(reason(&mut h, join("")), RefusalReason::Malformed);
     assert_eq!(reason(&mut h, join("a\nb")), RefusalReason::Malformed);
     assert_eq!(
@@ -103,6 +121,26 @@ fn refusals_in_order() {
         RefusalReason::Malformed
     );
     assert!(h.is_empty());
+}
+
+#[test]
+fn a_dilated_session_admits_its_own_time_scale_only() {
+    let mut h = JoinHandshake::new(SessionConfig {
+        time_scale_milli: 2000,
+        ..cfg()
+    });
+    let mut j = join("a");
+    j.time_scale_milli = 2000;
+    assert!(h.handle_join(&j, 0).is_ok());
+    let r = h.handle_join(&join("b"), 0).unwrap_err();
+    assert_eq!(
+        r.reason,
+        RefusalReason::WrongTimeScale {
+            server_milli: 2000,
+            client_milli: TIME_SCALE_REAL_MILLI
+        }
+    );
+    assert!(r.text.contains("--time-scale"), "{}", r.text);
 }
 
 #[test]

@@ -111,7 +111,10 @@ impl Hub {
 
     /// Host a session and start its housekeeping and status tasks. Must run within the
     /// tokio runtime. Refused when the name is taken or the coordinator is full.
-    pub(super) fn add_session(&self, config: SessionConfig) -> Result<Arc<Shared>, Refusal> {
+    /// Every session of the hub runs at the hub clock's time scale, whatever `config`
+    /// says: sites at another scale are refused.
+    pub(super) fn add_session(&self, mut config: SessionConfig) -> Result<Arc<Shared>, Refusal> {
+        config.time_scale_milli = self.clock.time_scale().milli();
         let name = config.name.clone();
         let heartbeat_us = config.heartbeat_interval_us.max(10_000);
         let recording = self.record_dir.as_ref().and_then(|dir| {

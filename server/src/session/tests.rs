@@ -45,6 +45,7 @@ fn join_full(s: &mut Session, name: &str, role: Role) -> Joined {
             site_name: name.into(),
             session: "s".into(),
             credential: credential(role, "t"),
+            time_scale_milli: proto::TIME_SCALE_REAL_MILLI,
         },
         0,
     )
@@ -350,6 +351,7 @@ fn quick_reconnect_replaces_a_silent_member_only() {
         site_name: name.into(),
         session: "s".into(),
         credential: credential(role, token),
+        time_scale_milli: proto::TIME_SCALE_REAL_MILLI,
     };
     let t0 = 1_000_000;
     let a = s
@@ -436,6 +438,7 @@ fn revoking_an_invitation_removes_its_members_only() {
                 site_name: name.into(),
                 session: "s".into(),
                 credential: Credential::Invitation(invitation(Role::Trainee, nonce)),
+                time_scale_milli: proto::TIME_SCALE_REAL_MILLI,
             },
             0,
         )
