@@ -193,7 +193,8 @@ fn bent_cantilever_angle_sweep_is_monotone() {
 fn threaded_steps_with_sharing_match_sequential() {
     // Shared rotations (template cache hits with R ≠ I), the thread count changing between
     // steps (partition rebuilt, dropped, rebuilt) and more threads than a part can use:
-    // the same trajectory as one thread up to summation order.
+    // the same trajectory as one thread up to summation order (and what a truncated CG
+    // makes of it).
     let mut one = sim(Some(5.0), true, 0.01);
     let mut many = sim(Some(5.0), true, 0.01);
     for (k, threads) in [2, 3, 1, 2, 2, 7, 1, 3, 2, 2, 4, 2].into_iter().enumerate() {
@@ -210,8 +211,12 @@ fn threaded_steps_with_sharing_match_sequential() {
             .zip(many.positions())
             .map(|(p, q)| (p - q).norm())
             .fold(0.0, f64::max);
+        // 1 nm on a beam that bends by centimetres. The truncated CG amplifies the
+        // rounding of a different summation order: the worst step measured 4e-11 m
+        // before and 1.3e-10 m after the element blocks' formula changed (2026-11-27),
+        // every other step below 6e-12 m. A wrong split moves nodes by millimetres.
         assert!(
-            d < 1e-10,
+            d < 1e-9,
             "step {k} ({threads} threads): {d} m from one thread"
         );
     }

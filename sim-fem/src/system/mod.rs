@@ -31,6 +31,7 @@ mod caches;
 mod construct;
 mod desc;
 mod direct;
+mod element_blocks;
 mod energy_guard;
 mod execution;
 mod forces;

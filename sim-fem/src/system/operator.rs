@@ -6,6 +6,9 @@ use std::sync::{Mutex, OnceLock};
 
 use nalgebra::Matrix3;
 
+use super::element_blocks::{
+    CachedBlocks, UpperBlocks, cache_pays, rotated_blocks, rotated_iso_blocks, scatter_blocks,
+};
 use super::{FemSystem, V3, gather};
 use crate::element::{Mat12, apply_dense};
 use crate::parallel::{multiply_upper_parts, split_ranges};
@@ -37,6 +40,22 @@ impl FemSystem {
         }
         let buf = std::mem::take(&mut self.caches.block_buf);
         let full_spare = Mutex::new(std::mem::take(&mut self.caches.full_buf));
+        let elements = self.mesh.elements.len();
+        // Sources extracted by the last rotation pass carry its number (`pass` counts on
+        // after it).
+        let last = self.rotations.pass.wrapping_sub(1);
+        let sources = &self.rotations.sources;
+        let changed = (self.mesh.elements.iter())
+            .filter(|e| sources[e.source].pass == last)
+            .count();
+        let element_blocks = if cache_pays(changed, elements) {
+            let mut c = std::mem::take(&mut self.caches.element_blocks);
+            c.resize_with(elements, CachedBlocks::default);
+            c
+        } else {
+            // Kept (its entries say what they were computed from) for later steps.
+            Vec::new()
+        };
         let this: &'a FemSystem = self;
         let mut op = SysOp {
             sys: this,
@@ -47,6 +66,7 @@ impl FemSystem {
             assembled: None,
             full: OnceLock::new(),
             full_spare,
+            element_blocks,
         };
         if operator == OperatorMode::Assembled {
             op.assemble(buf);
@@ -59,6 +79,7 @@ impl FemSystem {
 pub(super) struct OperatorBuffers {
     pub(super) blocks: Vec<Matrix3<f64>>,
     pub(super) full: Vec<PaddedBlock>,
+    pub(super) element_blocks: Vec<CachedBlocks>,
 }
 
 /// The operator `A p = diag(mass_coef) p + Σ_e (element matrix) p_e + ext_coef K_c p`.
@@ -75,6 +96,9 @@ pub(super) struct SysOp<'a> {
     /// that product (only [`SysOp::assemble`], in `build_operator`, writes it).
     full: OnceLock<Vec<PaddedBlock>>,
     full_spare: Mutex<Vec<PaddedBlock>>,
+    /// Per-element rotated blocks kept from earlier assemblies (one per element, or empty:
+    /// not used this step; see `element_blocks.rs`).
+    element_blocks: Vec<CachedBlocks>,
 }
 
 /// Smallest mesh (nodes) whose sparse products are split over threads: on 2 cores the
@@ -82,76 +106,6 @@ pub(super) struct SysOp<'a> {
 /// a split product at dt = 10 ms (50 CG iterations), the 12,288-tet one (2,673 nodes)
 /// 1.5× faster (`examples/step_cost.rs`).
 const PARALLEL_PRODUCT_MIN_NODES: usize = 1000;
-
-/// The 16 3×3 blocks (index `4a + b`) of `R K Rᵀ` for a symmetric 12×12 `K` (`r = None`:
-/// `K` itself). Only the 10 blocks with `a ≤ b` are rotated; the others are their
-/// transposes.
-pub(super) fn rotated_blocks(k: &Mat12, r: Option<&Matrix3<f64>>) -> [Matrix3<f64>; 16] {
-    let mut out = [Matrix3::zeros(); 16];
-    for a in 0..4 {
-        for b in a..4 {
-            let kab: Matrix3<f64> = k.fixed_view::<3, 3>(3 * a, 3 * b).into_owned();
-            let blk = match r {
-                Some(r) => r * kab * r.transpose(),
-                None => kab,
-            };
-            out[4 * a + b] = blk;
-            if a != b {
-                out[4 * b + a] = blk.transpose();
-            }
-        }
-    }
-    out
-}
-
-/// The 16 blocks of `R K Rᵀ` of an isotropic linear tet straight from its shape-function
-/// gradients `g` (1/m) and volume `v` (m³): `K_ab = v [λ g_a g_bᵀ + μ g_b g_aᵀ + μ (g_a·g_b)
-/// I]`, so with `r_a = R g_a` a rotated block is `v [λ r_a r_bᵀ + μ r_b r_aᵀ + μ (g_a·g_b)
-/// I]` — about a third of the flops of rotating each block of `K`.
-pub(super) fn rotated_iso_blocks(
-    g: &[V3; 4],
-    v: f64,
-    lambda: f64,
-    mu: f64,
-    r: Option<&Matrix3<f64>>,
-    out: &mut [Matrix3<f64>; 16],
-) {
-    let rg = match r {
-        Some(r) => [r * g[0], r * g[1], r * g[2], r * g[3]],
-        None => *g,
-    };
-    for a in 0..4 {
-        for b in a..4 {
-            let mut blk =
-                rg[a] * rg[b].transpose() * (v * lambda) + rg[b] * rg[a].transpose() * (v * mu);
-            let d = v * mu * g[a].dot(&g[b]);
-            blk[(0, 0)] += d;
-            blk[(1, 1)] += d;
-            blk[(2, 2)] += d;
-            out[4 * a + b] = blk;
-            if a != b {
-                out[4 * b + a] = blk.transpose();
-            }
-        }
-    }
-}
-
-/// `blocks[slots[i]] += c · local[i]` for the blocks of one element whose bit is set in
-/// `mask` (all 16, or those on and above the diagonal for symmetric storage).
-#[inline]
-pub(super) fn scatter_blocks(
-    blocks: &mut [Matrix3<f64>],
-    slots: &[usize; 16],
-    mask: u16,
-    local: &[Matrix3<f64>; 16],
-    c: f64,
-) {
-    for (i, (s, l)) in slots.iter().zip(local).enumerate() {
-        if mask & (1 << i) != 0 {
-            blocks[*s] += l * c;
-        }
-    }
-}
 
 impl SysOp<'_> {
     /// `out = A p` for a product made once, such as the step's right-hand side: where
@@ -186,6 +140,7 @@ impl SysOp<'_> {
                 Some(full) => full,
                 None => self.full_spare.into_inner().unwrap_or_default(),
             },
+            element_blocks: self.element_blocks,
         }
     }
 
@@ -202,6 +157,7 @@ impl SysOp<'_> {
         offset: usize,
         coef: &[f64],
         rotated: bool,
+        mut kept: Option<&mut [CachedBlocks]>,
     ) {
         let sys = self.sys;
         let pat = sys.caches.pattern.as_ref().expect("pattern built");
@@ -213,11 +169,24 @@ impl SysOp<'_> {
         // size: the element's own blocks over its size h). Few per group.
         const CACHE: usize = 8;
         let mut cache_combo = [usize::MAX; CACHE];
-        let mut cache = [[Matrix3::zeros(); 16]; CACHE];
+        let mut cache: [UpperBlocks; CACHE] = [[Matrix3::zeros(); 10]; CACHE];
         let mut cached = 0;
         let mut group = usize::MAX;
-        let mut local = [Matrix3::zeros(); 16];
+        let mut local: UpperBlocks = [Matrix3::zeros(); 10];
         let mut slots = [0usize; 16];
+        // An element's blocks at volume `v`: from the per-element cache when there is one
+        // and the element is rotated, else computed into `out`.
+        let mut iso = |ei: usize, v: f64, out: &mut UpperBlocks| {
+            let e = &sys.mesh.elements[ei];
+            let m = &sys.mesh.materials[e.material];
+            let r = rotated.then(|| &sys.rotations.sources[e.source].rotation);
+            match (r, kept.as_deref_mut()) {
+                (Some(r), Some(kept)) => {
+                    *out = *kept[ei].rotated_iso(&e.grads, v, m.lambda, m.mu, r);
+                }
+                _ => rotated_iso_blocks(&e.grads, v, m.lambda, m.mu, r, out),
+            }
+        };
         for &ei in elements {
             let ei = ei as usize;
             let e = &sys.mesh.elements[ei];
@@ -226,8 +195,6 @@ impl SysOp<'_> {
             }
             // `R K Rᵀ` is symmetric: store the upper triangle only.
             let upper = pat.element_upper(ei);
-            let r = rotated.then(|| &sys.rotations.sources[e.source].rotation);
-            let m = &sys.mesh.materials[e.material];
             match (templated, e.template, self.mode) {
                 (true, Some((_, h)), _) => {
                     // Unrotated: one group for all elements.
@@ -244,8 +211,7 @@ impl SysOp<'_> {
                             let i = cached.min(CACHE - 1);
                             cached = (cached + 1).min(CACHE);
                             cache_combo[i] = e.combo;
-                            let v = e.volume / h;
-                            rotated_iso_blocks(&e.grads, v, m.lambda, m.mu, r, &mut cache[i]);
+                            iso(ei, e.volume / h, &mut cache[i]);
                             i
                         }
                     };
@@ -253,11 +219,12 @@ impl SysOp<'_> {
                 }
                 (_, _, StiffnessMode::Dense) => {
                     let k0 = sys.k0_matrix(ei, self.mode);
+                    let r = rotated.then(|| &sys.rotations.sources[e.source].rotation);
                     let k = rotated_blocks(&k0, r);
                     scatter_blocks(blocks, &slots, upper, &k, coef[ei]);
                 }
                 _ => {
-                    rotated_iso_blocks(&e.grads, e.volume, m.lambda, m.mu, r, &mut local);
+                    iso(ei, e.volume, &mut local);
                     scatter_blocks(blocks, &slots, upper, &local, coef[ei]);
                 }
             }
@@ -297,11 +264,17 @@ impl SysOp<'_> {
                         .zip(part.elements.par_iter())
                         .zip(bounds.par_iter())
                         .for_each(|((b, els), &offset)| {
-                            self.add_rotated(els, b, offset, coef, *rotated)
+                            self.add_rotated(els, b, offset, coef, *rotated, None)
                         });
-                    self.add_rotated(&part.interface, &mut blocks, 0, coef, *rotated);
+                    self.add_rotated(&part.interface, &mut blocks, 0, coef, *rotated, None);
                 }
-                _ => self.add_rotated(&sys.caches.by_source, &mut blocks, 0, coef, *rotated),
+                _ => {
+                    // One thread: through the per-element cache, if this step keeps one.
+                    let mut kept = std::mem::take(&mut self.element_blocks);
+                    let k = (!kept.is_empty()).then_some(kept.as_mut_slice());
+                    self.add_rotated(&sys.caches.by_source, &mut blocks, 0, coef, *rotated, k);
+                    self.element_blocks = kept;
+                }
             },
         }
         for (i, d) in pat.diagonal_slots().iter().enumerate() {

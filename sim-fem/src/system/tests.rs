@@ -3,7 +3,7 @@
 use nalgebra::{Matrix3, Rotation3, SMatrix};
 
 use super::V3;
-use super::operator::{rotated_blocks, rotated_iso_blocks};
+use super::element_blocks::{block, rotated_blocks, rotated_iso_blocks};
 use crate::element::{Mat12, TetGeometry, lame};
 
 /// Element stiffness the textbook way, `V Bᵀ D B` with Voigt strains (independent of
@@ -51,7 +51,7 @@ fn rotated_gradient_blocks_match_rotated_voigt_stiffness() {
         big_r.fixed_view_mut::<3, 3>(3 * a, 3 * a).copy_from(&r);
     }
     let expect = big_r * k * big_r.transpose();
-    let mut got = [Matrix3::zeros(); 16];
+    let mut got = [Matrix3::zeros(); 10];
     rotated_iso_blocks(&geom.grads, geom.volume, lambda, mu, Some(&r), &mut got);
     let via_blocks = rotated_blocks(&k, Some(&r));
     let scale = expect.amax();
@@ -59,13 +59,102 @@ fn rotated_gradient_blocks_match_rotated_voigt_stiffness() {
         for b in 0..4 {
             let e = expect.fixed_view::<3, 3>(3 * a, 3 * b).into_owned();
             assert!(
-                (got[4 * a + b] - e).amax() < 1e-12 * scale,
+                (block(&got, a, b) - e).amax() < 1e-12 * scale,
                 "iso block ({a},{b})"
             );
             assert!(
-                (via_blocks[4 * a + b] - e).amax() < 1e-12 * scale,
+                (block(&via_blocks, a, b) - e).amax() < 1e-12 * scale,
                 "block ({a},{b})"
             );
         }
     }
+}
+
+/// A beam whose cubes' six tets share the rotation of the cube's first tet (as rotation
+/// sharing does), soft enough to sag under gravity.
+fn shared_rotation_beam() -> crate::FemSystem {
+    let mesh = crate::mesh::kuhn_box([8, 2, 2], [0.4, 0.1, 0.1], V3::new(0.0, -0.05, -0.05));
+    let rotation_sources = mesh
+        .tets
+        .chunks(6)
+        .map(|c| crate::RotationSourceDesc {
+            nodes: c[0],
+            rest_inverse_edges: None,
+        })
+        .collect();
+    let mut elements = mesh.elements(0);
+    for (i, e) in elements.iter_mut().enumerate() {
+        e.rotation_source = Some(i / 6);
+    }
+    crate::FemSystem::new(&crate::FemDesc {
+        rest: mesh.rest.clone(),
+        elements,
+        materials: vec![crate::Material::new(2e4, 0.45, 1000.0)],
+        fixed: mesh.nodes_with_x_at_most(1e-9),
+        rotation_sources,
+    })
+    .expect("valid beam")
+}
+
+/// Assembly through the per-element cache of rotated blocks gives the same bits as
+/// assembly that rotates every element afresh, in both stiffness modes that use it, while
+/// the rest test keeps some rotations (cache hits) and re-extracts others (misses).
+#[test]
+fn cached_element_blocks_give_the_same_steps_bit_for_bit() {
+    use crate::{OperatorMode, StepParams, StiffnessMode};
+    for stiffness in [StiffnessMode::Gradient, StiffnessMode::Template] {
+        let p = StepParams {
+            gravity: V3::new(0.0, 0.0, -9.81),
+            stiffness,
+            operator: OperatorMode::Assembled,
+            // Sources whose nodes moved less than 5 mm since their last extraction keep their rotation.
+            rest_threshold: 5e-3,
+            ..StepParams::default()
+        };
+        let (mut cached, mut fresh) = (shared_rotation_beam(), shared_rotation_beam());
+        let rest = cached.mesh.rest.clone();
+        let zero = vec![V3::zeros(); rest.len()];
+        let (mut xc, mut vc) = (rest.clone(), zero.clone());
+        let (mut xf, mut vf) = (rest.clone(), zero.clone());
+        let (mut used, mut mixed) = (0, 0);
+        const STEPS: usize = 40;
+        for step in 0..STEPS {
+            fresh.caches.element_blocks.clear();
+            let sc = cached.step(&mut xc, &mut vc, &zero, 0.01, &p).unwrap();
+            let sf = fresh.step(&mut xf, &mut vf, &zero, 0.01, &p).unwrap();
+            assert_eq!(
+                sc.cg_iterations, sf.cg_iterations,
+                "{stiffness:?} step {step}"
+            );
+            let same = xc
+                .iter()
+                .chain(&vc)
+                .zip(xf.iter().chain(&vf))
+                .all(|(a, b)| {
+                    a.iter()
+                        .zip(b.iter())
+                        .all(|(p, q)| p.to_bits() == q.to_bits())
+                });
+            assert!(same, "{stiffness:?} step {step}: states differ");
+            // Steps assembled through the cache (each source is a cube's six tets) that
+            // kept some rotations (hits) and extracted others (their elements' entries
+            // hold the previous rotation: they must miss).
+            let elements = cached.mesh.elements.len();
+            if super::element_blocks::cache_pays(6 * sc.rotations_extracted, elements) {
+                used += 1;
+                mixed += usize::from(sc.rotations_reused > 0 && sc.rotations_extracted > 0);
+            }
+        }
+        assert!(mixed > 0, "{stiffness:?}: used {used}, mixed {mixed}");
+        let sag = largest_displacement(&xc, &rest);
+        assert!(sag > 1e-3, "the beam sagged {sag} m");
+    }
+}
+
+/// Largest displacement (m).
+fn largest_displacement(x: &[V3], rest: &[V3]) -> f64 {
+    x.iter()
+        .zip(rest)
+        .map(|(a, b)| (a - b).norm())
+        .fold(0.0, f64::max)
 }
