@@ -59,6 +59,10 @@ pub struct SyncArgs {
     /// up, so that its simulation is no longer the owner's (0: no such rows).
     #[arg(long, default_value_t = 5)]
     pub reduced_cg: usize,
+    /// Further arguments of every site (`cosurg join`), whitespace-separated, for
+    /// experiments: e.g. `--site-args "--adaptivity false"`. Recorded in the JSON.
+    #[arg(long, value_delimiter = ' ', allow_hyphen_values = true)]
+    pub site_args: Vec<String>,
     /// Presets of the unequal-fidelity rows (comma-separated).
     #[arg(long, value_delimiter = ',', default_value = "lan,good")]
     pub unequal_presets: Vec<String>,
@@ -195,17 +199,23 @@ pub struct SyncBench {
     pub seeds: u64,
     /// The sessions' time dilation (`--time-scale`; 1: real time).
     pub time_scale: f64,
+    /// `--site-args` (empty: none).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub site_args: Vec<String>,
     pub rows: Vec<SyncRow>,
 }
 
 /// The bench's cast: the instructor lifts the gallbladder; both trainees receive (trainee
 /// B on the slowed machine in the unequal-machines row).
-fn cast(slowdown: f64, receiver_cg: Option<usize>) -> Vec<DemoSite> {
+fn cast(slowdown: f64, receiver_cg: Option<usize>, site_args: &[String]) -> Vec<DemoSite> {
     let mut c = cosurg::demo::cast(3, slowdown);
     c[1].tools.clear();
     c[2].tools.clear();
     if let Some(n) = receiver_cg {
         c[2].extra = vec!["--cg-iterations".into(), n.to_string()];
+    }
+    for site in &mut c {
+        site.extra.extend(site_args.iter().cloned());
     }
     c
 }
@@ -283,6 +293,7 @@ pub fn run(args: SyncArgs) -> Result<()> {
         seconds: args.seconds,
         seeds: args.seeds,
         time_scale: args.time_scale.factor(),
+        site_args: args.site_args.clone(),
         rows,
     };
     std::fs::write(
@@ -314,7 +325,7 @@ fn run_case(
         .receiver_cg_iterations
         .map_or(String::new(), |n| format!("-cg{n}"));
     let run = SessionRun {
-        cast: cast(case.slowdown, case.receiver_cg_iterations),
+        cast: cast(case.slowdown, case.receiver_cg_iterations, &args.site_args),
         seconds: args.seconds,
         strategy,
         preset: Some(case.preset.clone()),

@@ -71,6 +71,25 @@ mod tests {
     }
 
     #[test]
+    fn bench_sync_site_args_split_on_whitespace_and_may_start_with_dashes() {
+        let cli = Cli::try_parse_from([
+            "cosurg",
+            "bench",
+            "sync",
+            "--site-args",
+            "--adaptivity false",
+        ])
+        .unwrap();
+        let Command::Bench(bench::BenchArgs {
+            which: bench::BenchCommand::Sync(a),
+        }) = cli.command
+        else {
+            panic!("parsed as {:?}", cli.command);
+        };
+        assert_eq!(a.site_args, ["--adaptivity", "false"]);
+    }
+
+    #[test]
     fn model_names_are_the_scene_files_and_nonlinear_is_an_alias() {
         for name in ["linear", "corotational", "stvk"] {
             assert_eq!(solve_model(name).unwrap(), name);
