@@ -37,8 +37,10 @@ import struct
 import sys
 import time
 
-WIRE_TAG = 7
-PROTOCOL_VERSION = 7
+WIRE_TAG = 8
+PROTOCOL_VERSION = 8
+# proto::TIME_SCALE_REAL_MILLI: a session in real time.
+TIME_SCALE_REAL_MILLI = 1000
 ALPN = "cosurg/1"
 
 # proto::Message variant indices (append-only within a protocol version).
@@ -54,13 +56,14 @@ MSG_NAME = {v: k for k, v in MSG.items()}
 ROLES = ["instructor", "trainee", "observer"]
 REFUSAL_REASONS = ["WrongToken", "WrongVersion", "WrongScene", "WrongSession", "NameTaken",
                    "Full", "Kicked", "Malformed", "InvalidInvitation", "InvitationExpired",
-                   "InvitationRevoked", "WrongRole", "WrongSite", "RateLimited"]
+                   "InvitationRevoked", "WrongRole", "WrongSite", "RateLimited",
+                   "WrongTimeScale"]
 # proto::close_code
 CLOSE_CODES = {0: "NORMAL", 1: "WRONG_TOKEN", 2: "WRONG_VERSION", 3: "WRONG_SCENE",
                4: "WRONG_SESSION", 5: "NAME_TAKEN", 6: "FULL", 7: "KICKED", 8: "MALFORMED",
                9: "PROTOCOL_ERROR", 10: "JOIN_TIMEOUT", 11: "OVERLOADED", 12: "TIMED_OUT",
                13: "INVALID_INVITATION", 14: "INVITATION_EXPIRED", 15: "INVITATION_REVOKED",
-               16: "WRONG_ROLE", 17: "WRONG_SITE", 18: "RATE_LIMITED"}
+               16: "WRONG_ROLE", 17: "WRONG_SITE", 18: "RATE_LIMITED", 19: "WRONG_TIME_SCALE"}
 
 
 # ---------------------------------------------------------------- postcard encoding ----
@@ -92,11 +95,11 @@ def frame(msg: bytes) -> bytes:
 def join_frame(site: str, role: str, session: str, token: str, scene_hash: str,
                version: int = PROTOCOL_VERSION, invite: str | None = None) -> bytes:
     # struct Join { protocol_version: u16, scene_hash: String, role: Role, site_name: String,
-    #               session: String, credential: Credential }
+    #               session: String, credential: Credential, time_scale_milli: u32 }
     # enum Credential { Token(String), Invitation(String) }
     credential = varint(1) + pstr(invite) if invite else varint(0) + pstr(token)
     body = (varint(version) + pstr(scene_hash) + varint(ROLES.index(role)) + pstr(site)
-            + pstr(session) + credential)
+            + pstr(session) + credential + varint(TIME_SCALE_REAL_MILLI))
     return frame(message("Join", body))
 
 
@@ -148,6 +151,10 @@ def decode(msg: bytes) -> tuple[str, dict]:
             detail = {"server": r.varint(), "client": r.varint()}
         elif reason == "WrongScene":
             detail = {"expected": r.string()}
+        elif reason == "RateLimited":
+            detail = {"retry_after_ms": r.varint()}
+        elif reason == "WrongTimeScale":
+            detail = {"server_milli": r.varint(), "client_milli": r.varint()}
         return name, {"reason": reason, **detail, "text": r.string()}
     if name == "Welcome":
         site = r.varint()

@@ -79,8 +79,12 @@ impl TimeScale {
     /// time, above the session's own liveness check (1.2 s).
     pub const MAX: f64 = 5.0;
 
-    /// A factor in 1..=[`TimeScale::MAX`].
+    /// A factor in 1..=[`TimeScale::MAX`], rounded to thousandths: a join states the
+    /// scale in thousandths ([`TimeScale::milli`]), so two parties it admits together
+    /// must run at exactly that scale (1.0004 would otherwise join a real-time session
+    /// as 1000 and drift 0.04 %).
     pub fn new(factor: f64) -> Result<Self, String> {
+        let factor = (factor * 1000.0).round() / 1000.0;
         if factor.is_finite() && (1.0..=Self::MAX).contains(&factor) {
             Ok(TimeScale(factor))
         } else {
@@ -187,6 +191,10 @@ mod tests {
     #[test]
     fn time_scale_parses_and_refuses_nonsense() {
         assert_eq!("2".parse::<TimeScale>().unwrap().factor(), 2.0);
+        // Thousandths, as a join states it: the clock runs at the scale it announces.
+        let near_real = "1.0004".parse::<TimeScale>().unwrap();
+        assert!(near_real.is_real() && near_real.milli() == 1000);
+        assert_eq!("2.5".parse::<TimeScale>().unwrap().milli(), 2500);
         for bad in ["0.5", "0", "-1", "NaN", "inf", "6", "x"] {
             let e = bad.parse::<TimeScale>().unwrap_err();
             assert!(e.contains("time scale"), "{bad}: {e}");

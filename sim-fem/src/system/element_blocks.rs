@@ -135,10 +135,11 @@ const FULL: [(usize, bool); 16] = {
 /// One element's rotated blocks and what they were computed from.
 #[derive(Clone, Debug)]
 pub(super) struct CachedBlocks {
-    /// The rotation (NaN: nothing cached; NaN never equals itself).
+    /// The rotation the blocks were computed with (NaN: nothing cached).
     rotation: Matrix3<f64>,
     /// The volume the blocks were scaled by (m³; the element's own, or per unit size
-    /// with template stiffness).
+    /// with template stiffness; NaN: nothing cached, and no element's volume has these
+    /// bits).
     volume: f64,
     blocks: UpperBlocks,
 }

@@ -41,14 +41,21 @@ impl FemSystem {
         let buf = std::mem::take(&mut self.caches.block_buf);
         let full_spare = Mutex::new(std::mem::take(&mut self.caches.full_buf));
         let elements = self.mesh.elements.len();
-        // Sources extracted by the last rotation pass carry its number (`pass` counts on
-        // after it).
-        let last = self.rotations.pass.wrapping_sub(1);
-        let sources = &self.rotations.sources;
-        let changed = (self.mesh.elements.iter())
-            .filter(|e| sources[e.source].pass == last)
-            .count();
-        let element_blocks = if cache_pays(changed, elements) {
+        // Only a one-thread assembly of rotated blocks reads the cache.
+        let reads_cache = operator == OperatorMode::Assembled
+            && self.active_partition().is_none()
+            && mode != StiffnessMode::Dense
+            && matches!(elem, ElemMats::Rotated { rotated: true, .. });
+        // Elements whose source the last rotation pass extracted (sources carry the
+        // number of the pass that extracted them; `pass` counts on after it).
+        let changed = || {
+            let last = self.rotations.pass.wrapping_sub(1);
+            let sources = &self.rotations.sources;
+            (self.mesh.elements.iter())
+                .filter(|e| sources[e.source].pass == last)
+                .count()
+        };
+        let element_blocks = if reads_cache && cache_pays(changed(), elements) {
             let mut c = std::mem::take(&mut self.caches.element_blocks);
             c.resize_with(elements, CachedBlocks::default);
             c
