@@ -61,10 +61,11 @@ impl Default for WallClock {
 /// emulation: Gupta et al., "To infinity and beyond: time-warped network emulation",
 /// NSDI 2006). What it does not stretch, so that these run `factor` times quicker in
 /// session time than on the real path: QUIC's own constants (25 ms maximum
-/// acknowledgement delay, 1 ms timer granularity, the initial round-trip estimate, the
-/// 10 s idle timeout) and the link's reconnection timers (backoff, rejoin attempt,
-/// connect timeout); a site cut off therefore rejoins sooner in session time. Hence the
-/// small [`TimeScale::MAX`]. The coordinator's admission (invitation expiry, rate limits)
+/// acknowledgement delay, 1 ms timer granularity, the initial round-trip estimate and
+/// retransmission timeouts of a handshake, the 10 s idle timeout); a site cut off
+/// therefore reconnects somewhat sooner in session time. Hence the small
+/// [`TimeScale::MAX`]. The link's own reconnection timers (backoff, connect and rejoin
+/// attempt timeouts) are stretched (since 2026-11-27, 14:40 UTC). The coordinator's admission (invitation expiry, rate limits)
 /// runs on its session clock.
 ///
 /// Every party of a session must use the same factor: a site's clock estimate would

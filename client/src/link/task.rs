@@ -136,6 +136,8 @@ async fn connect(
     } else {
         cfg.connect_timeout
     };
+    // A session dilated F× waits F× as long in real time, the same in session time.
+    let limit = cfg.time_scale.to_real(limit);
     let attempt = async {
         let connecting = endpoint
             .connect(cfg.server, &cfg.server_name)
@@ -319,7 +321,8 @@ pub(super) async fn run(
                 }
             }
         }
-        let pause = jittered(backoff);
+        // Session time, as the rest of a dilated session (`LinkConfig::time_scale`).
+        let pause = cfg.time_scale.to_real(jittered(backoff));
         backoff = (backoff * 2).min(cfg.backoff.max.max(cfg.backoff.initial));
         tokio::select! {
             _ = tokio::time::sleep(pause) => {}
