@@ -37,8 +37,8 @@ import struct
 import sys
 import time
 
-WIRE_TAG = 8
-PROTOCOL_VERSION = 8
+WIRE_TAG = 9
+PROTOCOL_VERSION = 9
 # proto::TIME_SCALE_REAL_MILLI: a session in real time.
 TIME_SCALE_REAL_MILLI = 1000
 ALPN = "cosurg/1"

@@ -52,7 +52,9 @@ pub mod streams;
 /// instead of simulating the region (`KeyframeAck::shows_keyframes`).
 /// Version 8: a join says its time scale (`Join::time_scale_milli`), and a site whose scale
 /// differs from the session's is refused (`RefusalReason::WrongTimeScale`).
-pub const PROTOCOL_VERSION: u16 = 8;
+/// Version 9: tool-following refinement decided on one site (`TopologyKind::Refine`),
+/// applied by every site at its simulated time.
+pub const PROTOCOL_VERSION: u16 = 9;
 
 /// A keyframe stream is reset in favour of a newer keyframe of the same region only after
 /// it has been in flight this long. Resetting younger streams starves paths whose round

@@ -438,6 +438,18 @@ pub enum TopologyKind {
     /// A clip: the segment of a clip applier's closed jaws (its two ends), in rest
     /// coordinates (m; exact `f64`, like a cut's triangles).
     Clip { ends: [[f64; 3]; 2] },
+    /// Tool-following refinement decided on one site (it changes no material, so the
+    /// coordinator relays it without keeping it: keyframes carry the regions' tree states
+    /// to late joiners): every leaf whose rest box comes within `distance` (m) of a focus
+    /// point (rest coordinates, m, exact `f64`) splits to `level`; then the diamonds whose
+    /// centre nodes sit at the `merge` grid positions (integer lattice units) merge back
+    /// where they can, in that order.
+    Refine {
+        focus: Vec<[f64; 3]>,
+        distance: f64,
+        level: u8,
+        merge: Vec<[i64; 3]>,
+    },
 }
 
 /// One timed tool sample of a teaching trajectory.

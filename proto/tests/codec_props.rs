@@ -105,14 +105,29 @@ fn topology_op() -> impl Strategy<Value = TopologyOp> {
         proptest::option::of((any::<u32>(), vec(any::<u32>(), 0..8))),
         any::<f64>(),
         proptest::option::of(vec(any::<f64>(), 6)),
+        proptest::option::of((
+            vec(vec(any::<f64>(), 3), 0..4),
+            any::<f64>(),
+            any::<u8>(),
+            vec(vec(any::<i64>(), 3), 0..4),
+        )),
     )
         .prop_map(
-            |(epoch, site, seq, tris, release, sim_time, clip)| TopologyOp {
+            |(epoch, site, seq, tris, release, sim_time, clip, refine)| TopologyOp {
                 epoch,
                 site,
                 seq,
                 sim_time,
                 kind: match (release, clip) {
+                    _ if refine.is_some() => {
+                        let (focus, distance, level, merge) = refine.expect("some");
+                        TopologyKind::Refine {
+                            focus: focus.iter().map(|p| [p[0], p[1], p[2]]).collect(),
+                            distance,
+                            level,
+                            merge: merge.iter().map(|g| [g[0], g[1], g[2]]).collect(),
+                        }
+                    }
                     (_, Some(e)) => TopologyKind::Clip {
                         ends: std::array::from_fn(|i| std::array::from_fn(|k| e[3 * i + k])),
                     },

@@ -638,6 +638,15 @@ impl Session {
                 }
                 // The op is the sender's: its id is the sender's site id.
                 op.site = site;
+                if matches!(op.kind, proto::TopologyKind::Refine { .. }) {
+                    // Refinement is relayed, not kept: late joiners take the regions'
+                    // tree states from the keyframes, and a session of an hour makes
+                    // thousands of these.
+                    return vec![Action::Control {
+                        to: Target::AllExcept(site),
+                        msg: Message::Topology(op),
+                    }];
+                }
                 if self
                     .topology
                     .iter()

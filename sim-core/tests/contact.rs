@@ -324,6 +324,134 @@ fn adaptivity_follows_the_tool_and_coarsens_back() {
     );
 }
 
+/// The leaves of `sim`, sorted (a lattice's identity, independent of its history).
+fn leaf_set(sim: &Simulation) -> Vec<cosurg_sim_core::TetId> {
+    let mut leaves = sim.lattice().leaves().to_vec();
+    leaves.sort_unstable();
+    leaves
+}
+
+/// Refinement decided on one site and applied on two whose states differ (another contact
+/// stiffness: apart under the probe) keeps their lattices equal at every step,
+/// refines around the contact on both and coarsens both back.
+#[test]
+fn refinement_decided_on_one_site_gives_two_sites_the_same_lattice() {
+    let mut a = sim_of(block_scene(3, true, true, true));
+    let mut b = sim_of(block_scene(3, true, true, true));
+    let initial = leaf_set(&a);
+    let params = AdaptParams {
+        every: 5,
+        distance: 0.01,
+        hold_time: 0.1,
+        max_level: 3,
+    };
+    let mut ia = Interaction::with_params(&a, ContactParams::from_sim(&a), params);
+    let mut cb = ContactParams::from_sim(&b);
+    cb.stiffness *= 0.2;
+    let mut ib = Interaction::with_params(&b, cb, params);
+    for (i, site) in [&mut ia, &mut ib].into_iter().enumerate() {
+        site.adapt.apply_own = false;
+        site.adapt.site = i as u32;
+    }
+    // Only site A drives the probe; B simulates it and decides merges only.
+    ib.adapt.enabled = vec![false];
+    let (mut ops, mut peak, mut apart) = (0, initial.len(), 0.0f64);
+    for k in 0..300 {
+        let input = if k < 150 {
+            probe_at(press(a.time(), 0.036, 0.1), 0.04)
+        } else {
+            probe_at(0.1, 0.04)
+        };
+        ia.before_step(&mut a, &[input]).unwrap();
+        ib.before_step(&mut b, &[input]).unwrap();
+        let made: Vec<_> = ia
+            .adapt
+            .made
+            .drain(..)
+            .chain(ib.adapt.made.drain(..))
+            .collect();
+        for op in made {
+            ops += 1;
+            a.apply_topology_op(op.clone()).unwrap();
+            b.apply_topology_op(op).unwrap();
+        }
+        assert_eq!(leaf_set(&a), leaf_set(&b), "step {k}: lattices differ");
+        peak = peak.max(a.lattice().leaf_count());
+        a.step().unwrap();
+        b.step().unwrap();
+        let n = a.positions().len().min(b.positions().len());
+        for i in 0..n {
+            apart = apart.max((a.positions()[i] - b.positions()[i]).norm());
+        }
+    }
+    assert!(apart > 3e-4, "the two states differ: {apart:.2e} m apart");
+    assert!(ops >= 2, "{ops} ops");
+    assert!(
+        peak > initial.len() + 20,
+        "refined: {} -> {peak}",
+        initial.len()
+    );
+    assert_eq!(
+        leaf_set(&a),
+        initial,
+        "coarsened back to the static refinement"
+    );
+}
+
+/// A refinement op splits exactly to its level every leaf whose rest box lies within its
+/// distance of a focus point (checked leaf by leaf against the boxes), and malformed ops
+/// are refused with their problem named.
+#[test]
+fn a_refinement_op_splits_what_lies_within_its_distance_and_malformed_ones_are_refused() {
+    use cosurg_sim_core::adapt::{REFINE_SEQ_BASE, RefineOp};
+    use cosurg_sim_core::cut::OpId;
+    let mut sim = sim_of(block_scene(3, true, false, true));
+    let before = sim.lattice().leaf_count();
+    let focus = [0.04, 0.04, 0.04];
+    let op = RefineOp {
+        id: OpId {
+            site: 1,
+            seq: REFINE_SEQ_BASE,
+        },
+        focus: vec![focus],
+        distance: 0.006,
+        level: 3,
+        merge: Vec::new(),
+    };
+    let change = sim.apply_refine(&op).unwrap();
+    assert!(change.split > 0 && sim.lattice().leaf_count() > before);
+    let lat = sim.lattice();
+    let f = V3::from(focus);
+    let mut near = 0;
+    for (i, t) in lat.leaves().iter().enumerate() {
+        let nodes = lat.leaf_tet_nodes(i);
+        let (mut lo, mut hi) = (V3::repeat(f64::INFINITY), V3::repeat(f64::NEG_INFINITY));
+        for n in nodes {
+            lo = lo.inf(&lat.node_rest(n));
+            hi = hi.sup(&lat.node_rest(n));
+        }
+        let gap = (0..3)
+            .map(|k| (lo[k] - f[k]).max(f[k] - hi[k]).max(0.0).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        if gap <= 0.006 {
+            near += 1;
+            assert_eq!(t.level(), 3, "leaf {t:?} within the distance");
+        }
+    }
+    assert!(near > 0);
+    // Applying it again changes nothing.
+    assert_eq!(sim.apply_refine(&op).unwrap().split, 0);
+    let mut bad = |edit: fn(&mut RefineOp)| {
+        let mut o = op.clone();
+        edit(&mut o);
+        sim.apply_refine(&o).unwrap_err().to_string()
+    };
+    assert!(bad(|o| o.focus[0][1] = f64::NAN).contains("focus point 0 is not finite"));
+    assert!(bad(|o| o.distance = -1.0).contains("distance -1 m"));
+    assert!(bad(|o| o.focus = vec![[0.0; 3]; 5000]).contains("5000 focus points"));
+}
+
 /// The default scene: the forceps follows its script — approaches the fundus with open
 /// jaws, closes them (grasp), lifts 3 cm, holds, opens them (release) — and the tissue
 /// comes back to rest afterwards. The probe is parked at its initial pose (3 cm below the

@@ -67,6 +67,11 @@ pub struct SessionStats {
     pub topology_apply_us_total: f64,
     pub keyframes_topology_dropped: u64,
     pub topology_bytes_sent: u64,
+    /// Refinement decisions applied (ours and the others', at their time).
+    pub refinements_applied: u64,
+    /// Of those, applied after their time (they arrived late; under hybrid and
+    /// input-only sync).
+    pub refinements_late: u64,
     /// Under hybrid: new input samples of remote tools that arrived after the simulation
     /// had passed their time (it held the tool at its newest pose instead).
     pub late_inputs: u64,

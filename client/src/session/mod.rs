@@ -402,7 +402,13 @@ impl SiteSession {
             Message::Keyframe(kf) if self.sites.is_other(kf.owner) => {
                 // Ops we hold for their time count: they are applied before a keyframe
                 // made after them is due.
-                let reachable = sim.topology().epoch() + self.held_topology.len() as u32;
+                // (Refinements are not counted in the topology epoch.)
+                let held = self
+                    .held_topology
+                    .iter()
+                    .filter(|h| !matches!(h.kind, proto::TopologyKind::Refine { .. }))
+                    .count();
+                let reachable = sim.topology().epoch() + held as u32;
                 if kf.topology > reachable {
                     debug!(
                         region = kf.region,
@@ -658,7 +664,31 @@ impl SiteSession {
         op: &proto::TopologyOp,
     ) -> Result<(), SimError> {
         let t0 = Instant::now();
-        let change = sim.apply_topology_op(topology::topology_from_wire(op))?;
+        let op_here = topology::topology_from_wire(op);
+        if let sim_core::cut::TopologyOp::Refine(r) = &op_here {
+            let change = sim.apply_refine(r)?;
+            self.stats.refinements_applied += 1;
+            let late = sim.time() - op.sim_time;
+            if self.times_topology() && late > 0.5 * sim.options().dt {
+                self.stats.refinements_late += 1;
+                debug!(
+                    site = op.site,
+                    seq = op.seq,
+                    late,
+                    "refinement applied late"
+                );
+            }
+            debug!(
+                site = op.site,
+                seq = op.seq,
+                t = sim.time(),
+                split = change.split,
+                merged = change.merged,
+                "refinement applied"
+            );
+            return Ok(());
+        }
+        let change = sim.apply_topology_op(op_here)?;
         if change.applied && Some(op.site) == self.sites.me() {
             // One of our own cuts, at the time we scheduled it for.
             self.own_cut_applied = true;
@@ -678,8 +708,9 @@ impl SiteSession {
     }
 
     /// Sends the topology ops our own tools made at simulated time `t` (s) to the others.
-    /// Under hybrid and input-only sync, cuts and releases of attachment springs were not
-    /// applied here (the blade's and the hook's `apply_own` are off on a linked site): they
+    /// Under hybrid and input-only sync, cuts, releases of attachment springs and
+    /// refinement decisions were not applied here (the blade's, the hook's and
+    /// adaptivity's `apply_own` are off on a linked site): they
     /// are scheduled [`topology_lead`] ahead, for every site, this one included, so that
     /// the tissue parts or lets go at the same simulated moment everywhere — also on the
     /// sites that lead like us and would otherwise receive them after their time. Clips
@@ -696,7 +727,9 @@ impl SiteSession {
         }
         for op in ops {
             let at = match op {
-                sim_core::cut::TopologyOp::Cut(_) | sim_core::cut::TopologyOp::Release(_)
+                sim_core::cut::TopologyOp::Cut(_)
+                | sim_core::cut::TopologyOp::Release(_)
+                | sim_core::cut::TopologyOp::Refine(_)
                     if self.times_topology() =>
                 {
                     t + topology_lead(rtt)

@@ -1,4 +1,4 @@
-//! Topology operations (cuts, releases of attachment springs, clips) between sim-core and the wire, and their handling in the
+//! Topology operations (cuts, releases of attachment springs, clips, refinement decisions) between sim-core and the wire, and their handling in the
 //! session: ops made here go to the coordinator on the control stream (reliable, ordered)
 //! and are relayed to every other site; the coordinator keeps them for late joiners' snapshots.
 //! Every site applies every op it receives (duplicates are no-ops, the order does not
@@ -8,6 +8,7 @@
 //! reached, and the owner's next keyframe replaces it.
 
 use proto::{Epoch, SiteId};
+use sim_core::adapt::RefineOp;
 use sim_core::clip::ClipOp;
 use sim_core::cut::{CutOp, OpId, ReleaseOp, TopologyOp};
 
@@ -41,6 +42,18 @@ pub fn topology_to_wire(op: &TopologyOp, epoch: Epoch, sim_time: f64) -> proto::
             sim_time,
             kind: proto::TopologyKind::Clip { ends: c.ends },
         },
+        TopologyOp::Refine(r) => proto::TopologyOp {
+            epoch,
+            site: r.id.site as SiteId,
+            seq: r.id.seq,
+            sim_time,
+            kind: proto::TopologyKind::Refine {
+                focus: r.focus.clone(),
+                distance: r.distance,
+                level: r.level,
+                merge: r.merge.clone(),
+            },
+        },
     }
 }
 
@@ -68,6 +81,21 @@ pub fn topology_from_wire(op: &proto::TopologyOp) -> TopologyOp {
                 seq: op.seq,
             },
             ends: *ends,
+        }),
+        proto::TopologyKind::Refine {
+            focus,
+            distance,
+            level,
+            merge,
+        } => TopologyOp::Refine(RefineOp {
+            id: OpId {
+                site: u32::from(op.site),
+                seq: op.seq,
+            },
+            focus: focus.clone(),
+            distance: *distance,
+            level: *level,
+            merge: merge.clone(),
         }),
     }
 }

@@ -107,6 +107,12 @@ pub struct SiteReport {
     pub keyframes_topology_dropped: u64,
     #[serde(default)]
     pub topology_bytes_sent: u64,
+    /// Refinement decisions applied here (every site's, at their simulated time).
+    #[serde(default)]
+    pub refinements_applied: u64,
+    /// Of those, applied after their time (they arrived late).
+    #[serde(default)]
+    pub refinements_late: u64,
     pub name: String,
     pub role: String,
     pub strategy: String,

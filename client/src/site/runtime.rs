@@ -522,8 +522,12 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
             sim_core::cut::TopologyOp::Release(r) => {
                 report.springs_released += r.springs.len() as u32
             }
+            // Never logged (`Simulation::apply_topology_op`).
+            sim_core::cut::TopologyOp::Refine(_) => {}
         }
     }
+    report.refinements_applied = stats.refinements_applied;
+    report.refinements_late = stats.refinements_late;
     report.topology_ops_received = stats.topology_applied;
     report.topology_apply_us_mean = if stats.topology_applied == 0 {
         0.0

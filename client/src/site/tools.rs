@@ -96,12 +96,13 @@ impl Tools {
         })
     }
 
-    /// The topology ops (cuts, releases) our blade or hook made since the last call, to
-    /// share.
+    /// The topology ops (cuts, releases, clips, refinement decisions) our tools made
+    /// since the last call, to share.
     pub fn take_topology_ops(&mut self) -> Vec<sim_core::cut::TopologyOp> {
         let mut ops = std::mem::take(&mut self.interaction.blades.made);
         ops.append(&mut self.interaction.hooks.made);
         ops.append(&mut self.interaction.clips.made);
+        ops.append(&mut self.interaction.adapt.made);
         ops
     }
 
@@ -229,11 +230,20 @@ impl Tools {
             inter.hooks.enabled[i] = driven;
             inter.clips.enabled[i] = driven;
         }
+        // Refinement around a tool is decided by the site that drives it, and applied
+        // everywhere at the time its session schedules (`sim_core::adapt`); a site alone
+        // decides for every tool. Every tool keeps diamonds from merging.
+        let linked = session.linked();
+        inter.adapt.enabled = (0..inputs.len())
+            .map(|i| !linked || (Some(i) == self.local && local.is_some()))
+            .collect();
         self.interaction.blades.site = session.site_id().map_or(0, u32::from);
         // Under hybrid and input-only sync our cuts and releases are applied when the
         // session schedules them (see `SiteSession::share_topology`).
         self.interaction.blades.apply_own = !session.times_topology();
         self.interaction.hooks.apply_own = !session.times_topology();
+        self.interaction.adapt.apply_own = !session.times_topology();
+        self.interaction.adapt.site = self.interaction.blades.site;
         self.interaction.hooks.site = self.interaction.blades.site;
         self.interaction.clips.site = self.interaction.blades.site;
         self.interaction.before_step(sim, &inputs)?;

@@ -522,6 +522,46 @@ fn topology_ops_are_relayed_once_kept_for_late_joiners_and_cleared_by_a_reset() 
     assert!(s.snapshot().topology.is_empty());
 }
 
+/// A refinement decision is relayed every time (each is a new decision) and never kept:
+/// late joiners take the tree states from keyframes, and the cut log stays for cuts.
+#[test]
+fn refinements_are_relayed_but_not_kept() {
+    let mut s = session();
+    let _i = join(&mut s, "prof", Role::Instructor);
+    let a = join(&mut s, "a", Role::Trainee);
+    let refine = |site, seq| TopologyOp {
+        epoch: 0,
+        site,
+        seq,
+        sim_time: 1.0,
+        kind: TopologyKind::Refine {
+            focus: vec![[0.01, 0.02, 0.03]],
+            distance: 0.01,
+            level: 3,
+            merge: vec![[1, 2, 3]],
+        },
+    };
+    for seq in [7, 8] {
+        assert_eq!(
+            s.on_control(a, Message::Topology(refine(99, seq)), 0),
+            vec![Action::Control {
+                to: Target::AllExcept(a),
+                msg: Message::Topology(refine(a, seq)),
+            }]
+        );
+    }
+    assert!(s.snapshot().topology.is_empty());
+    // An observer's is dropped like any op of its.
+    let o = join(&mut s, "o", Role::Observer);
+    assert!(matches!(
+        s.on_control(o, Message::Topology(refine(o, 1)), 0)[0],
+        Action::Drop {
+            reason: DropReason::Observer,
+            ..
+        }
+    ));
+}
+
 /// Teaching replay start/stop, like a scene reset, is the instructor's: a trainee's or an
 /// observer's request is refused with a reason, dropped, and relayed to nobody.
 #[test]

@@ -202,6 +202,8 @@ pub struct ToolContact {
     pub grasped: usize,
     /// Current positions of the grasped points (m).
     pub grasped_points: Vec<V3>,
+    /// Rest positions of the grasped points (m), in the order of `grasped_points`.
+    pub grasped_rest: Vec<V3>,
     /// Deepest penetration (m).
     pub max_depth: f64,
     /// Local linear model of the reaction.
@@ -396,6 +398,32 @@ impl ContactPipeline {
         out
     }
 
+    /// The same points in rest coordinates (m), one list per tool in scene order: a
+    /// contact's closest point on its triangle's rest pose, a grasped point's rest
+    /// position. What tool-following adaptivity decides on ([`crate::adapt`]).
+    pub fn focus_points_rest(&self, sim: &Simulation) -> Vec<Vec<V3>> {
+        let surfaces = sim.surfaces();
+        self.state
+            .tools
+            .iter()
+            .map(|t| {
+                t.contacts
+                    .iter()
+                    .filter_map(|c| {
+                        let rest = &surfaces.get(c.surface)?.rest;
+                        let tri = rest.triangles.get(c.triangle)?;
+                        Some(
+                            (0..3)
+                                .map(|j| rest.vertices[tri[j] as usize] * c.bary[j])
+                                .sum::<V3>(),
+                        )
+                    })
+                    .chain(t.grasped_rest.iter().copied())
+                    .collect()
+            })
+            .collect()
+    }
+
     /// Keeps the per-tool memory in step with the tool set (tools added or replaced).
     fn follow_tools(&mut self, tools: &ToolSet) {
         let same = self.memory.len() == tools.len()
@@ -444,6 +472,7 @@ impl ContactPipeline {
             t.contacts.clear();
             t.grasped = 0;
             t.grasped_points.clear();
+            t.grasped_rest.clear();
             t.max_depth = 0.0;
             t.local = LocalModel::default();
         }

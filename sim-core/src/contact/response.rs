@@ -268,9 +268,13 @@ impl ContactPipeline {
             w.extend((0..4).map(|i| (nodes[i].0, wts[i])));
             self.apply(ti, &tip, &w, pj, &f, Some(&k));
             self.add_local(ti, &(target - tip), &k_tool);
+            let rest: V3 = (0..4)
+                .map(|i| sim.lattice().node_rest(nodes[i]) * wts[i])
+                .sum();
             let t = &mut self.state.tools[ti];
             t.grasped += 1;
             t.grasped_points.push(*pj);
+            t.grasped_rest.push(rest);
         }
         if self.state.tools[ti].grasped == 0 {
             tracing::debug!(tool = %tool.name, t = sim.time(), "grasp torn loose");

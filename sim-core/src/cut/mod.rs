@@ -112,7 +112,9 @@ impl ReleaseOp {
     }
 }
 
-/// A topology operation: a cut, a release of attachment springs, or a clip.
+/// A topology operation: a cut, a release of attachment springs, a clip, or a refinement
+/// decision. Cuts, releases and clips are kept in the [`TopologyLog`]; refinements are not
+/// (they are transient, and the regions' tree states carry them: [`crate::adapt`]).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum TopologyOp {
     /// A blade's cut.
@@ -121,6 +123,8 @@ pub enum TopologyOp {
     Release(ReleaseOp),
     /// A clip applier's clip ([`crate::clip`]).
     Clip(crate::clip::ClipOp),
+    /// Tool-following refinement decided on one site ([`crate::adapt::RefineOp`]).
+    Refine(crate::adapt::RefineOp),
 }
 
 impl TopologyOp {
@@ -130,6 +134,7 @@ impl TopologyOp {
             TopologyOp::Cut(c) => c.id,
             TopologyOp::Release(r) => r.id,
             TopologyOp::Clip(c) => c.id,
+            TopologyOp::Refine(r) => r.id,
         }
     }
     /// Bytes of the op as carried.
@@ -138,6 +143,7 @@ impl TopologyOp {
             TopologyOp::Cut(c) => c.wire_bytes(),
             TopologyOp::Release(r) => r.wire_bytes(),
             TopologyOp::Clip(c) => c.wire_bytes(),
+            TopologyOp::Refine(r) => r.wire_bytes(),
         }
     }
 }
@@ -180,7 +186,9 @@ impl TopologyLog {
                 .values()
                 .flat_map(|o| match o {
                     TopologyOp::Cut(c) => c.sheet_triangles().collect::<Vec<_>>(),
-                    TopologyOp::Release(_) | TopologyOp::Clip(_) => Vec::new(),
+                    TopologyOp::Release(_) | TopologyOp::Clip(_) | TopologyOp::Refine(_) => {
+                        Vec::new()
+                    }
                 })
                 .collect(),
         )
@@ -239,6 +247,8 @@ impl TopologyLog {
                         h.update(v.to_bits().to_le_bytes());
                     }
                 }
+                // Never logged (`Simulation::apply_topology_op`).
+                TopologyOp::Refine(_) => {}
             }
         }
         if let Some(separation) = separation {

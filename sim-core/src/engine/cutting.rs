@@ -116,7 +116,7 @@ impl CutState {
 pub struct TopologyChange {
     /// Whether the op was new (false: a duplicate, nothing changed).
     pub applied: bool,
-    /// Leaves split to reach the deepest level along the cut.
+    /// Leaves split to reach the deepest level along the cut (or by a refinement op).
     pub refined: usize,
     /// Leaves separated into copies (all cuts).
     pub crossed: usize,
@@ -124,17 +124,31 @@ pub struct TopologyChange {
     pub virtual_nodes: usize,
     /// Attachment springs this op released (that were holding).
     pub released: usize,
+    /// Diamonds a refinement op merged.
+    pub merged: usize,
 }
 
 impl Simulation {
     /// Applies a topology operation (a cut or a release of attachment springs).
     /// Idempotent: an op already applied (same [`crate::cut::OpId`]) changes nothing. The
     /// result depends only on the set of ops applied, not on their order.
+    /// A refinement ([`TopologyOp::Refine`]) is applied with [`Simulation::apply_refine`]
+    /// and not logged; its `applied` says whether it changed the lattice.
     pub fn apply_topology_op(&mut self, op: TopologyOp) -> Result<TopologyChange, SimError> {
+        if let TopologyOp::Refine(r) = &op {
+            let change = self.apply_refine(r)?;
+            return Ok(TopologyChange {
+                applied: change.split + change.merged > 0,
+                refined: change.split,
+                merged: change.merged,
+                ..TopologyChange::default()
+            });
+        }
         match &op {
             TopologyOp::Cut(c) => c.validate().map_err(SimError::Topology)?,
             TopologyOp::Release(r) => self.attachments.validate(r).map_err(SimError::Topology)?,
             TopologyOp::Clip(c) => c.validate().map_err(SimError::Topology)?,
+            TopologyOp::Refine(_) => unreachable!("handled above"),
         }
         // Releases and clips leave the lattice and its separation as they are.
         if !matches!(op, TopologyOp::Cut(_)) {
@@ -198,6 +212,7 @@ impl Simulation {
             refined,
             crossed: cut.separation.crossed.len(),
             virtual_nodes: cut.separation.virtual_nodes.len(),
+            merged: 0,
         })
     }
 
