@@ -19,7 +19,7 @@ first frame:
                          -> closed with application error 0 (NORMAL).
 
 Wire format (see ``proto/src/codec.rs``): a stream frame is a 4-byte big-endian length and
-the message; a message is the wire tag byte (the protocol version, 4) followed by the postcard
+the message; a message is the wire tag byte (the protocol version, 9) followed by the postcard
 encoding of ``proto::Message`` (enum variant index as varint, integers as LEB128 varints,
 strings as varint length + UTF-8). ``--print-join-hex`` prints an encoded Join frame without
 touching the network (the Rust test compares it with ``proto::encode_frame``).

@@ -304,7 +304,8 @@ pub struct RegionKeyframe {
     pub tree_bits: Vec<u8>,
     /// Node ids with quantised positions and velocities.
     pub nodes: QuantisedNodes,
-    /// The sender's topology epoch (how many [`TopologyOp`]s it had applied): a site that
+    /// The sender's topology epoch (how many cuts, releases and clips it had applied;
+    /// refinements do not count, the tree bits carry them): a site that
     /// has applied fewer drops the keyframe (its topology is not there yet; the owner's
     /// next keyframe replaces it).
     pub topology: u32,
@@ -400,15 +401,18 @@ pub struct Snapshot {
     pub owners: Vec<RegionOwner>,
     /// Latest keyframe of every region.
     pub keyframes: Vec<RegionKeyframe>,
-    /// Every topology operation of the current scene epoch, in arrival order: a late
-    /// joiner applies them all (the result does not depend on their order).
+    /// Every cut, release and clip of the current scene epoch, in arrival order: a late
+    /// joiner applies them all (the result does not depend on their order). Refinements
+    /// are not kept: the keyframes' tree bits carry them.
     pub topology: Vec<TopologyOp>,
 }
 
 /// A topology operation on the shared scene (control stream: reliable and ordered per
-/// sender; relayed to every other site and kept by the coordinator for late joiners until
-/// the scene is reset). Every site applies it with exact predicates, so the topology that
-/// results depends only on the set of operations, not on their order or duplicates.
+/// sender; relayed to every other site and, except refinements, kept by the coordinator
+/// for late joiners until the scene is reset). Every site applies it with exact
+/// predicates, so the cut topology that results depends only on the set of cuts, releases
+/// and clips, not on their order or duplicates. Refinements split and merge, so their
+/// order matters: every site applies them at their `sim_time`, ties in (site, seq) order.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TopologyOp {
     /// Scene epoch the operation belongs to (operations of another epoch are dropped).

@@ -136,6 +136,9 @@ pub struct Simulation {
     attachments: Attachments,
     /// Clips placed on the tissue (embedded ends).
     clips: crate::clip::Clips,
+    /// Grid positions of the diamond centres of the scene's static refinement (material
+    /// boundaries): no refinement op merges them ([`crate::adapt`]).
+    static_diamonds: std::collections::HashSet<[i64; 3]>,
 }
 
 impl Simulation {
@@ -326,8 +329,15 @@ impl Simulation {
             cut: None,
             attachments,
             clips: crate::clip::Clips::default(),
+            static_diamonds: std::collections::HashSet::new(),
             scene,
         };
+        sim.static_diamonds = sim
+            .lattice
+            .nodes()
+            .filter(|&n| sim.lattice.node_parent_edge(n).is_some())
+            .map(|n| sim.lattice.node_grid(n))
+            .collect();
         sim.select_nodes()?;
         sim.assign_materials();
         sim.rebuild_fem()?;
@@ -712,6 +722,12 @@ impl Simulation {
         &self.attachments
     }
     /// The embedded surfaces.
+    /// Whether the diamond centred at grid position `g` belongs to the scene's static
+    /// refinement (never merged by tool-following adaptivity).
+    pub fn is_static_diamond(&self, g: &[i64; 3]) -> bool {
+        self.static_diamonds.contains(g)
+    }
+
     pub fn surfaces(&self) -> &[Surface] {
         &self.surfaces
     }

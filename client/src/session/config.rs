@@ -72,6 +72,11 @@ pub struct SessionStats {
     /// Of those, applied after their time (they arrived late; under hybrid and
     /// input-only sync).
     pub refinements_late: u64,
+    /// Refinements that could not be applied (malformed; logged and dropped).
+    pub refinements_dropped: u64,
+    /// Keyframes and tree deltas made before a refinement we applied, whose trees would
+    /// have undone it (dropped; the owner's next keyframe includes it).
+    pub frames_refinement_dropped: u64,
     /// Under hybrid: new input samples of remote tools that arrived after the simulation
     /// had passed their time (it held the tool at its newest pose instead).
     pub late_inputs: u64,

@@ -166,6 +166,9 @@ pub struct SiteSession {
     /// Topology ops of the current epoch received before our clock reached the simulated
     /// time they were made at, in order of that time: applied by [`Self::apply_due`].
     held_topology: Vec<proto::TopologyOp>,
+    /// Simulated time (s) of the last refinement op that changed our lattice: a frame
+    /// made before it would take a region's tree back to before it.
+    refined_at: f64,
     /// One of our own cuts was applied since [`Self::take_own_cut_applied`].
     own_cut_applied: bool,
     /// What to ask for again once a lost link is back (see `reconnect`).
@@ -207,6 +210,7 @@ impl SiteSession {
             started: false,
             scheduled_reset: None,
             held_topology: Vec::new(),
+            refined_at: f64::NEG_INFINITY,
             own_cut_applied: false,
             rejoin: reconnect::Rejoin::default(),
             transmits: VecDeque::new(),
@@ -427,6 +431,16 @@ impl SiteSession {
                     return Ok(());
                 }
                 self.clocks.keyframe_arrived(kf.owner, kf.sim_time, wall);
+                if self.undoes_refinement(sim, kf.region, kf.sim_time, &kf.tree_bits) {
+                    debug!(
+                        region = kf.region,
+                        t = kf.sim_time,
+                        refined_at = self.refined_at,
+                        "keyframe made before a refinement we applied dropped"
+                    );
+                    self.stats.frames_refinement_dropped += 1;
+                    return Ok(());
+                }
                 self.receive(sim, kf.epoch, wire::keyframe_from_wire(&kf))?;
             }
             Message::Snapshot(s) => {
@@ -491,6 +505,14 @@ impl SiteSession {
                     );
                     return Ok(());
                 }
+                if self.times_topology() && d.sim_time < self.refined_at {
+                    debug!(
+                        region = d.region,
+                        "tree delta made before a refinement we applied dropped"
+                    );
+                    self.stats.frames_refinement_dropped += 1;
+                    return Ok(());
+                }
                 self.receive(sim, d.epoch, wire::delta_from_wire(d))?;
             }
             Message::KeyframeAck(a) => {
@@ -530,10 +552,7 @@ impl SiteSession {
                         && op.sim_time > t + 0.5 * sim.options().dt
                     {
                         // Our clock is behind its maker's: the op waits for its time.
-                        let i = self
-                            .held_topology
-                            .partition_point(|h| h.sim_time <= op.sim_time);
-                        self.held_topology.insert(i, op);
+                        self.hold_topology(op);
                     } else {
                         self.apply_topology(sim, &op)?;
                     }
@@ -581,7 +600,10 @@ impl SiteSession {
     }
 
     /// Applies a scheduled reset, then the frames and releases whose simulated time has
-    /// come (before the step), and acknowledges the keyframes applied.
+    /// come (before the step), then the topology ops held for it, and acknowledges the
+    /// keyframes applied. Frames go first: a frame stamped `t` was made before its owner
+    /// applied the ops of time `t` (at the start of its next step), so applied after them
+    /// it would take back what they changed.
     pub fn apply_due(&mut self, sim: &mut Simulation) -> Result<(), SimError> {
         if let Some((epoch, at)) = self.scheduled_reset
             && at <= sim.time() + 0.5 * sim.options().dt
@@ -589,18 +611,11 @@ impl SiteSession {
             self.scheduled_reset = None;
             self.reset(sim, epoch)?;
         }
-        let due = self
-            .held_topology
-            .partition_point(|h| h.sim_time <= sim.time() + 0.5 * sim.options().dt);
-        for op in self.held_topology.drain(..due).collect::<Vec<_>>() {
-            self.apply_topology(sim, &op)?;
-        }
         let started = Instant::now();
         let applied = self.inbox.apply_due(self.epoch, &mut self.sync, sim);
-        if applied.is_empty() {
-            return Ok(());
+        if !applied.is_empty() {
+            self.stats.apply_us_total += started.elapsed().as_secs_f64() * 1e6;
         }
-        self.stats.apply_us_total += started.elapsed().as_secs_f64() * 1e6;
         for (region, keyframe_id) in applied {
             self.stats.keyframes_applied += 1;
             if let Some(me) = self.sites.me() {
@@ -611,6 +626,12 @@ impl SiteSession {
                     shows_keyframes: self.sync.shows_keyframes(),
                 }));
             }
+        }
+        let due = self
+            .held_topology
+            .partition_point(|h| h.sim_time <= sim.time() + 0.5 * sim.options().dt);
+        for op in self.held_topology.drain(..due).collect::<Vec<_>>() {
+            self.apply_topology(sim, &op)?;
         }
         Ok(())
     }
@@ -656,6 +677,33 @@ impl SiteSession {
         }
     }
 
+    /// Holds an op until its time, in the order every site applies them: by simulated
+    /// time, then by its id (site, seq), whatever order they arrived in.
+    fn hold_topology(&mut self, op: proto::TopologyOp) {
+        let key = |h: &proto::TopologyOp| (h.sim_time, h.site, h.seq);
+        let i = self
+            .held_topology
+            .partition_point(|h| key(h).partial_cmp(&key(&op)) == Some(std::cmp::Ordering::Less));
+        self.held_topology.insert(i, op);
+    }
+
+    /// Whether a keyframe of `region` made at `sim_time` (s) would take the region's tree
+    /// back to before a refinement op we applied after that time: under hybrid and
+    /// input-only sync every site applies the op at its time, and the owner's later
+    /// keyframes include it.
+    fn undoes_refinement(
+        &self,
+        sim: &Simulation,
+        region: proto::RegionId,
+        sim_time: f64,
+        tree_bits: &[u8],
+    ) -> bool {
+        if !self.times_topology() || sim_time >= self.refined_at || !self.map.contains(region) {
+            return false;
+        }
+        tree_differs(sim, &self.map, region, tree_bits)
+    }
+
     /// Applies a received topology op (a duplicate changes nothing); counts it and its
     /// CPU time.
     fn apply_topology(
@@ -666,7 +714,24 @@ impl SiteSession {
         let t0 = Instant::now();
         let op_here = topology::topology_from_wire(op);
         if let sim_core::cut::TopologyOp::Refine(r) = &op_here {
-            let change = sim.apply_refine(r)?;
+            // A refinement that cannot be applied is dropped, not fatal: it is one site's
+            // decision, and the owners' keyframes carry their regions' trees.
+            let change = match sim.apply_refine(r) {
+                Ok(c) => c,
+                Err(e) => {
+                    warn!(site = op.site, seq = op.seq, error = %e, "refinement dropped");
+                    self.stats.refinements_dropped += 1;
+                    return Ok(());
+                }
+            };
+            if change.split + change.merged > 0 {
+                let at = if op.sim_time.is_finite() {
+                    op.sim_time.min(sim.time())
+                } else {
+                    sim.time()
+                };
+                self.refined_at = self.refined_at.max(at);
+            }
             self.stats.refinements_applied += 1;
             let late = sim.time() - op.sim_time;
             if self.times_topology() && late > 0.5 * sim.options().dt {
@@ -738,8 +803,7 @@ impl SiteSession {
             };
             let wire = topology::topology_to_wire(op, self.epoch, at);
             if at > t {
-                let i = self.held_topology.partition_point(|h| h.sim_time <= at);
-                self.held_topology.insert(i, wire.clone());
+                self.hold_topology(wire.clone());
             }
             let msg = Message::Topology(wire);
             self.stats.topology_bytes_sent += proto::encode_frame(&msg).len() as u64;
@@ -973,6 +1037,7 @@ impl SiteSession {
         self.pose_history.clear();
         self.inbox.reset(epoch);
         self.held_topology.clear();
+        self.refined_at = f64::NEG_INFINITY;
         self.baselines.clear();
         self.claims.clear(t);
         self.clocks.owners.clear();
@@ -980,4 +1045,16 @@ impl SiteSession {
         self.events.push_back(SessionEvent::SceneReset { epoch });
         Ok(())
     }
+}
+
+/// Whether `tree_bits` (a keyframe's) differ from the region's tree state here; bits that
+/// do not decode count as equal (the keyframe's own checks report them).
+fn tree_differs(
+    sim: &Simulation,
+    map: &RegionMap,
+    region: proto::RegionId,
+    tree_bits: &[u8],
+) -> bool {
+    sim_core::sim_lattice::RegionState::from_bytes(tree_bits)
+        .is_ok_and(|theirs| theirs != map.state(sim.lattice(), region))
 }

@@ -1,8 +1,10 @@
 //! Topology operations (cuts, releases of attachment springs, clips, refinement decisions) between sim-core and the wire, and their handling in the
 //! session: ops made here go to the coordinator on the control stream (reliable, ordered)
 //! and are relayed to every other site; the coordinator keeps them for late joiners' snapshots.
-//! Every site applies every op it receives (duplicates are no-ops, the order does not
-//! matter: `sim_core::cut`), when its clock reaches the simulated time the op was made at
+//! Every site applies every op it receives (for cuts, releases and clips duplicates are
+//! no-ops and the order does not matter: `sim_core::cut`; refinements are applied in
+//! (time, site, seq) order and not kept by the coordinator: `sim_core::adapt`), when its
+//! clock reaches the simulated time the op was made at
 //! (a site behind holds it, as it holds keyframes). A keyframe whose sender had applied more ops than we have is
 //! dropped (`SiteSession::handle_message`): its nodes belong to a topology we have not
 //! reached, and the owner's next keyframe replaces it.

@@ -113,6 +113,13 @@ pub struct SiteReport {
     /// Of those, applied after their time (they arrived late).
     #[serde(default)]
     pub refinements_late: u64,
+    /// Refinements that could not be applied (malformed; dropped).
+    #[serde(default)]
+    pub refinements_dropped: u64,
+    /// Keyframes and tree deltas dropped because they were made before a refinement
+    /// applied here and would have undone it.
+    #[serde(default)]
+    pub frames_refinement_dropped: u64,
     pub name: String,
     pub role: String,
     pub strategy: String,

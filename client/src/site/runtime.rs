@@ -528,6 +528,8 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     }
     report.refinements_applied = stats.refinements_applied;
     report.refinements_late = stats.refinements_late;
+    report.refinements_dropped = stats.refinements_dropped;
+    report.frames_refinement_dropped = stats.frames_refinement_dropped;
     report.topology_ops_received = stats.topology_applied;
     report.topology_apply_us_mean = if stats.topology_applied == 0 {
         0.0

@@ -230,12 +230,13 @@ impl Tools {
             inter.hooks.enabled[i] = driven;
             inter.clips.enabled[i] = driven;
         }
-        // Refinement around a tool is decided by the site that drives it, and applied
-        // everywhere at the time its session schedules (`sim_core::adapt`); a site alone
-        // decides for every tool. Every tool keeps diamonds from merging.
-        let linked = session.linked();
+        // Under hybrid and input-only sync, refinement around a tool is decided by the
+        // site that drives it and applied everywhere at the time its session schedules
+        // (`sim_core::adapt`); otherwise a site decides for every tool. Every tool keeps
+        // diamonds from merging.
+        let shared = session.times_topology();
         inter.adapt.enabled = (0..inputs.len())
-            .map(|i| !linked || (Some(i) == self.local && local.is_some()))
+            .map(|i| !shared || (Some(i) == self.local && local.is_some()))
             .collect();
         self.interaction.blades.site = session.site_id().map_or(0, u32::from);
         // Under hybrid and input-only sync our cuts and releases are applied when the

@@ -1,9 +1,8 @@
 //! Adaptivity following the tools: every `every` steps, leaves near a contact or grasped
 //! point refine to the body's maximum depth (conforming splits through the lattice), and
-//! diamonds that adaptivity created coarsen back once they have been far from every such
-//! point for longer than a hold time. Splits that existed when the simulation was handed
-//! to [`Adaptivity::new`] (the static material-boundary refinement) are never undone:
-//! only diamonds whose centre node appeared later are merged.
+//! diamonds created since the scene was built coarsen back once they have been far from
+//! every such point for longer than a hold time. The scene's static refinement (material
+//! boundaries, [`Simulation::is_static_diamond`]) is never undone.
 //!
 //! # Decided once, applied everywhere
 //! Where to refine is a threshold on continuous state (how near a leaf is to a contact),
@@ -15,16 +14,23 @@
 //! to rest coordinates, and the diamonds to merge by grid position. Applying it reads no
 //! floating-point state ([`Simulation::apply_refine`]), so every site that applies it at
 //! the same simulated time ends with the same lattice. A site alone applies its decisions
-//! at once ([`Adaptivity::apply_own`]); a linked site hands them to its session
+//! at once ([`Adaptivity::apply_own`]); a site linked under hybrid or input-only sync
+//! hands them to its session
 //! ([`Adaptivity::made`]), which schedules them ahead for every site, as it does cuts.
 //!
-//! Merges are decided by every site that drives a tool, for every diamond adaptivity
-//! created (from any site's op), against the focus points of every tool; duplicates are
-//! harmless (merging a diamond that is gone does nothing).
+//! Merges are decided by every site that drives or drove a tool, for every diamond created
+//! since the scene was built (by any site's op, or along a cut), against the focus points
+//! of every tool; duplicates are harmless (merging a diamond that is gone does nothing).
+//! A merge that does not happen (a finer diamond or a cut holds it) is decided again less
+//! and less often.
+//!
+//! Under keyframe and full-state sync, where followers do not simulate the others' tools,
+//! every site decides for every tool and applies its decisions at once, and the owners'
+//! keyframes carry their regions' tree states.
 
 mod op;
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashMap;
 
 use nalgebra::Vector3;
 use sim_lattice::NodeId;
@@ -34,7 +40,7 @@ use crate::engine::Simulation;
 use crate::error::SimError;
 
 pub use op::{
-    MAX_REFINE_DISTANCE, MAX_REFINE_FOCUS, MAX_REFINE_MERGES, REFINE_SEQ_BASE, RefineChange,
+    MAX_REFINE_DISTANCE_CELLS, MAX_REFINE_FOCUS, MAX_REFINE_MERGES, REFINE_SEQ_BASE, RefineChange,
     RefineOp,
 };
 
@@ -45,12 +51,16 @@ type V3 = Vector3<f64>;
 /// session's largest scheduling lead (0.5 s).
 pub const PENDING_S: f64 = 0.6;
 
+/// A merge that did not happen is decided again after `PENDING_S` plus the hold time
+/// times 2, 4, … up to 2 to this power.
+const MAX_MERGE_BACKOFF: u32 = 6;
+
 /// Adaptivity constants.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct AdaptParams {
     /// Adapt every this many calls (steps), ≥ 1.
     pub every: u32,
-    /// Leaves whose deformed box comes within this distance (m) of a focus point refine.
+    /// Leaves whose rest box comes within this distance (m, rest) of a focus point refine.
     pub distance: f64,
     /// A created diamond merges after being far from every focus point this long (s).
     pub hold_time: f64,
@@ -92,6 +102,10 @@ struct Watched {
     edge: f64,
     /// Last simulated time (s) a focus point was near it.
     last_near: f64,
+    /// Merges of it decided since a focus point was last near.
+    attempts: u32,
+    /// Not decided again before this simulated time (s).
+    retry_at: f64,
 }
 
 /// The decisions of refinement and coarsening around the tools (see the module
@@ -112,16 +126,15 @@ pub struct Adaptivity {
     pub made: Vec<TopologyOp>,
     next_seq: u32,
     calls: u64,
-    /// Diamond centres (grid) that existed when adaptivity started: never merged.
-    initial: HashSet<[i64; 3]>,
-    /// Diamonds created since, by centre grid position.
+    /// Whether a tool was ever enabled here: such a site decides merges (see
+    /// [`Self::update`]).
+    has_driven: bool,
+    /// Diamonds created since the scene was built, by centre grid position.
     watched: HashMap<[i64; 3], Watched>,
     /// Lattice generation `watched` was taken at.
     watched_generation: Option<u64>,
     /// Focus points (rest) of decisions on their way, with the time they were made.
     pending_focus: Vec<(f64, V3)>,
-    /// Merges on their way, with the time they were made.
-    pending_merge: HashMap<[i64; 3], f64>,
     initial_leaves: usize,
     /// Calls that did any work.
     pub passes_run: u64,
@@ -131,11 +144,6 @@ impl Adaptivity {
     /// Adaptivity for `sim` in its current (static) refinement.
     pub fn new(sim: &Simulation, params: AdaptParams) -> Self {
         let lat = sim.lattice();
-        let initial = lat
-            .nodes()
-            .filter(|&n| lat.node_parent_edge(n).is_some())
-            .map(|n| lat.node_grid(n))
-            .collect();
         Adaptivity {
             params,
             apply_own: true,
@@ -144,11 +152,10 @@ impl Adaptivity {
             made: Vec::new(),
             next_seq: 0,
             calls: 0,
-            initial,
+            has_driven: false,
             watched: HashMap::new(),
             watched_generation: None,
             pending_focus: Vec::new(),
-            pending_merge: HashMap::new(),
             initial_leaves: lat.leaf_count(),
             passes_run: 0,
         }
@@ -199,8 +206,6 @@ impl Adaptivity {
         // Decisions on their way expire (a reset takes time back: they expire too).
         self.pending_focus
             .retain(|(t, _)| *t <= now && now - *t < PENDING_S);
-        self.pending_merge
-            .retain(|_, t| *t <= now && now - *t < PENDING_S);
 
         let enabled = |i: usize| self.enabled.get(i).copied().unwrap_or(true);
         let refine: Vec<V3> = focus_rest
@@ -209,15 +214,29 @@ impl Adaptivity {
             .filter(|(i, _)| enabled(*i))
             .flat_map(|(_, f)| f.iter().copied())
             .collect();
-        let focus = self.refine_focus(sim, &refine);
-        // Only a site that drives a tool decides merges: drivers run level with the
-        // owners, so their decisions reach every site in time; a follower runs behind
-        // by its playout lag, and its ops would reach the leading sites after their time.
-        let merge = if (0..focus_rest.len().max(1)).any(enabled) {
+        let mut focus = self.refine_focus(sim, &refine);
+        focus.truncate(MAX_REFINE_FOCUS);
+        // Only a site that drives or drove a tool decides merges: drivers run level with
+        // the owners, so their decisions reach every site in time, while a follower runs
+        // behind by its playout lag, and its ops would reach the leading sites after
+        // their time. Once it drove, a site keeps deciding them, so that the tissue
+        // coarsens back after the last tool stops.
+        self.has_driven |= (0..focus_rest.len().max(1)).any(enabled);
+        let mut merge = if self.has_driven {
             self.due_merges(sim, focus_rest, now)
         } else {
             Vec::new()
         };
+        merge.truncate(MAX_REFINE_MERGES);
+        for g in &merge {
+            // A merge that does not happen (a finer diamond, or one near a cut, holds it)
+            // is tried again later, and less often each time.
+            if let Some(w) = self.watched.get_mut(g) {
+                w.attempts = (w.attempts + 1).min(MAX_MERGE_BACKOFF);
+                w.retry_at =
+                    now + PENDING_S + self.params.hold_time * f64::from(1u32 << w.attempts);
+            }
+        }
         if focus.is_empty() && merge.is_empty() {
             return Ok(report);
         }
@@ -239,8 +258,6 @@ impl Adaptivity {
             self.watch(sim);
         } else {
             self.pending_focus.extend(focus.iter().map(|p| (now, *p)));
-            self.pending_merge
-                .extend(op.merge.iter().map(|g| (*g, now)));
             self.made.push(TopologyOp::Refine(op));
         }
         report.leaves = sim.lattice().leaf_count();
@@ -249,7 +266,8 @@ impl Adaptivity {
 
     /// The focus points worth an op: those with a leaf below the level within the
     /// distance, not near a point of a decision on its way or of this one (a quarter of
-    /// the distance: the next pass takes what they leave).
+    /// the distance: a later pass takes what they leave, once the decisions on their way
+    /// are applied).
     fn refine_focus(&self, sim: &Simulation, points: &[V3]) -> Vec<V3> {
         let d = self.params.distance;
         let max_level = self.params.max_level.min(sim.lattice().params().max_depth);
@@ -304,14 +322,16 @@ impl Adaptivity {
                 .any(|f| (f - p).norm() <= d + w.edge)
             {
                 w.last_near = now;
+                w.attempts = 0;
+                w.retry_at = 0.0;
             }
         }
         let mut due: Vec<([i64; 3], f64)> = self
             .watched
             .iter()
-            .filter(|(g, w)| {
+            .filter(|(_, w)| {
                 now - w.last_near > self.params.hold_time
-                    && !self.pending_merge.contains_key(*g)
+                    && now >= w.retry_at
                     && !sim.cut_pins_node(w.node)
             })
             .map(|(g, w)| (*g, w.edge))
@@ -336,7 +356,7 @@ impl Adaptivity {
                 continue;
             };
             let g = lat.node_grid(n);
-            if self.initial.contains(&g) {
+            if sim.is_static_diamond(&g) {
                 continue;
             }
             let w = match self.watched.get(&g) {
@@ -345,6 +365,8 @@ impl Adaptivity {
                     node: n,
                     edge: (lat.node_rest(a) - lat.node_rest(b)).norm(),
                     last_near: now,
+                    attempts: 0,
+                    retry_at: 0.0,
                 },
             };
             live.insert(g, w);

@@ -29,15 +29,16 @@ pub const MAX_REFINE_FOCUS: usize = 4096;
 /// Most diamonds one op may merge.
 pub const MAX_REFINE_MERGES: usize = 65_536;
 
-/// Largest refinement distance an op may state (m): a focus point refines what lies
-/// within this of it, so a larger value is a malformed op, not a decision.
-pub const MAX_REFINE_DISTANCE: f64 = 1.0;
+/// Largest refinement distance an op may state, in root cells of the lattice it is
+/// applied to: a focus point refines what lies within this of it, so a larger value is a
+/// malformed op (it would refine the whole organ to the deepest level), not a decision.
+pub const MAX_REFINE_DISTANCE_CELLS: f64 = 2.0;
 
 /// Tool-following refinement decided on one site and applied on every site at the same
 /// simulated time: every leaf whose **rest** box comes within `distance` of a focus point
 /// splits (with what conformity forces) until it reaches `level`; then the diamonds
 /// centred on `merge` merge back where they still can (finest first; a diamond along a
-/// cut never merges).
+/// cut, or of the scene's static refinement, never merges).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RefineOp {
     /// Identity (its seq from [`REFINE_SEQ_BASE`]).
@@ -88,9 +89,9 @@ impl RefineOp {
                 self.id
             ));
         }
-        if !(0.0..=MAX_REFINE_DISTANCE).contains(&self.distance) {
+        if !(self.distance.is_finite() && self.distance >= 0.0) {
             return Err(format!(
-                "refinement {:?}: distance {} m is not in [0, {MAX_REFINE_DISTANCE}] m",
+                "refinement {:?}: distance {} m is not a length",
                 self.id, self.distance
             ));
         }
@@ -112,8 +113,20 @@ impl Simulation {
     /// Applies a refinement op (see [`RefineOp`]). Not logged with the cuts: refinement
     /// is not part of the cut topology, its epoch or its digest (the regions' tree states
     /// carry it in keyframes).
+    /// Errors (nothing changed) for an op that fails [`RefineOp::validate`] or states a
+    /// distance of more than [`MAX_REFINE_DISTANCE_CELLS`] root cells.
     pub fn apply_refine(&mut self, op: &RefineOp) -> Result<RefineChange, SimError> {
         op.validate().map_err(SimError::Topology)?;
+        let cell = self.lattice().params().cell;
+        if op.distance > MAX_REFINE_DISTANCE_CELLS * cell {
+            return Err(SimError::Topology(format!(
+                "refinement {:?}: distance {} m is more than {MAX_REFINE_DISTANCE_CELLS} \
+                 cells ({} m)",
+                op.id,
+                op.distance,
+                MAX_REFINE_DISTANCE_CELLS * cell
+            )));
+        }
         let mut change = RefineChange::default();
         let max_level = op.level.min(self.lattice().params().max_depth);
         let focus: Vec<V3> = op.focus_points().collect();
@@ -212,8 +225,9 @@ fn merge_diamonds(sim: &mut Simulation, centres: &[[i64; 3]]) -> Result<usize, S
                 continue;
             }
             let Some(&n) = node_of.get(g) else { continue };
-            // A diamond along a cut stays: merging it would reconnect separated material.
-            if sim.cut_pins_node(n) {
+            // A diamond along a cut stays: merging it would reconnect separated material;
+            // so does the scene's static refinement.
+            if sim.cut_pins_node(n) || sim.is_static_diamond(g) {
                 continue;
             }
             let lat = sim.lattice_mut();

@@ -142,6 +142,8 @@ pub struct ContactPoint {
     pub bary: [f64; 3],
     /// Closest surface point (m).
     pub point: V3,
+    /// The same point on the surface's rest pose (m).
+    pub rest: V3,
     /// Outward surface normal.
     pub normal: V3,
     /// Penetration depth (m).
@@ -387,8 +389,8 @@ impl ContactPipeline {
         }
     }
 
-    /// Points that adaptivity should refine around: contact points and grasped points
-    /// of the last pass (m).
+    /// Contact points and grasped points of the last pass (m, deformed; adaptivity
+    /// decides on their rest positions: [`Self::focus_points_rest`]).
     pub fn focus_points(&self) -> Vec<V3> {
         let mut out = Vec::new();
         for t in &self.state.tools {
@@ -399,25 +401,17 @@ impl ContactPipeline {
     }
 
     /// The same points in rest coordinates (m), one list per tool in scene order: a
-    /// contact's closest point on its triangle's rest pose, a grasped point's rest
-    /// position. What tool-following adaptivity decides on ([`crate::adapt`]).
-    pub fn focus_points_rest(&self, sim: &Simulation) -> Vec<Vec<V3>> {
-        let surfaces = sim.surfaces();
+    /// contact's closest point on its triangle's rest pose (taken when the contact was
+    /// found, so a cut since does not move it), a grasped point's rest position. What
+    /// tool-following adaptivity decides on ([`crate::adapt`]).
+    pub fn focus_points_rest(&self) -> Vec<Vec<V3>> {
         self.state
             .tools
             .iter()
             .map(|t| {
                 t.contacts
                     .iter()
-                    .filter_map(|c| {
-                        let rest = &surfaces.get(c.surface)?.rest;
-                        let tri = rest.triangles.get(c.triangle)?;
-                        Some(
-                            (0..3)
-                                .map(|j| rest.vertices[tri[j] as usize] * c.bary[j])
-                                .sum::<V3>(),
-                        )
-                    })
+                    .map(|c| c.rest)
                     .chain(t.grasped_rest.iter().copied())
                     .collect()
             })

@@ -158,14 +158,21 @@ impl ContactPipeline {
                 total += ft;
             }
             self.add_local(ti, &(s - tip), &k_tool);
+            let (surface, triangle) = self.tri_owner[h.tri as usize];
+            let rest_pose = &sim.surfaces()[surface as usize].rest;
+            let corners = rest_pose.triangles[triangle as usize];
+            let rest: V3 = (0..3)
+                .map(|j| rest_pose.vertices[corners[j] as usize] * h.bary[j])
+                .sum();
             let t = &mut self.state.tools[ti];
             t.max_depth = t.max_depth.max(depth);
             t.contacts.push(ContactPoint {
                 sample: si,
-                surface: self.tri_owner[h.tri as usize].0 as usize,
-                triangle: self.tri_owner[h.tri as usize].1 as usize,
+                surface: surface as usize,
+                triangle: triangle as usize,
                 bary: h.bary,
                 point: h.point,
+                rest,
                 normal: n,
                 depth,
                 force: total,

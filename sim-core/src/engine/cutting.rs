@@ -129,9 +129,10 @@ pub struct TopologyChange {
 }
 
 impl Simulation {
-    /// Applies a topology operation (a cut or a release of attachment springs).
-    /// Idempotent: an op already applied (same [`crate::cut::OpId`]) changes nothing. The
-    /// result depends only on the set of ops applied, not on their order.
+    /// Applies a topology operation (a cut, a release of attachment springs, a clip or a
+    /// refinement). Cuts, releases and clips are idempotent: one already applied (same
+    /// [`crate::cut::OpId`]) changes nothing, and the result depends only on the set of
+    /// them applied, not on their order.
     /// A refinement ([`TopologyOp::Refine`]) is applied with [`Simulation::apply_refine`]
     /// and not logged; its `applied` says whether it changed the lattice.
     pub fn apply_topology_op(&mut self, op: TopologyOp) -> Result<TopologyChange, SimError> {

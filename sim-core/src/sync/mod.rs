@@ -74,8 +74,8 @@
 //! * A receiver must not run its own adaptivity inside (or, through conformity, next to)
 //!   a region it does not own: a forced split there makes the next keyframe merge it back,
 //!   or fail with [`SyncError::Residual`] when a finer split outside blocks the merge.
-//!   Linked sites therefore refine only by decisions shared as ops ([`crate::adapt`]),
-//!   applied by every site at the same simulated time.
+//!   Under hybrid and input-only sync, linked sites refine only by decisions shared as
+//!   ops ([`crate::adapt`]), applied by every site at the same simulated time.
 //! * Nodes on the face between a remote region and a local one are prescribed by the
 //!   remote region.
 //! * Time is simulation time; a receiver whose clock lags the owner's extrapolates

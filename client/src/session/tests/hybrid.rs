@@ -104,3 +104,83 @@ fn a_follower_that_shows_keyframes_makes_its_owner_send_on_drift() {
         }
     }
 }
+
+/// Under hybrid sync a refinement decision is scheduled ahead like a cut: both sites hold
+/// it and apply it at its time, and their lattices end equal (the refinement is not in the
+/// cut log); a keyframe made before it, whose tree would take it back, is dropped.
+#[test]
+fn a_refinement_is_applied_at_its_time_everywhere_and_not_undone_by_an_older_keyframe() {
+    use sim_core::adapt::{REFINE_SEQ_BASE, RefineOp};
+    let mut p = pair_with(SyncStrategy::Hybrid);
+    for _ in 0..3 {
+        p.step(&[]);
+    }
+    // A keyframe of the owned region as it is now, before the refinement.
+    let before = p.a_keyframe_after_grant(0);
+    // Focus on the first root of that region (rest centroid).
+    let root = p.a.map.roots(p.region)[0];
+    let lat = p.sim_a.lattice();
+    let nodes = lat.tet_nodes(sim_core::TetId { root, heap: 1 });
+    let c = nodes
+        .iter()
+        .map(|&n| lat.node_rest(n))
+        .sum::<nalgebra::Vector3<f64>>()
+        / 4.0;
+    let op = RefineOp {
+        id: sim_core::cut::OpId {
+            site: 1,
+            seq: REFINE_SEQ_BASE,
+        },
+        focus: vec![[c.x, c.y, c.z]],
+        distance: 0.25 * lat.params().cell,
+        level: lat.params().max_depth,
+        merge: Vec::new(),
+    };
+    drain(&mut p.a);
+    let t = p.sim_a.time();
+    let rtt = Duration::from_millis(40);
+    p.a.share_topology(&[sim_core::cut::TopologyOp::Refine(op)], t, Some(rtt));
+    let at = t + super::super::topology_lead(Some(rtt));
+    let wire = drain(&mut p.a)
+        .into_iter()
+        .find_map(|x| match x {
+            Transmit::Control(Message::Topology(m)) => Some(m),
+            _ => None,
+        })
+        .expect("the refinement goes out");
+    assert!(matches!(wire.kind, proto::TopologyKind::Refine { .. }));
+    assert_eq!(wire.sim_time, at);
+    let now = p.clock.now();
+    p.b.handle_message(&mut p.sim_b, Message::Topology(wire), now)
+        .unwrap();
+    let leaves = p.sim_a.lattice().leaf_count();
+    for (s, sim) in [(&mut p.a, &mut p.sim_a), (&mut p.b, &mut p.sim_b)] {
+        s.apply_due(sim).unwrap();
+        assert_eq!(
+            sim.lattice().leaf_count(),
+            leaves,
+            "applied before its time"
+        );
+        sim.set_time(at);
+        s.apply_due(sim).unwrap();
+        assert!(
+            sim.lattice().leaf_count() > leaves,
+            "not applied at its time"
+        );
+        assert_eq!(s.stats().refinements_applied, 1);
+        assert_eq!(sim.topology().epoch(), 0, "a refinement is not a cut");
+    }
+    let mut la = p.sim_a.lattice().leaves().to_vec();
+    let mut lb = p.sim_b.lattice().leaves().to_vec();
+    la.sort_unstable();
+    lb.sort_unstable();
+    assert_eq!(la, lb);
+    // The keyframe made before it reaches B now: dropped, the tree stays refined.
+    let refined = p.sim_b.lattice().leaf_count();
+    let now = p.clock.now();
+    p.b.handle_message(&mut p.sim_b, Message::Keyframe(before), now)
+        .unwrap();
+    p.b.apply_due(&mut p.sim_b).unwrap();
+    assert_eq!(p.b.stats().frames_refinement_dropped, 1);
+    assert_eq!(p.sim_b.lattice().leaf_count(), refined);
+}
