@@ -132,12 +132,14 @@ fn follow(lag: usize) {
         worst = worst.max(d);
     }
     assert!(s_recv.stats().keyframes_applied > 10);
-    // Bounds: the release of the grasp (tissue springing back while the owner still owns
-    // the region for 0.4 s) is the largest transient, ≈ 12 mm at 4 ms steps for a
-    // receiver level with the owner (it extrapolates); a receiver behind the owner holds
-    // the next keyframe and interpolates towards it (≈ 7.5 mm: the snap is faster than
-    // the owner's 30 ms keyframe rate cap). At the end the tissue has settled on both.
-    let bound = if lag > 1 { 0.010 } else { 0.015 };
+    // Bound: the release of the grasp (tissue springing back while the owner still owns
+    // the region for 0.4 s) is the largest transient, 12.1 mm at 4 ms steps (t = 4.736 s)
+    // for a receiver level with the owner (it extrapolates) and for one behind it (it
+    // holds the next keyframe and interpolates towards it, but the snap is faster than
+    // the owner's 30 ms keyframe rate cap). Before refinement was decided in rest space
+    // (2026-11-27) the receiver behind measured 9.3 mm: the lattice refined around the
+    // grasp differs by a few leaves. At the end the tissue has settled on both.
+    let bound = 0.015;
     assert!(worst < bound, "receiver diverged by {worst} m");
     let a = &owner.surfaces()[0].deformed;
     let b = &recv.surfaces()[0].deformed;
