@@ -29,6 +29,14 @@ fn main() -> anyhow::Result<()> {
             .map(|p| format!("{:.2}: {:.2}", p.0, p.1))
             .collect();
         println!("  around it: {}", near.join(", "));
+        if std::env::var_os("ALL").is_some() {
+            let all: Vec<String> = s
+                .points
+                .iter()
+                .map(|p| format!("{:.2}: {:.2}", p.0, p.1))
+                .collect();
+            println!("  all: {}", all.join(", "));
+        }
     }
     for r in &reports {
         println!(

@@ -19,7 +19,8 @@
 //! ([`Adaptivity::made`]), which schedules them ahead for every site, as it does cuts.
 //!
 //! Merges are decided by every site that drives or drove a tool, for every diamond created
-//! since the scene was built (by any site's op, or along a cut), against the focus points
+//! since the scene was built (by any site's op, or along a cut; a site that applies its
+//! decisions at once watches only the diamonds they split), against the focus points
 //! of every tool; duplicates are harmless (merging a diamond that is gone does nothing).
 //! A merge that does not happen (a finer diamond or a cut holds it) is decided again less
 //! and less often.
@@ -30,7 +31,7 @@
 
 mod op;
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 
 use nalgebra::Vector3;
 use sim_lattice::NodeId;
@@ -135,6 +136,8 @@ pub struct Adaptivity {
     watched_generation: Option<u64>,
     /// Focus points (rest) of decisions on their way, with the time they were made.
     pending_focus: Vec<(f64, V3)>,
+    /// Diamond centres our own decisions split, when they are applied at once.
+    own: HashSet<[i64; 3]>,
     initial_leaves: usize,
     /// Calls that did any work.
     pub passes_run: u64,
@@ -156,6 +159,7 @@ impl Adaptivity {
             watched: HashMap::new(),
             watched_generation: None,
             pending_focus: Vec::new(),
+            own: HashSet::new(),
             initial_leaves: lat.leaf_count(),
             passes_run: 0,
         }
@@ -228,9 +232,10 @@ impl Adaptivity {
             Vec::new()
         };
         merge.truncate(MAX_REFINE_MERGES);
-        for g in &merge {
-            // A merge that does not happen (a finer diamond, or one near a cut, holds it)
-            // is tried again later, and less often each time.
+        for g in merge.iter().filter(|_| !self.apply_own) {
+            // A merge sent that does not happen (a finer diamond, or one near a cut, holds
+            // it) is decided again later, and less often each time. Applied at once, a
+            // merge is tried again on the next pass, as a finer diamond may merge first.
             if let Some(w) = self.watched.get_mut(g) {
                 w.attempts = (w.attempts + 1).min(MAX_MERGE_BACKOFF);
                 w.retry_at =
@@ -252,9 +257,13 @@ impl Adaptivity {
         };
         self.next_seq = self.next_seq.wrapping_add(1);
         if self.apply_own {
+            let before = diamond_centres(sim);
             let change = sim.apply_refine(&op)?;
             report.split = change.split;
             report.merged = change.merged;
+            self.own.retain(|g| !op.merge.contains(g));
+            self.own
+                .extend(diamond_centres(sim).difference(&before).copied());
             self.watch(sim);
         } else {
             self.pending_focus.extend(focus.iter().map(|p| (now, *p)));
@@ -356,7 +365,11 @@ impl Adaptivity {
                 continue;
             };
             let g = lat.node_grid(n);
-            if sim.is_static_diamond(&g) {
+            // Applying our own decisions (a site alone; keyframe and full-state sync),
+            // only what they split: under those strategies an owner's tree reaches us in
+            // its keyframes, and merging it here (we do not see its tool's contacts)
+            // would fight each keyframe (6.4 mm of divergence under `lan`, measured).
+            if sim.is_static_diamond(&g) || (self.apply_own && !self.own.contains(&g)) {
                 continue;
             }
             let w = match self.watched.get(&g) {
@@ -373,4 +386,13 @@ impl Adaptivity {
         }
         self.watched = live;
     }
+}
+
+/// Grid positions of every live diamond centre of `sim`'s lattice.
+fn diamond_centres(sim: &Simulation) -> HashSet<[i64; 3]> {
+    let lat = sim.lattice();
+    lat.nodes()
+        .filter(|&n| lat.node_parent_edge(n).is_some())
+        .map(|n| lat.node_grid(n))
+        .collect()
 }
