@@ -9,7 +9,14 @@
 //! dropped (`SiteSession::handle_message`): its nodes belong to a topology we have not
 //! reached, and the owner's next keyframe replaces it.
 
-use proto::{Epoch, SiteId};
+use std::time::{Duration, Instant};
+
+use proto::{Epoch, Message, Role, SiteId};
+use sim_core::sync::RegionMap;
+use sim_core::{SimError, Simulation};
+use tracing::{debug, info, warn};
+
+use super::{SiteSession, topology_lead};
 use sim_core::adapt::RefineOp;
 use sim_core::clip::ClipOp;
 use sim_core::cut::{CutOp, OpId, ReleaseOp, TopologyOp};
@@ -100,4 +107,152 @@ pub fn topology_from_wire(op: &proto::TopologyOp) -> TopologyOp {
             merge: merge.clone(),
         }),
     }
+}
+
+impl SiteSession {
+    /// Holds an op until its time, in the order every site applies them: by simulated
+    /// time, then by its id (site, seq), whatever order they arrived in.
+    pub(super) fn hold_topology(&mut self, op: proto::TopologyOp) {
+        let key = |h: &proto::TopologyOp| (h.sim_time, h.site, h.seq);
+        let i = self
+            .held_topology
+            .partition_point(|h| key(h).partial_cmp(&key(&op)) == Some(std::cmp::Ordering::Less));
+        self.held_topology.insert(i, op);
+    }
+
+    /// Whether a keyframe of `region` made at `sim_time` (s) would take the region's tree
+    /// back to before a refinement op we applied after that time: under hybrid and
+    /// input-only sync every site applies the op at its time, and the owner's later
+    /// keyframes include it.
+    pub(super) fn undoes_refinement(
+        &self,
+        sim: &Simulation,
+        region: proto::RegionId,
+        sim_time: f64,
+        tree_bits: &[u8],
+    ) -> bool {
+        if !self.times_topology() || sim_time >= self.refined_at || !self.map.contains(region) {
+            return false;
+        }
+        tree_differs(sim, &self.map, region, tree_bits)
+    }
+
+    /// Applies a received topology op (a duplicate changes nothing); counts it and its
+    /// CPU time.
+    pub(super) fn apply_topology(
+        &mut self,
+        sim: &mut Simulation,
+        op: &proto::TopologyOp,
+    ) -> Result<(), SimError> {
+        let t0 = Instant::now();
+        let op_here = topology_from_wire(op);
+        if let sim_core::cut::TopologyOp::Refine(r) = &op_here {
+            // A refinement that cannot be applied is dropped, not fatal: it is one site's
+            // decision, and the owners' keyframes carry their regions' trees.
+            let change = match sim.apply_refine(r) {
+                Ok(c) => c,
+                Err(e) => {
+                    warn!(site = op.site, seq = op.seq, error = %e, "refinement dropped");
+                    self.stats.refinements_dropped += 1;
+                    return Ok(());
+                }
+            };
+            if change.split + change.merged > 0 {
+                let at = if op.sim_time.is_finite() {
+                    op.sim_time.min(sim.time())
+                } else {
+                    sim.time()
+                };
+                self.refined_at = self.refined_at.max(at);
+            }
+            self.stats.refinements_applied += 1;
+            let late = sim.time() - op.sim_time;
+            if self.times_topology() && late > 0.5 * sim.options().dt {
+                self.stats.refinements_late += 1;
+                debug!(
+                    site = op.site,
+                    seq = op.seq,
+                    late,
+                    "refinement applied late"
+                );
+            }
+            debug!(
+                site = op.site,
+                seq = op.seq,
+                t = sim.time(),
+                split = change.split,
+                merged = change.merged,
+                "refinement applied"
+            );
+            return Ok(());
+        }
+        let change = sim.apply_topology_op(op_here)?;
+        if change.applied && Some(op.site) == self.sites.me() {
+            // One of our own cuts, at the time we scheduled it for.
+            self.own_cut_applied = true;
+            info!(seq = op.seq, t = sim.time(), "our cut applied");
+        } else if change.applied {
+            self.stats.topology_applied += 1;
+            self.stats.topology_apply_us_total += t0.elapsed().as_secs_f64() * 1e6;
+            info!(
+                site = op.site,
+                seq = op.seq,
+                epoch = sim.topology().epoch(),
+                crossed = change.crossed,
+                "topology op applied"
+            );
+        }
+        Ok(())
+    }
+
+    /// Sends the topology ops our own tools made at simulated time `t` (s) to the others.
+    /// Under hybrid and input-only sync, cuts, releases of attachment springs and
+    /// refinement decisions were not applied here (the blade's, the hook's and
+    /// adaptivity's `apply_own` are off on a linked site): they
+    /// are scheduled [`topology_lead`] ahead, for every site, this one included, so that
+    /// the tissue parts or lets go at the same simulated moment everywhere — also on the
+    /// sites that lead like us and would otherwise receive them after their time. Clips
+    /// (which move nothing), and every op under keyframe and full-state sync, were applied
+    /// here at `t`. `rtt`: the round trip to the coordinator, when known.
+    pub fn share_topology(
+        &mut self,
+        ops: &[sim_core::cut::TopologyOp],
+        t: f64,
+        rtt: Option<Duration>,
+    ) {
+        if self.cfg.role == Role::Observer {
+            return;
+        }
+        for op in ops {
+            let at = match op {
+                sim_core::cut::TopologyOp::Cut(_)
+                | sim_core::cut::TopologyOp::Release(_)
+                | sim_core::cut::TopologyOp::Refine(_)
+                    if self.times_topology() =>
+                {
+                    t + topology_lead(rtt)
+                }
+                _ => t,
+            };
+            let wire = topology_to_wire(op, self.epoch, at);
+            if at > t {
+                self.hold_topology(wire.clone());
+            }
+            let msg = Message::Topology(wire);
+            self.stats.topology_bytes_sent += proto::encode_frame(&msg).len() as u64;
+            self.control(msg);
+        }
+    }
+}
+
+/// Whether `tree_bits` (a keyframe's) differ from the region's tree state here; bits that
+/// do not decode count as equal (the keyframe's own checks report them).
+fn tree_differs(
+    sim: &Simulation,
+    map: &RegionMap,
+    region: proto::RegionId,
+    tree_bits: &[u8],
+) -> bool {
+    sim_core::sim_lattice::RegionState::from_bytes(tree_bits)
+        .is_ok_and(|theirs| theirs != map.state(sim.lattice(), region))
 }
