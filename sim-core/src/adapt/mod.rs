@@ -283,13 +283,7 @@ impl Adaptivity {
         if points.is_empty() || max_level == 0 {
             return Vec::new();
         }
-        let mut flo = V3::repeat(f64::INFINITY);
-        let mut fhi = V3::repeat(f64::NEG_INFINITY);
-        for p in points {
-            flo = flo.inf(p);
-            fhi = fhi.sup(p);
-        }
-        let (flo, fhi) = (flo.add_scalar(-d), fhi.add_scalar(d));
+        let (flo, fhi) = op::padded_box(points, d);
         // The coarse leaves near any of the points.
         let coarse: Vec<(V3, V3)> = (0..sim.lattice().leaf_count())
             .filter(|&i| sim.lattice().leaves()[i].level() < max_level)

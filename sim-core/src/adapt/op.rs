@@ -161,13 +161,7 @@ fn refine_near(
     d: f64,
     max_level: u8,
 ) -> Result<usize, SimError> {
-    let mut flo = V3::repeat(f64::INFINITY);
-    let mut fhi = V3::repeat(f64::NEG_INFINITY);
-    for p in focus {
-        flo = flo.inf(p);
-        fhi = fhi.sup(p);
-    }
-    let (flo, fhi) = (flo.add_scalar(-d), fhi.add_scalar(d));
+    let (flo, fhi) = padded_box(focus, d);
     let mut split = 0;
     // Each round splits the near leaves one level (and what conformity forces).
     for _ in 0..=(3 * usize::from(max_level) + 3) {
@@ -257,4 +251,15 @@ pub(super) fn box_distance(lo: &V3, hi: &V3, p: &V3) -> f64 {
         d2 += e * e;
     }
     d2.sqrt()
+}
+
+/// The box around `points` padded by `d` on every side (m).
+pub(super) fn padded_box(points: &[V3], d: f64) -> (V3, V3) {
+    let mut lo = V3::repeat(f64::INFINITY);
+    let mut hi = V3::repeat(f64::NEG_INFINITY);
+    for p in points {
+        lo = lo.inf(p);
+        hi = hi.sup(p);
+    }
+    (lo.add_scalar(-d), hi.add_scalar(d))
 }
