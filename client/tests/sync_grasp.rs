@@ -132,14 +132,14 @@ fn follow(lag: usize) {
         worst = worst.max(d);
     }
     assert!(s_recv.stats().keyframes_applied > 10);
-    // Bound: the release of the grasp (tissue springing back while the owner still owns
-    // the region for 0.4 s) is the largest transient, 12.1 mm at 4 ms steps (t = 4.736 s)
-    // for a receiver level with the owner (it extrapolates) and for one behind it (it
-    // holds the next keyframe and interpolates towards it, but the snap is faster than
-    // the owner's 30 ms keyframe rate cap). Before refinement was decided in rest space
-    // (2026-11-27) the receiver behind measured 9.3 mm: the lattice refined around the
-    // grasp differs by a few leaves. At the end the tissue has settled on both.
-    let bound = 0.015;
+    // Bounds: the release of the grasp (tissue springing back while the owner still owns
+    // the region for 0.4 s) is the largest transient at 4 ms steps: 12.5 mm for a receiver
+    // level with the owner (it extrapolates), 9.3 mm for one behind it (it holds the next
+    // keyframe and interpolates towards it, but the snap is faster than the owner's 30 ms
+    // keyframe rate cap), measured 2026-11-27. While keyframe sync decided refinement in
+    // rest space the receiver behind measured 12.1 mm. At the end the tissue has settled
+    // on both.
+    let bound = if lag > 1 { 0.010 } else { 0.015 };
     assert!(worst < bound, "receiver diverged by {worst} m");
     let a = &owner.surfaces()[0].deformed;
     let b = &recv.surfaces()[0].deformed;

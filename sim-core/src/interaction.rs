@@ -91,7 +91,7 @@ impl Interaction {
         let cuts = self.blades.update(sim, &self.tools)?;
         let released = self.hooks.update(sim, &self.tools)?;
         let clips = self.clips.update(sim, &self.tools)?;
-        let focus = self.contact.focus_points_rest();
+        let focus = self.contact.focus_points_by_tool();
         let adapt = self.adapt.update(sim, &focus)?;
         let before = self.contact.state().stats;
         self.contact.run(sim, &self.tools);

@@ -39,7 +39,7 @@ mod sharing;
 pub mod sync;
 pub mod tools;
 
-pub use adapt::{AdaptParams, AdaptReport, Adaptivity};
+pub use adapt::{AdaptParams, AdaptReport, Adaptivity, FocusPoints};
 pub use contact::{
     ContactParams, ContactPipeline, ContactState, ContactStats, Interaction, InteractionReport,
     LocalModel, ToolContact,

@@ -27,7 +27,12 @@
 //!
 //! Under keyframe and full-state sync, where followers do not simulate the others' tools,
 //! every site decides for every tool and applies its decisions at once, and the owners'
-//! keyframes carry their regions' tree states.
+//! keyframes carry their regions' tree states. Such decisions need not be state-free, and
+//! they are taken in current coordinates, on the leaves' deformed boxes around the
+//! contacts where they are now: the tissue near a tool is refined where it has moved to,
+//! not where it rests (deciding in rest space there made the owner coarsen under a
+//! spring-back that its followers saw one keyframe late: 5.7 mm of divergence under `lan`
+//! against 1.4, `docs/RESULTS.md`).
 
 mod op;
 
@@ -40,6 +45,7 @@ use crate::cut::{OpId, TopologyOp};
 use crate::engine::Simulation;
 use crate::error::SimError;
 
+use op::Space;
 pub use op::{
     MAX_REFINE_DISTANCE_CELLS, MAX_REFINE_FOCUS, MAX_REFINE_MERGES, REFINE_SEQ_BASE, RefineChange,
     RefineOp,
@@ -61,7 +67,9 @@ const MAX_MERGE_BACKOFF: u32 = 6;
 pub struct AdaptParams {
     /// Adapt every this many calls (steps), ≥ 1.
     pub every: u32,
-    /// Leaves whose rest box comes within this distance (m, rest) of a focus point refine.
+    /// Leaves whose box comes within this distance (m) of a focus point refine (rest boxes
+    /// and points for decisions carried as ops, current ones for decisions applied at
+    /// once).
     pub distance: f64,
     /// A created diamond merges after being far from every focus point this long (s).
     pub hold_time: f64,
@@ -93,6 +101,16 @@ pub struct AdaptReport {
     pub merged: usize,
     /// Leaves afterwards.
     pub leaves: usize,
+}
+
+/// The focus points of every tool (contacts, grasped points; m), one list per tool in
+/// scene order, in rest coordinates and where they are now.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FocusPoints {
+    /// Rest coordinates: what decisions carried as ops read.
+    pub rest: Vec<Vec<V3>>,
+    /// Current coordinates: what decisions applied at once read.
+    pub deformed: Vec<Vec<V3>>,
 }
 
 /// A diamond adaptivity created, watched for merging.
@@ -175,15 +193,16 @@ impl Adaptivity {
         self.watched.len()
     }
 
-    /// One call per step with the focus points (contacts, grasped points) of every tool,
-    /// in rest coordinates (m), one list per tool in scene order. Works every `every`
-    /// calls when the simulation's adaptivity is on and there is a focus point or a
-    /// created diamond: refines around the focus points of the [`Self::enabled`] tools,
-    /// merges created diamonds that every focus point has left for the hold time.
+    /// One call per step with the focus points (contacts, grasped points) of every tool.
+    /// Works every `every` calls when the simulation's adaptivity is on and there is a
+    /// focus point or a created diamond: refines around the focus points of the
+    /// [`Self::enabled`] tools, merges created diamonds that every focus point has left
+    /// for the hold time. Decisions made into ops read the rest points; decisions applied
+    /// at once ([`Self::apply_own`]) the current ones (see the module documentation).
     pub fn update(
         &mut self,
         sim: &mut Simulation,
-        focus_rest: &[Vec<V3>],
+        focus: &FocusPoints,
     ) -> Result<AdaptReport, SimError> {
         let mut report = AdaptReport {
             leaves: sim.lattice().leaf_count(),
@@ -200,7 +219,16 @@ impl Adaptivity {
             return Ok(report);
         }
         self.watch(sim);
-        let any_focus = focus_rest.iter().any(|f| !f.is_empty());
+        let space = if self.apply_own {
+            Space::Deformed
+        } else {
+            Space::Rest
+        };
+        let focus_all = match space {
+            Space::Rest => &focus.rest,
+            Space::Deformed => &focus.deformed,
+        };
+        let any_focus = focus_all.iter().any(|f| !f.is_empty());
         if !any_focus && self.watched.is_empty() {
             return Ok(report);
         }
@@ -212,22 +240,22 @@ impl Adaptivity {
             .retain(|(t, _)| *t <= now && now - *t < PENDING_S);
 
         let enabled = |i: usize| self.enabled.get(i).copied().unwrap_or(true);
-        let refine: Vec<V3> = focus_rest
+        let refine: Vec<V3> = focus_all
             .iter()
             .enumerate()
             .filter(|(i, _)| enabled(*i))
             .flat_map(|(_, f)| f.iter().copied())
             .collect();
-        let mut focus = self.refine_focus(sim, &refine);
-        focus.truncate(MAX_REFINE_FOCUS);
+        let mut chosen = self.refine_focus(sim, &refine, space);
+        chosen.truncate(MAX_REFINE_FOCUS);
         // Only a site that drives or drove a tool decides merges: drivers run level with
         // the owners, so their decisions reach every site in time, while a follower runs
         // behind by its playout lag, and its ops would reach the leading sites after
         // their time. Once it drove, a site keeps deciding them, so that the tissue
         // coarsens back after the last tool stops.
-        self.has_driven |= (0..focus_rest.len().max(1)).any(enabled);
+        self.has_driven |= (0..focus_all.len().max(1)).any(enabled);
         let mut merge = if self.has_driven {
-            self.due_merges(sim, focus_rest, now)
+            self.due_merges(sim, focus_all, now, space)
         } else {
             Vec::new()
         };
@@ -242,32 +270,41 @@ impl Adaptivity {
                     now + PENDING_S + self.params.hold_time * f64::from(1u32 << w.attempts);
             }
         }
-        if focus.is_empty() && merge.is_empty() {
+        if chosen.is_empty() && merge.is_empty() {
             return Ok(report);
         }
-        let op = RefineOp {
-            id: OpId {
-                site: self.site,
-                seq: REFINE_SEQ_BASE.wrapping_add(self.next_seq),
-            },
-            focus: focus.iter().map(|p| [p.x, p.y, p.z]).collect(),
-            distance: self.params.distance,
-            level: self.params.max_level,
-            merge,
-        };
-        self.next_seq = self.next_seq.wrapping_add(1);
         if self.apply_own {
             let before = diamond_centres(sim);
-            let change = sim.apply_refine(&op)?;
-            report.split = change.split;
-            report.merged = change.merged;
-            self.own.retain(|g| !op.merge.contains(g));
+            let max_level = self.params.max_level.min(sim.lattice().params().max_depth);
+            if !chosen.is_empty() {
+                report.split = op::refine_near(
+                    sim,
+                    &chosen,
+                    self.params.distance,
+                    max_level,
+                    Space::Deformed,
+                )?;
+            }
+            if !merge.is_empty() {
+                report.merged = op::merge_diamonds(sim, &merge)?;
+            }
+            self.own.retain(|g| !merge.contains(g));
             self.own
                 .extend(diamond_centres(sim).difference(&before).copied());
             self.watch(sim);
         } else {
-            self.pending_focus.extend(focus.iter().map(|p| (now, *p)));
-            self.made.push(TopologyOp::Refine(op));
+            self.pending_focus.extend(chosen.iter().map(|p| (now, *p)));
+            self.made.push(TopologyOp::Refine(RefineOp {
+                id: OpId {
+                    site: self.site,
+                    seq: REFINE_SEQ_BASE.wrapping_add(self.next_seq),
+                },
+                focus: chosen.iter().map(|p| [p.x, p.y, p.z]).collect(),
+                distance: self.params.distance,
+                level: self.params.max_level,
+                merge,
+            }));
+            self.next_seq = self.next_seq.wrapping_add(1);
         }
         report.leaves = sim.lattice().leaf_count();
         Ok(report)
@@ -277,7 +314,7 @@ impl Adaptivity {
     /// distance, not near a point of a decision on its way or of this one (a quarter of
     /// the distance: a later pass takes what they leave, once the decisions on their way
     /// are applied).
-    fn refine_focus(&self, sim: &Simulation, points: &[V3]) -> Vec<V3> {
+    fn refine_focus(&self, sim: &Simulation, points: &[V3], space: Space) -> Vec<V3> {
         let d = self.params.distance;
         let max_level = self.params.max_level.min(sim.lattice().params().max_depth);
         if points.is_empty() || max_level == 0 {
@@ -287,7 +324,7 @@ impl Adaptivity {
         // The coarse leaves near any of the points.
         let coarse: Vec<(V3, V3)> = (0..sim.lattice().leaf_count())
             .filter(|&i| sim.lattice().leaves()[i].level() < max_level)
-            .map(|i| op::leaf_rest_box(sim, i))
+            .map(|i| op::leaf_box(sim, i, space))
             .filter(|(lo, hi)| !(0..3).any(|k| lo[k] > fhi[k] || hi[k] < flo[k]))
             .collect();
         let near = 0.25 * d;
@@ -314,16 +351,22 @@ impl Adaptivity {
 
     /// Created diamonds every focus point has left for the hold time (finest first), not
     /// pinned by a cut and not on their way already. Notes which are near.
-    fn due_merges(&mut self, sim: &Simulation, focus_rest: &[Vec<V3>], now: f64) -> Vec<[i64; 3]> {
+    fn due_merges(
+        &mut self,
+        sim: &Simulation,
+        focus: &[Vec<V3>],
+        now: f64,
+        space: Space,
+    ) -> Vec<[i64; 3]> {
         let d = self.params.distance;
         let lat = sim.lattice();
+        let x = sim.positions();
         for w in self.watched.values_mut() {
-            let p = lat.node_rest(w.node);
-            if focus_rest
-                .iter()
-                .flatten()
-                .any(|f| (f - p).norm() <= d + w.edge)
-            {
+            let p = match space {
+                Space::Rest => lat.node_rest(w.node),
+                Space::Deformed => x[w.node.0 as usize],
+            };
+            if focus.iter().flatten().any(|f| (f - p).norm() <= d + w.edge) {
                 w.last_near = now;
                 w.attempts = 0;
                 w.retry_at = 0.0;

@@ -131,7 +131,7 @@ impl Simulation {
         let max_level = op.level.min(self.lattice().params().max_depth);
         let focus: Vec<V3> = op.focus_points().collect();
         if !focus.is_empty() && max_level > 0 {
-            change.split = refine_near(self, &focus, op.distance, max_level)?;
+            change.split = refine_near(self, &focus, op.distance, max_level, Space::Rest)?;
         }
         if !op.merge.is_empty() {
             change.merged = merge_diamonds(self, &op.merge)?;
@@ -140,26 +140,42 @@ impl Simulation {
     }
 }
 
-/// Rest box of leaf `i` (m).
-pub(super) fn leaf_rest_box(sim: &Simulation, i: usize) -> (V3, V3) {
+/// Which positions a refinement decision reads.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Space {
+    /// Rest positions: exact, the same on every site (decisions carried as ops).
+    Rest,
+    /// Current (deformed) positions: where the tissue is now (decisions applied at once
+    /// on the site that takes them).
+    Deformed,
+}
+
+/// Box of leaf `i` (m) in `space`.
+pub(super) fn leaf_box(sim: &Simulation, i: usize, space: Space) -> (V3, V3) {
     let lat = sim.lattice();
+    let x = sim.positions();
     let mut lo = V3::repeat(f64::INFINITY);
     let mut hi = V3::repeat(f64::NEG_INFINITY);
     for n in lat.leaf_tet_nodes(i) {
-        let p = lat.node_rest(n);
+        let p = match space {
+            Space::Rest => lat.node_rest(n),
+            Space::Deformed => x[n.0 as usize],
+        };
         lo = lo.inf(&p);
         hi = hi.sup(&p);
     }
     (lo, hi)
 }
 
-/// Splits every leaf below `max_level` whose rest box comes within `d` of a focus point,
-/// one level per round, until none is left. Returns the tets split.
-fn refine_near(
+/// Splits every leaf below `max_level` whose box in `space` comes within `d` of a focus
+/// point (m, in the same space), one level per round, until none is left. Returns the tets
+/// split.
+pub(super) fn refine_near(
     sim: &mut Simulation,
     focus: &[V3],
     d: f64,
     max_level: u8,
+    space: Space,
 ) -> Result<usize, SimError> {
     let (flo, fhi) = padded_box(focus, d);
     let mut split = 0;
@@ -172,7 +188,7 @@ fn refine_near(
             .enumerate()
             .filter(|(_, t)| t.level() < max_level)
             .filter(|(i, _)| {
-                let (lo, hi) = leaf_rest_box(sim, *i);
+                let (lo, hi) = leaf_box(sim, *i, space);
                 if (0..3).any(|k| lo[k] > fhi[k] || hi[k] < flo[k]) {
                     return false;
                 }
@@ -198,7 +214,10 @@ fn refine_near(
 /// Merges the diamonds centred on `centres` (grid positions) where they can be, in the
 /// order given, again while any merged (a coarser diamond waits for its finer ones).
 /// Returns the diamonds merged.
-fn merge_diamonds(sim: &mut Simulation, centres: &[[i64; 3]]) -> Result<usize, SimError> {
+pub(super) fn merge_diamonds(
+    sim: &mut Simulation,
+    centres: &[[i64; 3]],
+) -> Result<usize, SimError> {
     let wanted: HashSet<[i64; 3]> = centres.iter().copied().collect();
     let node_of: HashMap<[i64; 3], NodeId> = {
         let lat = sim.lattice();

@@ -48,6 +48,7 @@ mod tests;
 use nalgebra::{Matrix3, Matrix6, Vector3, Vector6};
 use sim_lattice::{Embedding, NodeId};
 
+use crate::adapt::FocusPoints;
 use crate::engine::Simulation;
 use crate::tools::ToolSet;
 
@@ -389,8 +390,7 @@ impl ContactPipeline {
         }
     }
 
-    /// Contact points and grasped points of the last pass (m, deformed; adaptivity
-    /// decides on their rest positions: [`Self::focus_points_rest`]).
+    /// Contact points and grasped points of the last pass (m, deformed).
     pub fn focus_points(&self) -> Vec<V3> {
         let mut out = Vec::new();
         for t in &self.state.tools {
@@ -400,22 +400,34 @@ impl ContactPipeline {
         out
     }
 
-    /// The same points in rest coordinates (m), one list per tool in scene order: a
-    /// contact's closest point on its triangle's rest pose (taken when the contact was
-    /// found, so a cut since does not move it), a grasped point's rest position. What
-    /// tool-following adaptivity decides on ([`crate::adapt`]).
-    pub fn focus_points_rest(&self) -> Vec<Vec<V3>> {
-        self.state
-            .tools
-            .iter()
-            .map(|t| {
-                t.contacts
-                    .iter()
-                    .map(|c| c.rest)
-                    .chain(t.grasped_rest.iter().copied())
-                    .collect()
-            })
-            .collect()
+    /// The same points one list per tool in scene order, where they are now and in rest
+    /// coordinates (m): a contact's closest point on its triangle's rest pose (taken when
+    /// the contact was found, so a cut since does not move it), a grasped point's rest
+    /// position. What tool-following adaptivity decides on ([`crate::adapt`]).
+    pub fn focus_points_by_tool(&self) -> FocusPoints {
+        let tools = &self.state.tools;
+        FocusPoints {
+            rest: tools
+                .iter()
+                .map(|t| {
+                    t.contacts
+                        .iter()
+                        .map(|c| c.rest)
+                        .chain(t.grasped_rest.iter().copied())
+                        .collect()
+                })
+                .collect(),
+            deformed: tools
+                .iter()
+                .map(|t| {
+                    t.contacts
+                        .iter()
+                        .map(|c| c.point)
+                        .chain(t.grasped_points.iter().copied())
+                        .collect()
+                })
+                .collect(),
+        }
     }
 
     /// Keeps the per-tool memory in step with the tool set (tools added or replaced).
