@@ -166,6 +166,9 @@ pub struct SiteSession {
     /// Topology ops of the current epoch received before our clock reached the simulated
     /// time they were made at, in order of that time: applied by [`Self::apply_due`].
     held_topology: Vec<proto::TopologyOp>,
+    /// Topology ops of the epoch a scheduled reset leads to, made by sites that reset
+    /// before us: taken when we reset.
+    next_epoch_topology: Vec<proto::TopologyOp>,
     /// Simulated time (s) of the last refinement op that changed our lattice: a frame
     /// made before it would take a region's tree back to before it.
     refined_at: f64,
@@ -210,6 +213,7 @@ impl SiteSession {
             started: false,
             scheduled_reset: None,
             held_topology: Vec::new(),
+            next_epoch_topology: Vec::new(),
             refined_at: f64::NEG_INFINITY,
             own_cut_applied: false,
             rejoin: reconnect::Rejoin::default(),
@@ -547,15 +551,12 @@ impl SiteSession {
             Message::Teaching(tr) => self.events.push_back(SessionEvent::Teaching(tr)),
             Message::Topology(op) => {
                 if op.epoch == self.epoch {
-                    if self.times_topology()
-                        && op.sim_time.is_finite()
-                        && op.sim_time > t + 0.5 * sim.options().dt
-                    {
-                        // Our clock is behind its maker's: the op waits for its time.
-                        self.hold_topology(op);
-                    } else {
-                        self.apply_topology(sim, &op)?;
-                    }
+                    self.take_topology(sim, op)?;
+                } else if self.scheduled_reset.is_some_and(|(e, _)| e == op.epoch) {
+                    // Its maker reset before us (it runs ahead): the op waits for our
+                    // reset, as the new epoch's frames wait in the inbox.
+                    debug!(epoch = op.epoch, "topology op of the coming epoch held");
+                    self.next_epoch_topology.push(op);
                 } else {
                     debug!(epoch = op.epoch, "topology op of another epoch dropped");
                 }
@@ -909,6 +910,12 @@ impl SiteSession {
         self.clocks.owners.clear();
         self.stats.resets += 1;
         self.events.push_back(SessionEvent::SceneReset { epoch });
+        // Ops of this epoch made by sites that reset before us.
+        for op in std::mem::take(&mut self.next_epoch_topology) {
+            if op.epoch == epoch {
+                self.take_topology(sim, op)?;
+            }
+        }
         Ok(())
     }
 }

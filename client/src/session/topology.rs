@@ -110,6 +110,24 @@ pub fn topology_from_wire(op: &proto::TopologyOp) -> TopologyOp {
 }
 
 impl SiteSession {
+    /// Takes a received topology op of the current epoch: held for its time when our
+    /// clock is behind its maker's and ops are timed, applied at once otherwise.
+    pub(super) fn take_topology(
+        &mut self,
+        sim: &mut Simulation,
+        op: proto::TopologyOp,
+    ) -> Result<(), SimError> {
+        if self.times_topology()
+            && op.sim_time.is_finite()
+            && op.sim_time > sim.time() + 0.5 * sim.options().dt
+        {
+            self.hold_topology(op);
+            Ok(())
+        } else {
+            self.apply_topology(sim, &op)
+        }
+    }
+
     /// Holds an op until its time, in the order every site applies them: by simulated
     /// time, then by its id (site, seq), whatever order they arrived in.
     pub(super) fn hold_topology(&mut self, op: proto::TopologyOp) {

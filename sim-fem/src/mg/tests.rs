@@ -1,6 +1,8 @@
 //! Multigrid against independent references: the dense Cholesky solve of the step's own
 //! matrix (nalgebra), and Jacobi-PCG's iteration count.
 
+mod two_grid;
+
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 
 use super::{Hierarchy, MgParams, Multigrid, Prolongation};
@@ -67,15 +69,17 @@ impl LinearOperator for Assembled {
 /// whose centre lies in the rod `|y − y_c|, |z − z_c| < 1 cell` stiffer by `contrast`;
 /// a penalty spring (1e4 N/m) on the free end's corner. Matrix at a bent state, dt (s).
 fn beam_matrix(cells: [usize; 3], contrast: f64, dt: f64) -> (BoxMesh, Assembled) {
-    beam_matrix_fixed_to(cells, contrast, dt, 1e-9)
+    beam_matrix_fixed_to(cells, contrast, dt, 1e-9, 0.45)
 }
 
-/// [`beam_matrix`] with every node at `x ≤ fixed_x` (m) fixed (cells of 2 cm).
+/// [`beam_matrix`] with every node at `x ≤ fixed_x` (m) fixed (cells of 2 cm) and
+/// Poisson ratio `nu`.
 fn beam_matrix_fixed_to(
     cells: [usize; 3],
     contrast: f64,
     dt: f64,
     fixed_x: f64,
+    nu: f64,
 ) -> (BoxMesh, Assembled) {
     let h = 0.02;
     let size = cells.map(|c| c as f64 * h);
@@ -87,12 +91,12 @@ fn beam_matrix_fixed_to(
             e.material = 1;
         }
     }
-    let soft = Material::new(1e5, 0.45, 1000.0);
+    let soft = Material::new(1e5, nu, 1000.0);
     let fixed = mesh.nodes_with_x_at_most(fixed_x);
     let mut sys = FemSystem::new(&FemDesc {
         rest: mesh.rest.clone(),
         elements,
-        materials: vec![soft, Material::new(1e5 * contrast, 0.45, 1000.0)],
+        materials: vec![soft, Material::new(1e5 * contrast, nu, 1000.0)],
         fixed: fixed.clone(),
         rotation_sources: vec![],
     })
@@ -470,7 +474,7 @@ fn vcycle_contraction_does_not_grow_with_the_level_count_also_with_a_stiff_inclu
 #[test]
 fn coarse_levels_below_dropped_fixed_nodes_stay_positive_definite() {
     let cells = [16, 8, 8];
-    let (_, a) = beam_matrix_fixed_to(cells, 1.0, 0.01, 0.04 + 1e-9);
+    let (_, a) = beam_matrix_fixed_to(cells, 1.0, 0.01, 0.04 + 1e-9, 0.45);
     let h = box_hierarchy(cells);
     let params = MgParams {
         smoothing_steps: 1,

@@ -105,19 +105,9 @@ fn a_follower_that_shows_keyframes_makes_its_owner_send_on_drift() {
     }
 }
 
-/// Under hybrid sync a refinement decision is scheduled ahead like a cut: both sites hold
-/// it and apply it at its time, and their lattices end equal (the refinement is not in the
-/// cut log); a keyframe made before it, whose tree would take it back, is dropped.
-#[test]
-fn a_refinement_is_applied_at_its_time_everywhere_and_not_undone_by_an_older_keyframe() {
-    use sim_core::adapt::{REFINE_SEQ_BASE, RefineOp};
-    let mut p = pair_with(SyncStrategy::Hybrid);
-    for _ in 0..3 {
-        p.step(&[]);
-    }
-    // A keyframe of the owned region as it is now, before the refinement.
-    let before = p.a_keyframe_after_grant(0);
-    // Focus on the first root of that region (rest centroid).
+/// A refinement op of site 1 around the first root of the pair's region (its rest
+/// centroid), to the lattice's deepest level.
+fn refine_first_root(p: &Pair) -> sim_core::adapt::RefineOp {
     let root = p.a.map.roots(p.region)[0];
     let lat = p.sim_a.lattice();
     let nodes = lat.tet_nodes(sim_core::TetId { root, heap: 1 });
@@ -126,16 +116,30 @@ fn a_refinement_is_applied_at_its_time_everywhere_and_not_undone_by_an_older_key
         .map(|&n| lat.node_rest(n))
         .sum::<nalgebra::Vector3<f64>>()
         / 4.0;
-    let op = RefineOp {
+    sim_core::adapt::RefineOp {
         id: sim_core::cut::OpId {
             site: 1,
-            seq: REFINE_SEQ_BASE,
+            seq: sim_core::adapt::REFINE_SEQ_BASE,
         },
         focus: vec![[c.x, c.y, c.z]],
         distance: 0.25 * lat.params().cell,
         level: lat.params().max_depth,
         merge: Vec::new(),
-    };
+    }
+}
+
+/// Under hybrid sync a refinement decision is scheduled ahead like a cut: both sites hold
+/// it and apply it at its time, and their lattices end equal (the refinement is not in the
+/// cut log); a keyframe made before it, whose tree would take it back, is dropped.
+#[test]
+fn a_refinement_is_applied_at_its_time_everywhere_and_not_undone_by_an_older_keyframe() {
+    let mut p = pair_with(SyncStrategy::Hybrid);
+    for _ in 0..3 {
+        p.step(&[]);
+    }
+    // A keyframe of the owned region as it is now, before the refinement.
+    let before = p.a_keyframe_after_grant(0);
+    let op = refine_first_root(&p);
     drain(&mut p.a);
     let t = p.sim_a.time();
     let rtt = Duration::from_millis(40);
@@ -183,4 +187,54 @@ fn a_refinement_is_applied_at_its_time_everywhere_and_not_undone_by_an_older_key
     p.b.apply_due(&mut p.sim_b).unwrap();
     assert_eq!(p.b.stats().frames_refinement_dropped, 1);
     assert_eq!(p.sim_b.lattice().leaf_count(), refined);
+}
+
+/// A topology op of the epoch a scheduled reset leads to, made by a site that reset
+/// before us, waits for our reset and is then applied at its time (it used to be dropped
+/// as an op of another epoch).
+#[test]
+fn an_op_of_the_coming_epoch_waits_for_the_reset() {
+    let mut p = pair_with(SyncStrategy::Hybrid);
+    for _ in 0..3 {
+        p.step(&[]);
+    }
+    let t = p.sim_b.time();
+    let (reset_at, op_at) = (t + 0.06, t + 0.08);
+    let now = p.clock.now();
+    let reset = Message::Command(Command::ResetScene {
+        epoch: 1,
+        sim_time_s: reset_at,
+    });
+    p.b.handle_message(&mut p.sim_b, reset, now).unwrap();
+    let op = sim_core::cut::TopologyOp::Refine(refine_first_root(&p));
+    let wire = super::super::topology::topology_to_wire(&op, 1, op_at);
+    // An op of an epoch nobody scheduled is still dropped.
+    let stray = super::super::topology::topology_to_wire(&op, 2, op_at);
+    for m in [wire, stray] {
+        p.b.handle_message(&mut p.sim_b, Message::Topology(m), now)
+            .unwrap();
+    }
+    let leaves = p.sim_b.lattice().leaf_count();
+    p.b.apply_due(&mut p.sim_b).unwrap();
+    assert_eq!(p.b.epoch(), 0);
+    assert_eq!(
+        p.sim_b.lattice().leaf_count(),
+        leaves,
+        "applied before the reset"
+    );
+    p.sim_b.set_time(reset_at);
+    p.b.apply_due(&mut p.sim_b).unwrap();
+    assert_eq!(p.b.epoch(), 1, "reset at its time");
+    assert_eq!(
+        p.sim_b.lattice().leaf_count(),
+        leaves,
+        "applied before its own time"
+    );
+    p.sim_b.set_time(op_at);
+    p.b.apply_due(&mut p.sim_b).unwrap();
+    assert!(
+        p.sim_b.lattice().leaf_count() > leaves,
+        "the new epoch's op was not applied"
+    );
+    assert_eq!(p.b.stats().refinements_applied, 1);
 }

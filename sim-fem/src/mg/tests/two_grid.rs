@@ -1,0 +1,140 @@
+//! An experiment, not a test (ignored; run it with `cargo test --release -p
+//! cosurg-sim-fem --lib two_grid -- --ignored --nocapture`): where MG-PCG's iterations on
+//! the beam come from. A dense two-grid preconditioner (block Gauss–Seidel sweeps, the
+//! coarse level `PᵀAP` solved exactly) with the plain hierarchy's prolongation and with it
+//! smoothed by one damped block-Jacobi step of the operator (`P = (I − ω D⁻¹A) P₀`, the
+//! prolongation smoothing of smoothed aggregation), at ν = 0.3 and 0.45, with and without
+//! the 1000× rod. Results in docs/RESULTS.md ("What limits the two-grid").
+
+use nalgebra::{DMatrix, DVector};
+
+use super::{Assembled, Hierarchy, beam_matrix_fixed_to, box_hierarchy, dense_matrix};
+
+/// Dense two-grid PCG: `sweeps` forward block GS, exact coarse `PᵀAP`, `sweeps` backward.
+fn dense_two_grid_iterations(a: &Assembled, p: &DMatrix<f64>, sweeps: usize) -> usize {
+    let n = a.fixed.len();
+    let free: Vec<usize> = (0..3 * n).filter(|k| !a.fixed[k / 3]).collect();
+    let full = dense_matrix(a);
+    let m = DMatrix::from_fn(free.len(), free.len(), |i, j| full[(free[i], free[j])]);
+    let pf = DMatrix::from_fn(free.len(), p.ncols(), |i, j| p[(free[i], j)]);
+    // Drop coarse columns that are zero.
+    let keep: Vec<usize> = (0..pf.ncols())
+        .filter(|&j| pf.column(j).norm() > 0.0)
+        .collect();
+    let pf = DMatrix::from_fn(pf.nrows(), keep.len(), |i, j| pf[(i, keep[j])]);
+    let ac = pf.transpose() * &m * &pf;
+    let chol = ac.cholesky().expect("coarse SPD");
+    let nf = free.len();
+    let lower = m.lower_triangle();
+    let upper = m.upper_triangle();
+    let prec = |r: &DVector<f64>| -> DVector<f64> {
+        let mut z = DVector::zeros(nf);
+        for _ in 0..sweeps {
+            let rhs = r - &m * &z + &lower * &z;
+            z = lower.solve_lower_triangular(&rhs).unwrap();
+        }
+        let res = r - &m * &z;
+        z += &pf * chol.solve(&(pf.transpose() * res));
+        for _ in 0..sweeps {
+            let rhs = r - &m * &z + &upper * &z;
+            z = upper.solve_upper_triangular(&rhs).unwrap();
+        }
+        z
+    };
+    let b = DVector::from_fn(nf, |i, _| ((i as f64) * 0.1).sin() + 0.3);
+    let mut x = DVector::zeros(nf);
+    let mut r = b.clone();
+    let mut z = prec(&r);
+    let mut d = z.clone();
+    let mut rz = r.dot(&z);
+    for it in 1..500 {
+        let ad = &m * &d;
+        let alpha = rz / d.dot(&ad);
+        x += alpha * &d;
+        r -= alpha * &ad;
+        if r.norm() <= 1e-6 * b.norm() {
+            return it;
+        }
+        z = prec(&r);
+        let rz2 = r.dot(&z);
+        d = &z + (rz2 / rz) * &d;
+        rz = rz2;
+    }
+    500
+}
+
+/// The first prolongation, expanded to 3 components, dense; smoothed by
+/// `(I − ω D⁻¹ A)` with the 3×3-block diagonal `D` when `omega > 0` (ω scaled by
+/// `4 / (3 λ_max(D⁻¹A))`).
+fn dense_prolongation(a: &Assembled, h: &Hierarchy, omega: f64) -> DMatrix<f64> {
+    let n = a.fixed.len();
+    let p0 = &h.levels[0];
+    let mut p = DMatrix::zeros(3 * n, 3 * p0.coarse_len());
+    for i in 0..n {
+        if a.fixed[i] {
+            continue;
+        }
+        for (c, w) in p0.row(i) {
+            for k in 0..3 {
+                p[(3 * i + k, 3 * c + k)] = w;
+            }
+        }
+    }
+    if omega == 0.0 {
+        return p;
+    }
+    let mut m = dense_matrix(a);
+    for i in 0..3 * n {
+        for j in 0..3 * n {
+            if a.fixed[i / 3] || a.fixed[j / 3] {
+                m[(i, j)] = if i == j { 1.0 } else { 0.0 };
+            }
+        }
+    }
+    let mut dinv = DMatrix::zeros(3 * n, 3 * n);
+    for i in 0..n {
+        let blk = m.fixed_view::<3, 3>(3 * i, 3 * i).into_owned();
+        dinv.fixed_view_mut::<3, 3>(3 * i, 3 * i)
+            .copy_from(&blk.try_inverse().unwrap());
+    }
+    let da = &dinv * &m;
+    let mut v = DVector::from_fn(3 * n, |i, _| 1.0 + (i as f64 * 0.37).sin());
+    let mut lam = 0.0;
+    for _ in 0..50 {
+        let w = &da * &v;
+        lam = w.norm() / v.norm();
+        v = w;
+    }
+    let w = omega * 4.0 / (3.0 * lam);
+    let mut sp = &p - w * (&da * &p);
+    for i in 0..n {
+        if a.fixed[i] {
+            for k in 0..3 {
+                sp.row_mut(3 * i + k).fill(0.0);
+            }
+        }
+    }
+    sp
+}
+
+#[test]
+#[ignore = "experiment: prints iteration counts"]
+fn experiment_two_grid_smoother_against_coarse_space() {
+    for nu in [0.3, 0.45] {
+        for (cells, contrast) in [([16, 4, 4], 1.0), ([16, 4, 4], 1000.0)] {
+            let (_, a) = beam_matrix_fixed_to(cells, contrast, 0.01, 1e-9, nu);
+            let h = box_hierarchy(cells);
+            let mut out = Vec::new();
+            for omega in [0.0, 1.0] {
+                let p = dense_prolongation(&a, &h, omega);
+                for sweeps in [1, 2, 4] {
+                    out.push(format!(
+                        "ω {omega}, {sweeps}+{sweeps} sweeps: {}",
+                        dense_two_grid_iterations(&a, &p, sweeps)
+                    ));
+                }
+            }
+            eprintln!("ν {nu} {cells:?} contrast {contrast}: {}", out.join("; "));
+        }
+    }
+}
