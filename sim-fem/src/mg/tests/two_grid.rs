@@ -4,14 +4,31 @@
 //! coarse level `PᵀAP` solved exactly) with the plain hierarchy's prolongation and with it
 //! smoothed by one damped block-Jacobi step of the operator (`P = (I − ω D⁻¹A) P₀`, the
 //! prolongation smoothing of smoothed aggregation), at ν = 0.3 and 0.45, with and without
-//! the 1000× rod. Results in docs/RESULTS.md ("What limits the two-grid").
+//! the 1000× rod; and with the point sweeps replaced by vertex-star Schwarz sweeps.
+//! Results in docs/RESULTS.md ("What limits the two-grid").
 
 use nalgebra::{DMatrix, DVector};
 
 use super::{Assembled, Hierarchy, beam_matrix_fixed_to, box_hierarchy, dense_matrix};
 
-/// Dense two-grid PCG: `sweeps` forward block GS, exact coarse `PᵀAP`, `sweeps` backward.
-fn dense_two_grid_iterations(a: &Assembled, p: &DMatrix<f64>, sweeps: usize) -> usize {
+/// How the two-grid cycle smooths.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Smoother {
+    /// Nodal 3×3-block Gauss–Seidel (what `Multigrid` does).
+    Point,
+    /// Multiplicative Schwarz over vertex stars: each free node with its free neighbours
+    /// solved together (exactly), in node order forward, reversed backward.
+    Star,
+}
+
+/// Dense two-grid PCG: `sweeps` forward smoothing sweeps, exact coarse `PᵀAP`, `sweeps`
+/// backward ones.
+fn dense_two_grid_iterations(
+    a: &Assembled,
+    p: &DMatrix<f64>,
+    sweeps: usize,
+    smoother: Smoother,
+) -> usize {
     let n = a.fixed.len();
     let free: Vec<usize> = (0..3 * n).filter(|k| !a.fixed[k / 3]).collect();
     let full = dense_matrix(a);
@@ -27,17 +44,73 @@ fn dense_two_grid_iterations(a: &Assembled, p: &DMatrix<f64>, sweeps: usize) -> 
     let nf = free.len();
     let lower = m.lower_triangle();
     let upper = m.upper_triangle();
+    // Vertex stars in free-DOF numbering, with their blocks' Cholesky factors.
+    let dof_of: Vec<Option<usize>> = {
+        let mut v = vec![None; 3 * n];
+        for (k, &d) in free.iter().enumerate() {
+            v[d] = Some(k);
+        }
+        v
+    };
+    let stars: Vec<(Vec<usize>, nalgebra::Cholesky<f64, nalgebra::Dyn>)> = (0..n)
+        .filter(|&i| smoother == Smoother::Star && !a.fixed[i])
+        .map(|i| {
+            let mut nodes: Vec<usize> = a
+                .pattern
+                .row(i)
+                .map(|(_, j)| j)
+                .filter(|&j| !a.fixed[j])
+                .collect();
+            nodes.push(i);
+            nodes.sort_unstable();
+            nodes.dedup();
+            let dofs: Vec<usize> = nodes
+                .iter()
+                .flat_map(|&j| (0..3).filter_map(|c| dof_of[3 * j + c]).collect::<Vec<_>>())
+                .collect();
+            let local = DMatrix::from_fn(dofs.len(), dofs.len(), |x, y| m[(dofs[x], dofs[y])]);
+            (dofs, local.cholesky().expect("star block SPD"))
+        })
+        .collect();
+    let star_sweep = |r: &DVector<f64>, z: &mut DVector<f64>, forward: bool| {
+        let mut res = r - &m * &*z;
+        let order: Box<dyn Iterator<Item = &(Vec<usize>, _)>> = if forward {
+            Box::new(stars.iter())
+        } else {
+            Box::new(stars.iter().rev())
+        };
+        for (dofs, chol) in order {
+            let local = DVector::from_iterator(dofs.len(), dofs.iter().map(|&d| res[d]));
+            let dz = chol.solve(&local);
+            for (x, &d) in dofs.iter().enumerate() {
+                z[d] += dz[x];
+            }
+            for (x, &d) in dofs.iter().enumerate() {
+                res.axpy(-dz[x], &m.column(d), 1.0);
+            }
+        }
+    };
     let prec = |r: &DVector<f64>| -> DVector<f64> {
         let mut z = DVector::zeros(nf);
         for _ in 0..sweeps {
-            let rhs = r - &m * &z + &lower * &z;
-            z = lower.solve_lower_triangular(&rhs).unwrap();
+            match smoother {
+                Smoother::Point => {
+                    let rhs = r - &m * &z + &lower * &z;
+                    z = lower.solve_lower_triangular(&rhs).unwrap();
+                }
+                Smoother::Star => star_sweep(r, &mut z, true),
+            }
         }
         let res = r - &m * &z;
         z += &pf * chol.solve(&(pf.transpose() * res));
         for _ in 0..sweeps {
-            let rhs = r - &m * &z + &upper * &z;
-            z = upper.solve_upper_triangular(&rhs).unwrap();
+            match smoother {
+                Smoother::Point => {
+                    let rhs = r - &m * &z + &upper * &z;
+                    z = upper.solve_upper_triangular(&rhs).unwrap();
+                }
+                Smoother::Star => star_sweep(r, &mut z, false),
+            }
         }
         z
     };
@@ -130,10 +203,15 @@ fn experiment_two_grid_smoother_against_coarse_space() {
                 for sweeps in [1, 2, 4] {
                     out.push(format!(
                         "ω {omega}, {sweeps}+{sweeps} sweeps: {}",
-                        dense_two_grid_iterations(&a, &p, sweeps)
+                        dense_two_grid_iterations(&a, &p, sweeps, Smoother::Point)
                     ));
                 }
             }
+            let p = dense_prolongation(&a, &h, 0.0);
+            out.push(format!(
+                "stars 1+1: {}",
+                dense_two_grid_iterations(&a, &p, 1, Smoother::Star)
+            ));
             eprintln!("ν {nu} {cells:?} contrast {contrast}: {}", out.join("; "));
         }
     }
