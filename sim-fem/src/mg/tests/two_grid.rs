@@ -4,12 +4,13 @@
 //! coarse level `PᵀAP` solved exactly) with the plain hierarchy's prolongation and with it
 //! smoothed by one damped block-Jacobi step of the operator (`P = (I − ω D⁻¹A) P₀`, the
 //! prolongation smoothing of smoothed aggregation), at ν = 0.3 and 0.45, with and without
-//! the 1000× rod; and with the point sweeps replaced by vertex-star Schwarz sweeps.
+//! the 1000× rod; and with the point sweeps replaced by vertex-star Schwarz sweeps or by
+//! block sweeps over disjoint clusters of grid nodes.
 //! Results in docs/RESULTS.md ("What limits the two-grid").
 
 use nalgebra::{DMatrix, DVector};
 
-use super::{Assembled, Hierarchy, beam_matrix_fixed_to, box_hierarchy, dense_matrix};
+use super::{Assembled, BoxMesh, Hierarchy, beam_matrix_fixed_to, box_hierarchy, dense_matrix};
 
 /// How the two-grid cycle smooths.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -19,11 +20,15 @@ enum Smoother {
     /// Multiplicative Schwarz over vertex stars: each free node with its free neighbours
     /// solved together (exactly), in node order forward, reversed backward.
     Star,
+    /// Block Gauss–Seidel over disjoint clusters of `c × c × c` grid nodes (each cluster
+    /// solved exactly), forward, then reversed.
+    Cluster(usize),
 }
 
 /// Dense two-grid PCG: `sweeps` forward smoothing sweeps, exact coarse `PᵀAP`, `sweeps`
 /// backward ones.
 fn dense_two_grid_iterations(
+    mesh: &BoxMesh,
     a: &Assembled,
     p: &DMatrix<f64>,
     sweeps: usize,
@@ -52,18 +57,35 @@ fn dense_two_grid_iterations(
         }
         v
     };
-    let stars: Vec<(Vec<usize>, nalgebra::Cholesky<f64, nalgebra::Dyn>)> = (0..n)
-        .filter(|&i| smoother == Smoother::Star && !a.fixed[i])
-        .map(|i| {
-            let mut nodes: Vec<usize> = a
-                .pattern
-                .row(i)
-                .map(|(_, j)| j)
-                .filter(|&j| !a.fixed[j])
-                .collect();
-            nodes.push(i);
-            nodes.sort_unstable();
-            nodes.dedup();
+    let node_sets: Vec<Vec<usize>> = match smoother {
+        Smoother::Point => Vec::new(),
+        Smoother::Star => (0..n)
+            .filter(|&i| !a.fixed[i])
+            .map(|i| {
+                let mut nodes: Vec<usize> = a
+                    .pattern
+                    .row(i)
+                    .map(|(_, j)| j)
+                    .filter(|&j| !a.fixed[j])
+                    .collect();
+                nodes.push(i);
+                nodes.sort_unstable();
+                nodes.dedup();
+                nodes
+            })
+            .collect(),
+        Smoother::Cluster(c) => {
+            let mut by_key: std::collections::BTreeMap<[i64; 3], Vec<usize>> = Default::default();
+            for i in (0..n).filter(|&i| !a.fixed[i]) {
+                let g = [0, 1, 2].map(|k| (mesh.rest[i][k] / mesh.spacing[k]).round() as i64);
+                by_key.entry(g.map(|x| x / c as i64)).or_default().push(i);
+            }
+            by_key.into_values().collect()
+        }
+    };
+    let stars: Vec<(Vec<usize>, nalgebra::Cholesky<f64, nalgebra::Dyn>)> = node_sets
+        .iter()
+        .map(|nodes| {
             let dofs: Vec<usize> = nodes
                 .iter()
                 .flat_map(|&j| (0..3).filter_map(|c| dof_of[3 * j + c]).collect::<Vec<_>>())
@@ -98,7 +120,7 @@ fn dense_two_grid_iterations(
                     let rhs = r - &m * &z + &lower * &z;
                     z = lower.solve_lower_triangular(&rhs).unwrap();
                 }
-                Smoother::Star => star_sweep(r, &mut z, true),
+                Smoother::Star | Smoother::Cluster(_) => star_sweep(r, &mut z, true),
             }
         }
         let res = r - &m * &z;
@@ -109,7 +131,7 @@ fn dense_two_grid_iterations(
                     let rhs = r - &m * &z + &upper * &z;
                     z = upper.solve_upper_triangular(&rhs).unwrap();
                 }
-                Smoother::Star => star_sweep(r, &mut z, false),
+                Smoother::Star | Smoother::Cluster(_) => star_sweep(r, &mut z, false),
             }
         }
         z
@@ -195,7 +217,7 @@ fn dense_prolongation(a: &Assembled, h: &Hierarchy, omega: f64) -> DMatrix<f64> 
 fn experiment_two_grid_smoother_against_coarse_space() {
     for nu in [0.3, 0.45] {
         for (cells, contrast) in [([16, 4, 4], 1.0), ([16, 4, 4], 1000.0)] {
-            let (_, a) = beam_matrix_fixed_to(cells, contrast, 0.01, 1e-9, nu);
+            let (mesh, a) = beam_matrix_fixed_to(cells, contrast, 0.01, 1e-9, nu);
             let h = box_hierarchy(cells);
             let mut out = Vec::new();
             for omega in [0.0, 1.0] {
@@ -203,15 +225,21 @@ fn experiment_two_grid_smoother_against_coarse_space() {
                 for sweeps in [1, 2, 4] {
                     out.push(format!(
                         "ω {omega}, {sweeps}+{sweeps} sweeps: {}",
-                        dense_two_grid_iterations(&a, &p, sweeps, Smoother::Point)
+                        dense_two_grid_iterations(&mesh, &a, &p, sweeps, Smoother::Point)
                     ));
                 }
             }
             let p = dense_prolongation(&a, &h, 0.0);
-            out.push(format!(
-                "stars 1+1: {}",
-                dense_two_grid_iterations(&a, &p, 1, Smoother::Star)
-            ));
+            for (name, smoother) in [
+                ("stars", Smoother::Star),
+                ("2×2×2 clusters", Smoother::Cluster(2)),
+                ("3×3×3 clusters", Smoother::Cluster(3)),
+            ] {
+                out.push(format!(
+                    "{name} 1+1: {}",
+                    dense_two_grid_iterations(&mesh, &a, &p, 1, smoother)
+                ));
+            }
             eprintln!("ν {nu} {cells:?} contrast {contrast}: {}", out.join("; "));
         }
     }
