@@ -411,12 +411,20 @@ impl SiteSession {
                 // Ops we hold for their time count: they are applied before a keyframe
                 // made after them is due.
                 // (Refinements are not counted in the topology epoch.)
-                let held = self
-                    .held_topology
-                    .iter()
-                    .filter(|h| !matches!(h.kind, proto::TopologyKind::Refine { .. }))
-                    .count();
-                let reachable = sim.topology().epoch() + held as u32;
+                let counted =
+                    |h: &&proto::TopologyOp| !matches!(h.kind, proto::TopologyKind::Refine { .. });
+                let reachable = if kf.epoch == self.epoch {
+                    let held = self.held_topology.iter().filter(counted).count();
+                    sim.topology().epoch() + held as u32
+                } else {
+                    // A keyframe of the coming epoch: the simulation our reset builds
+                    // starts with no op, and takes the ops of that epoch we hold.
+                    let next = self
+                        .next_epoch_topology
+                        .iter()
+                        .filter(|h| h.epoch == kf.epoch);
+                    next.filter(counted).count() as u32
+                };
                 if kf.topology > reachable {
                     debug!(
                         region = kf.region,
@@ -456,8 +464,28 @@ impl SiteSession {
                 }
                 self.got_snapshot = true;
                 if s.epoch != self.epoch {
-                    info!(epoch = s.epoch, "taking the session's scene epoch");
-                    self.epoch = s.epoch;
+                    if self.scheduled_reset.is_some_and(|(e, _)| e == s.epoch) {
+                        // The reset to it is on its way: its ops wait for it.
+                        for op in s.topology.iter().filter(|o| o.epoch == s.epoch) {
+                            let known = self
+                                .next_epoch_topology
+                                .iter()
+                                .any(|h| (h.site, h.seq) == (op.site, op.seq));
+                            if !known {
+                                self.next_epoch_topology.push(op.clone());
+                            }
+                        }
+                    } else if self.started {
+                        // Back after a reset we missed (a lost link): our simulation is
+                        // of an older epoch, so it is rebuilt like at a reset.
+                        info!(epoch = s.epoch, "the session was reset while we were away");
+                        self.scheduled_reset = None;
+                        self.reset(sim, s.epoch)?;
+                    } else {
+                        info!(epoch = s.epoch, "taking the session's scene epoch");
+                        self.scheduled_reset = None;
+                        self.epoch = s.epoch;
+                    }
                 }
                 for op in &s.topology {
                     if op.epoch == self.epoch {
@@ -910,10 +938,17 @@ impl SiteSession {
         self.clocks.owners.clear();
         self.stats.resets += 1;
         self.events.push_back(SessionEvent::SceneReset { epoch });
-        // Ops of this epoch made by sites that reset before us.
+        // Ops of this epoch made by sites that reset before us: held and applied by
+        // their time, after the frames of that time, like every op (those already due go
+        // at the end of this `apply_due`).
         for op in std::mem::take(&mut self.next_epoch_topology) {
-            if op.epoch == epoch {
-                self.take_topology(sim, op)?;
+            if op.epoch != epoch {
+                continue;
+            }
+            if self.times_topology() {
+                self.hold_topology(op);
+            } else {
+                self.apply_topology(sim, &op)?;
             }
         }
         Ok(())

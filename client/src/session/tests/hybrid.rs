@@ -238,3 +238,64 @@ fn an_op_of_the_coming_epoch_waits_for_the_reset() {
     );
     assert_eq!(p.b.stats().refinements_applied, 1);
 }
+
+/// A snapshot of a newer epoch (a site back after a lost link, the session reset
+/// meanwhile) rebuilds the simulation like a reset, then takes the snapshot's ops; with a
+/// reset to that epoch already scheduled, its ops wait for the reset instead.
+#[test]
+fn a_snapshot_of_a_newer_epoch_resets_or_waits_for_the_scheduled_reset() {
+    let snapshot_with = |t: f64, epoch: Epoch, op: proto::TopologyOp| {
+        Message::Snapshot(proto::Snapshot {
+            sim_time_s: t,
+            epoch,
+            owners: Vec::new(),
+            keyframes: Vec::new(),
+            topology: vec![op],
+        })
+    };
+    // No reset scheduled: rebuilt at once.
+    let mut p = pair_with(SyncStrategy::Hybrid);
+    for _ in 0..3 {
+        p.step(&[]);
+    }
+    let op = sim_core::cut::TopologyOp::Refine(refine_first_root(&p));
+    let t = p.sim_b.time();
+    let leaves = p.sim_b.lattice().leaf_count();
+    let wire = super::super::topology::topology_to_wire(&op, 1, t);
+    let now = p.clock.now();
+    p.b.handle_message(&mut p.sim_b, snapshot_with(t, 1, wire.clone()), now)
+        .unwrap();
+    assert_eq!(p.b.epoch(), 1);
+    assert_eq!(p.b.stats().resets, 1, "the simulation was not rebuilt");
+    let events: Vec<_> = std::iter::from_fn(|| p.b.poll_event()).collect();
+    assert!(events.contains(&SessionEvent::SceneReset { epoch: 1 }));
+    assert!(p.sim_b.lattice().leaf_count() > leaves, "the snapshot's op");
+    assert!((p.sim_b.time() - t).abs() < 1e-12, "the clock is kept");
+
+    // A reset to it scheduled: the snapshot's ops wait for it.
+    let mut p = pair_with(SyncStrategy::Hybrid);
+    for _ in 0..3 {
+        p.step(&[]);
+    }
+    let t = p.sim_b.time();
+    let at = t + 0.06;
+    let now = p.clock.now();
+    let reset = Message::Command(Command::ResetScene {
+        epoch: 1,
+        sim_time_s: at,
+    });
+    p.b.handle_message(&mut p.sim_b, reset, now).unwrap();
+    let mut wire = wire;
+    wire.sim_time = at;
+    p.b.handle_message(&mut p.sim_b, snapshot_with(t, 1, wire), now)
+        .unwrap();
+    assert_eq!(p.b.epoch(), 0, "the reset waits for its time");
+    assert_eq!(p.sim_b.lattice().leaf_count(), leaves);
+    p.sim_b.set_time(at);
+    p.b.apply_due(&mut p.sim_b).unwrap();
+    assert_eq!((p.b.epoch(), p.b.stats().resets), (1, 1));
+    assert!(
+        p.sim_b.lattice().leaf_count() > leaves,
+        "the op after the reset"
+    );
+}

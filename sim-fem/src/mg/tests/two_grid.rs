@@ -15,7 +15,7 @@ use super::{Assembled, BoxMesh, Hierarchy, beam_matrix_fixed_to, box_hierarchy, 
 /// How the two-grid cycle smooths.
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Smoother {
-    /// Nodal 3×3-block Gauss–Seidel (what `Multigrid` does).
+    /// Nodal 3×3-block Gauss–Seidel in node order (what `Multigrid` does).
     Point,
     /// Multiplicative Schwarz over vertex stars: each free node with its free neighbours
     /// solved together (exactly), in node order forward, reversed backward.
@@ -47,9 +47,9 @@ fn dense_two_grid_iterations(
     let ac = pf.transpose() * &m * &pf;
     let chol = ac.cholesky().expect("coarse SPD");
     let nf = free.len();
-    let lower = m.lower_triangle();
-    let upper = m.upper_triangle();
-    // Vertex stars in free-DOF numbering, with their blocks' Cholesky factors.
+    // The patches (single nodes, stars or clusters) in free-DOF numbering, with their
+    // blocks' Cholesky factors; a sweep solves each exactly in turn (multiplicative
+    // Schwarz; with single nodes, block Gauss–Seidel).
     let dof_of: Vec<Option<usize>> = {
         let mut v = vec![None; 3 * n];
         for (k, &d) in free.iter().enumerate() {
@@ -58,7 +58,7 @@ fn dense_two_grid_iterations(
         v
     };
     let node_sets: Vec<Vec<usize>> = match smoother {
-        Smoother::Point => Vec::new(),
+        Smoother::Point => (0..n).filter(|&i| !a.fixed[i]).map(|i| vec![i]).collect(),
         Smoother::Star => (0..n)
             .filter(|&i| !a.fixed[i])
             .map(|i| {
@@ -83,7 +83,7 @@ fn dense_two_grid_iterations(
             by_key.into_values().collect()
         }
     };
-    let stars: Vec<(Vec<usize>, nalgebra::Cholesky<f64, nalgebra::Dyn>)> = node_sets
+    let patches: Vec<(Vec<usize>, nalgebra::Cholesky<f64, nalgebra::Dyn>)> = node_sets
         .iter()
         .map(|nodes| {
             let dofs: Vec<usize> = nodes
@@ -94,12 +94,12 @@ fn dense_two_grid_iterations(
             (dofs, local.cholesky().expect("star block SPD"))
         })
         .collect();
-    let star_sweep = |r: &DVector<f64>, z: &mut DVector<f64>, forward: bool| {
+    let sweep = |r: &DVector<f64>, z: &mut DVector<f64>, forward: bool| {
         let mut res = r - &m * &*z;
         let order: Box<dyn Iterator<Item = &(Vec<usize>, _)>> = if forward {
-            Box::new(stars.iter())
+            Box::new(patches.iter())
         } else {
-            Box::new(stars.iter().rev())
+            Box::new(patches.iter().rev())
         };
         for (dofs, chol) in order {
             let local = DVector::from_iterator(dofs.len(), dofs.iter().map(|&d| res[d]));
@@ -115,24 +115,12 @@ fn dense_two_grid_iterations(
     let prec = |r: &DVector<f64>| -> DVector<f64> {
         let mut z = DVector::zeros(nf);
         for _ in 0..sweeps {
-            match smoother {
-                Smoother::Point => {
-                    let rhs = r - &m * &z + &lower * &z;
-                    z = lower.solve_lower_triangular(&rhs).unwrap();
-                }
-                Smoother::Star | Smoother::Cluster(_) => star_sweep(r, &mut z, true),
-            }
+            sweep(r, &mut z, true);
         }
         let res = r - &m * &z;
         z += &pf * chol.solve(&(pf.transpose() * res));
         for _ in 0..sweeps {
-            match smoother {
-                Smoother::Point => {
-                    let rhs = r - &m * &z + &upper * &z;
-                    z = upper.solve_upper_triangular(&rhs).unwrap();
-                }
-                Smoother::Star | Smoother::Cluster(_) => star_sweep(r, &mut z, false),
-            }
+            sweep(r, &mut z, false);
         }
         z
     };
