@@ -4,8 +4,8 @@
 //! coarse level `PᵀAP` solved exactly) with the plain hierarchy's prolongation and with it
 //! smoothed by one damped block-Jacobi step of the operator (`P = (I − ω D⁻¹A) P₀`, the
 //! prolongation smoothing of smoothed aggregation), at ν = 0.3 and 0.45, with and without
-//! the 1000× rod; and with the point sweeps replaced by vertex-star Schwarz sweeps or by
-//! block sweeps over disjoint clusters of grid nodes.
+//! the 1000× rod; and with the point sweeps replaced by vertex-star Schwarz sweeps, by
+//! block sweeps over disjoint clusters of grid nodes, or by Chebyshev smoothing.
 //! Results in docs/RESULTS.md ("What limits the two-grid").
 
 use nalgebra::{DMatrix, DVector};
@@ -23,6 +23,10 @@ enum Smoother {
     /// Block Gauss–Seidel over disjoint clusters of `c × c × c` grid nodes (each cluster
     /// solved exactly), forward, then reversed.
     Cluster(usize),
+    /// A Chebyshev polynomial of this degree in `D⁻¹A` (`D` the 3×3-block diagonal) on
+    /// `[λmax / 30, 1.1 λmax]`, the same before and after the coarse correction: each
+    /// degree costs one product, like one point sweep.
+    Chebyshev(usize),
 }
 
 /// Dense two-grid PCG: `sweeps` forward smoothing sweeps, exact coarse `PᵀAP`, `sweeps`
@@ -58,7 +62,9 @@ fn dense_two_grid_iterations(
         v
     };
     let node_sets: Vec<Vec<usize>> = match smoother {
-        Smoother::Point => (0..n).filter(|&i| !a.fixed[i]).map(|i| vec![i]).collect(),
+        Smoother::Point | Smoother::Chebyshev(_) => {
+            (0..n).filter(|&i| !a.fixed[i]).map(|i| vec![i]).collect()
+        }
         Smoother::Star => (0..n)
             .filter(|&i| !a.fixed[i])
             .map(|i| {
@@ -112,15 +118,58 @@ fn dense_two_grid_iterations(
             }
         }
     };
+    // `D⁻¹` from the single-node patches' factors, and λmax(D⁻¹A) by power iteration.
+    let dinv = |v: &DVector<f64>| -> DVector<f64> {
+        let mut out = DVector::zeros(nf);
+        for (dofs, c) in &patches {
+            let local = DVector::from_iterator(dofs.len(), dofs.iter().map(|&d| v[d]));
+            let sol = c.solve(&local);
+            for (k, &d) in dofs.iter().enumerate() {
+                out[d] = sol[k];
+            }
+        }
+        out
+    };
+    let lambda_max = if matches!(smoother, Smoother::Chebyshev(_)) {
+        let mut v = DVector::from_fn(nf, |i, _| 1.0 + (i as f64 * 0.37).sin());
+        let mut lam = 0.0;
+        for _ in 0..50 {
+            let w = dinv(&(&m * &v));
+            lam = w.norm() / v.norm();
+            v = w;
+        }
+        lam
+    } else {
+        0.0
+    };
+    // Chebyshev smoothing of `A x = f` from `x` (Adams, Brezina, Hu and Tuminaro 2003).
+    let chebyshev = |f: &DVector<f64>, x: &mut DVector<f64>, degree: usize| {
+        let (hi, lo) = (1.1 * lambda_max, 1.1 * lambda_max / 30.0);
+        let (theta, delta) = (0.5 * (hi + lo), 0.5 * (hi - lo));
+        let sigma = theta / delta;
+        let mut rho = 1.0 / sigma;
+        let mut res = f - &m * &*x;
+        let mut d = dinv(&res) / theta;
+        for _ in 1..degree {
+            *x += &d;
+            res -= &m * &d;
+            let rho_next = 1.0 / (2.0 * sigma - rho);
+            d = &d * (rho_next * rho) + dinv(&res) * (2.0 * rho_next / delta);
+            rho = rho_next;
+        }
+        *x += &d;
+    };
     let prec = |r: &DVector<f64>| -> DVector<f64> {
         let mut z = DVector::zeros(nf);
-        for _ in 0..sweeps {
-            sweep(r, &mut z, true);
+        match smoother {
+            Smoother::Chebyshev(k) => chebyshev(r, &mut z, k),
+            _ => (0..sweeps).for_each(|_| sweep(r, &mut z, true)),
         }
         let res = r - &m * &z;
         z += &pf * chol.solve(&(pf.transpose() * res));
-        for _ in 0..sweeps {
-            sweep(r, &mut z, false);
+        match smoother {
+            Smoother::Chebyshev(k) => chebyshev(r, &mut z, k),
+            _ => (0..sweeps).for_each(|_| sweep(r, &mut z, false)),
         }
         z
     };
@@ -219,12 +268,15 @@ fn experiment_two_grid_smoother_against_coarse_space() {
             }
             let p = dense_prolongation(&a, &h, 0.0);
             for (name, smoother) in [
-                ("stars", Smoother::Star),
-                ("2×2×2 clusters", Smoother::Cluster(2)),
-                ("3×3×3 clusters", Smoother::Cluster(3)),
+                ("stars 1+1", Smoother::Star),
+                ("2×2×2 clusters 1+1", Smoother::Cluster(2)),
+                ("3×3×3 clusters 1+1", Smoother::Cluster(3)),
+                ("Chebyshev 1+1", Smoother::Chebyshev(1)),
+                ("Chebyshev 2+2", Smoother::Chebyshev(2)),
+                ("Chebyshev 4+4", Smoother::Chebyshev(4)),
             ] {
                 out.push(format!(
-                    "{name} 1+1: {}",
+                    "{name}: {}",
                     dense_two_grid_iterations(&mesh, &a, &p, 1, smoother)
                 ));
             }
