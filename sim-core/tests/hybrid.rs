@@ -42,7 +42,9 @@ fn hybrid_correction_is_bounded_per_step_and_reaches_the_keyframe() {
         ..HybridConfig::default()
     };
     let mut region = CorrectedRegion::new(TIP, config);
-    let Correction::Started { steps, max_m } = region.apply_keyframe(&mut b, &map, &kf).unwrap()
+    let Correction::Started { steps, max_m } = region
+        .apply_keyframe(&mut b, &map, &kf, &StateHistory::default())
+        .unwrap()
     else {
         panic!("no correction started");
     };
@@ -75,7 +77,9 @@ fn hybrid_correction_is_bounded_per_step_and_reaches_the_keyframe() {
     // Nothing more is added once the correction has run out; stale keyframes are ignored.
     assert_eq!(region.drive(&mut b), 0.0);
     assert_eq!(
-        region.apply_keyframe(&mut b, &map, &kf).unwrap(),
+        region
+            .apply_keyframe(&mut b, &map, &kf, &StateHistory::default())
+            .unwrap(),
         Correction::Stale
     );
 }
@@ -96,13 +100,17 @@ fn hybrid_skips_stale_keyframes_and_advances_recent_ones() {
     let mut region = CorrectedRegion::new(TIP, config);
     b.set_time(kf.sim_time + config.max_age_s + 0.01);
     assert_eq!(
-        region.apply_keyframe(&mut b, &map, &kf).unwrap(),
+        region
+            .apply_keyframe(&mut b, &map, &kf, &StateHistory::default())
+            .unwrap(),
         Correction::TooOld
     );
     kf.keyframe_id = 2;
     b.set_time(kf.sim_time + 0.05);
     a.set_time(kf.sim_time);
-    let Correction::Started { max_m, .. } = region.apply_keyframe(&mut b, &map, &kf).unwrap()
+    let Correction::Started { max_m, .. } = region
+        .apply_keyframe(&mut b, &map, &kf, &StateHistory::default())
+        .unwrap()
     else {
         panic!("no correction started");
     };
@@ -135,7 +143,10 @@ fn a_keyframe_equal_but_for_rounding_starts_no_correction() {
     let mut region = CorrectedRegion::new(TIP, HybridConfig::default());
     let mut kf = rounded(&encode_keyframe(&same, &map, TIP, 1).unwrap());
     let before: Vec<V3> = b.positions().to_vec();
-    match region.apply_keyframe(&mut b, &map, &kf).unwrap() {
+    match region
+        .apply_keyframe(&mut b, &map, &kf, &StateHistory::default())
+        .unwrap()
+    {
         Correction::Agrees { max_m } => assert!(max_m <= 1e-5, "{max_m} m"),
         other => panic!("rounding alone started {other:?}"),
     }
@@ -144,7 +155,9 @@ fn a_keyframe_equal_but_for_rounding_starts_no_correction() {
     assert_eq!(region.corrections(), 0);
 
     let moved = rounded(&encode_keyframe(&a, &map, TIP, 2).unwrap());
-    let Correction::Started { max_m, .. } = region.apply_keyframe(&mut b, &map, &moved).unwrap()
+    let Correction::Started { max_m, .. } = region
+        .apply_keyframe(&mut b, &map, &moved, &StateHistory::default())
+        .unwrap()
     else {
         panic!("a pushed tip started no correction");
     };
@@ -167,7 +180,9 @@ fn a_keyframe_equal_but_for_rounding_starts_no_correction() {
     kf.sim_time = b.time();
     let kf = rounded(&kf);
     assert!(matches!(
-        region.apply_keyframe(&mut b, &map, &kf).unwrap(),
+        region
+            .apply_keyframe(&mut b, &map, &kf, &StateHistory::default())
+            .unwrap(),
         Correction::Agrees { .. }
     ));
     assert_eq!(region.steps_left(), 0);
@@ -262,5 +277,47 @@ fn a_hybrid_owner_sends_on_drift_once_a_follower_shows_keyframes() {
     assert!(
         told.keyframes > heartbeat_only.keyframes,
         "{told:?} {heartbeat_only:?}"
+    );
+}
+
+/// Equal simulations in accelerating motion: a keyframe that arrives three steps late is
+/// compared with the local state at its time (the history) and agrees. Advanced by its
+/// velocity instead (no history), it is off by about ½ a Δt² in position and a Δt in
+/// velocity, and starts a correction that would nudge the equal simulations apart.
+#[test]
+fn a_late_keyframe_is_compared_with_the_local_state_at_its_time() {
+    let mut a = beam();
+    let mut b = beam();
+    let map = beam_map(&a);
+    let loaded = tip_nodes(&a, &map, 0.37);
+    let mut history = StateHistory::default();
+    for _ in 0..10 {
+        push_tip(&mut a, &loaded, 20.0);
+        a.step().unwrap();
+        push_tip(&mut b, &loaded, 20.0);
+        history.record(&b, 0.2);
+        b.step().unwrap();
+    }
+    let kf = rounded(&encode_keyframe(&a, &map, TIP, 1).unwrap());
+    for _ in 0..3 {
+        push_tip(&mut b, &loaded, 20.0);
+        history.record(&b, 0.2);
+        b.step().unwrap();
+    }
+    assert!(b.time() > kf.sim_time + 2.5 * b.options().dt);
+    let mut region = CorrectedRegion::new(TIP, HybridConfig::default());
+    match region.apply_keyframe(&mut b, &map, &kf, &history).unwrap() {
+        Correction::Agrees { max_m } => assert!(max_m <= 1e-5, "{max_m} m"),
+        other => panic!("a late keyframe of an equal simulation started {other:?}"),
+    }
+    let mut without = CorrectedRegion::new(TIP, HybridConfig::default());
+    assert!(
+        matches!(
+            without
+                .apply_keyframe(&mut b, &map, &kf, &StateHistory::default())
+                .unwrap(),
+            Correction::Started { .. }
+        ),
+        "the tip does not accelerate enough for the test to tell"
     );
 }

@@ -19,6 +19,15 @@
 //! difference is rounding, and correcting it would nudge equal simulations apart (contact
 //! and grasping amplify a few micrometres into tenths of a millimetre within a second).
 //!
+//! A keyframe that arrives after the local clock passed its time (`t_f > t_k`) is compared
+//! with the local state *at `t_k`*, from a short history of local states
+//! ([`StateHistory`]), and the difference found there is carried to `t_f` (a position
+//! offset plus the velocity offset times `t_f − t_k`). Advancing the keyframe's state by
+//! its velocity instead is wrong by `½ a (t_f − t_k)²` in position and `a (t_f − t_k)` in
+//! velocity where the tissue accelerates (a release's spring-back), and that error started
+//! corrections between equal simulations. Without a history entry (the tree changed since,
+//! or no step was recorded at `t_k`) the keyframe's state is advanced as before.
+//!
 //! Keyframes older than [`HybridConfig::max_age_s`] at the time the local clock reaches
 //! them are not used: advancing a stale state by its velocity is worse than the local
 //! simulation (a newer keyframe follows within a heartbeat).
@@ -71,6 +80,47 @@ impl Default for HybridConfig {
             // (`cosurg bench sync`, lan, trainee B on 5 CG iterations, 2026-11-25).
             shown_min_interval_s: 0.01,
         }
+    }
+}
+
+/// The local node states of the last steps (every node, as they were when each step began):
+/// what a late keyframe is compared with.
+#[derive(Clone, Debug, Default)]
+pub struct StateHistory {
+    /// (simulated time s, lattice topology generation, positions, velocities), oldest
+    /// first.
+    states: std::collections::VecDeque<(f64, u64, Vec<V3>, Vec<V3>)>,
+}
+
+impl StateHistory {
+    /// Records the state at the simulation's current time, keeping `keep_s` (s) of them.
+    pub fn record(&mut self, sim: &Simulation, keep_s: f64) {
+        let t = sim.time();
+        // A clock set back (a reset), or a time recorded twice, drops what is not older.
+        self.states.retain(|(s, ..)| *s < t && *s >= t - keep_s);
+        let generation = sim.lattice().topology_generation();
+        self.states.push_back((
+            t,
+            generation,
+            sim.positions().to_vec(),
+            sim.velocities().to_vec(),
+        ));
+    }
+
+    /// The recorded state at simulated time `t` (within a thousandth of `dt`), if the
+    /// lattice is still the one it was recorded on.
+    fn at(&self, sim: &Simulation, t: f64) -> Option<(&[V3], &[V3])> {
+        let tol = 1e-3 * sim.options().dt;
+        let generation = sim.lattice().topology_generation();
+        self.states
+            .iter()
+            .find(|(s, g, ..)| (s - t).abs() <= tol && *g == generation)
+            .map(|(_, _, x, v)| (x.as_slice(), v.as_slice()))
+    }
+
+    /// Forgets every state (a reset, a change of strategy).
+    pub fn clear(&mut self) {
+        self.states.clear();
     }
 }
 
@@ -137,12 +187,15 @@ impl CorrectedRegion {
 
     /// Matches the region's tree state to the keyframe's and starts a correction towards
     /// its node states advanced to the local time (replacing any correction under way:
-    /// the new one is measured from the current, partly corrected, state).
+    /// the new one is measured from the current, partly corrected, state). A keyframe
+    /// that is late is compared with `history`'s state at its time when there is one (see
+    /// the module documentation).
     pub fn apply_keyframe(
         &mut self,
         sim: &mut Simulation,
         map: &RegionMap,
         kf: &RegionKeyframe,
+        history: &StateHistory,
     ) -> Result<Correction, SyncError> {
         if kf.region != self.region {
             return Err(SyncError::WrongRegion {
@@ -160,30 +213,50 @@ impl CorrectedRegion {
         }
         let nodes = match_tree_and_nodes(sim, map, kf)?;
         let ahead = age.max(0.0);
+        // The local state at the keyframe's time, when the keyframe is late and it was
+        // recorded on this lattice (matching the tree above may have changed it).
+        let then = if ahead > 0.5 * sim.options().dt {
+            history.at(sim, kf.sim_time)
+        } else {
+            None
+        };
         let mut diffs = Vec::with_capacity(nodes.len());
-        let (mut max_m, mut max_m_s): (f64, f64) = (0.0, 0.0);
+        // Largest difference measured (m, m/s), and largest displacement to add (m).
+        let (mut max_m, mut max_m_s, mut max_dx): (f64, f64, f64) = (0.0, 0.0, 0.0);
+        // Differences measured at the keyframe's time need no rounding carried over.
+        let mut measured_ahead = ahead;
         for (i, &n) in nodes.iter().enumerate() {
             if sim.is_fixed(n) {
                 continue;
             }
-            let v_k = V3::from(kf.velocities[i]);
-            let target = V3::from(kf.positions[i]) + v_k * ahead;
-            let dx = target - sim.positions()[n.0 as usize];
-            let dv = v_k - sim.velocities()[n.0 as usize];
-            max_m = max_m.max(dx.norm());
+            let j = n.0 as usize;
+            let (x_k, v_k) = (V3::from(kf.positions[i]), V3::from(kf.velocities[i]));
+            let (dx, dv, gap) = match then {
+                Some((x, v)) if j < x.len() => {
+                    measured_ahead = 0.0;
+                    let (dx_k, dv_k) = (x_k - x[j], v_k - v[j]);
+                    (dx_k + dv_k * ahead, dv_k, dx_k.norm())
+                }
+                _ => {
+                    let dx = x_k + v_k * ahead - sim.positions()[j];
+                    (dx, v_k - sim.velocities()[j], dx.norm())
+                }
+            };
+            max_m = max_m.max(gap);
             max_m_s = max_m_s.max(dv.norm());
+            max_dx = max_dx.max(dx.norm());
             diffs.push((n, sim.lattice().node_grid(n), dx, dv));
         }
         self.last_keyframe = Some(kf.keyframe_id);
         // The velocity's rounding is carried into the target over `ahead`.
-        if max_m <= self.config.agree_m + self.config.agree_m_s * ahead
+        if max_m <= self.config.agree_m + self.config.agree_m_s * measured_ahead
             && max_m_s <= self.config.agree_m_s
         {
             self.pending.clear();
             self.steps_left = 0;
             return Ok(Correction::Agrees { max_m });
         }
-        let steps = ((max_m / self.config.max_step_m).ceil() as u32).max(self.config.min_steps);
+        let steps = ((max_dx / self.config.max_step_m).ceil() as u32).max(self.config.min_steps);
         let share = 1.0 / f64::from(steps);
         self.pending = diffs
             .into_iter()

@@ -103,7 +103,7 @@ use crate::engine::Simulation;
 use crate::error::SimError;
 
 pub use config::{SyncConfig, SyncStrategy};
-pub use correction::{CorrectedRegion, Correction, HybridConfig};
+pub use correction::{CorrectedRegion, Correction, HybridConfig, StateHistory};
 pub use frame::{
     RegionKeyframe, RegionTreeDelta, SyncFrame, apply_full_state, encode_full_state,
     encode_keyframe, encode_split_set, encode_tree_xor,
@@ -187,6 +187,8 @@ pub struct SiteSync {
     remote: BTreeMap<RegionId, RemoteRegion>,
     /// Under [`SyncStrategy::Hybrid`]: regions other sites own, simulated here and corrected.
     corrected: BTreeMap<RegionId, CorrectedRegion>,
+    /// Under hybrid, as a follower: the local states of the last steps, for late keyframes.
+    history: StateHistory,
     hybrid: HybridConfig,
     config: SyncConfig,
     full_state_next_id: KeyframeId,
@@ -237,6 +239,7 @@ impl SiteSync {
             policy: SendPolicy::new(policy_config),
             remote: BTreeMap::new(),
             corrected: BTreeMap::new(),
+            history: StateHistory::default(),
             hybrid,
             config,
             full_state_next_id: 1,
@@ -260,6 +263,7 @@ impl SiteSync {
         self.shows_keyframes = on && self.strategy == SyncStrategy::Hybrid;
         if self.shows_keyframes {
             self.corrected.clear();
+            self.history.clear();
         }
     }
 
@@ -318,6 +322,12 @@ impl SiteSync {
     /// Before every step: drives remote regions (drops those back to local simulation);
     /// under hybrid adds each correction's share for this step.
     pub fn before_step(&mut self, sim: &mut Simulation) {
+        if self.simulates_remote_regions() {
+            // As the step begins, before this step's share of a correction: the state
+            // a keyframe of this time is compared with.
+            self.history
+                .record(sim, self.hybrid.max_age_s + sim.options().dt);
+        }
         for c in self.corrected.values_mut() {
             c.drive(sim);
         }
@@ -442,7 +452,7 @@ impl SiteSync {
                     .corrected
                     .entry(kf.region)
                     .or_insert_with(|| CorrectedRegion::new(kf.region, hybrid));
-                let used = match c.apply_keyframe(sim, &self.map, kf)? {
+                let used = match c.apply_keyframe(sim, &self.map, kf, &self.history)? {
                     Correction::Started { max_m, .. } | Correction::Agrees { max_m } => {
                         self.divergence_m = Some(max_m);
                         true
