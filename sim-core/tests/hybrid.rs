@@ -295,13 +295,13 @@ fn a_late_keyframe_is_compared_with_the_local_state_at_its_time() {
         push_tip(&mut a, &loaded, 20.0);
         a.step().unwrap();
         push_tip(&mut b, &loaded, 20.0);
-        history.record(&b, 0.2);
+        history.record(&b, 0.2, false);
         b.step().unwrap();
     }
     let kf = rounded(&encode_keyframe(&a, &map, TIP, 1).unwrap());
     for _ in 0..3 {
         push_tip(&mut b, &loaded, 20.0);
-        history.record(&b, 0.2);
+        history.record(&b, 0.2, false);
         b.step().unwrap();
     }
     assert!(b.time() > kf.sim_time + 2.5 * b.options().dt);
@@ -320,4 +320,14 @@ fn a_late_keyframe_is_compared_with_the_local_state_at_its_time() {
         ),
         "the tip does not accelerate enough for the test to tell"
     );
+    // A correction under way since the keyframe's time moved nodes after the recorded
+    // states (its shares are not in them): the history is not used, and the keyframe is
+    // advanced by its velocity as without one.
+    let mut marked = history.clone();
+    marked.record(&b, 0.2, true);
+    let mut after = CorrectedRegion::new(TIP, HybridConfig::default());
+    assert!(matches!(
+        after.apply_keyframe(&mut b, &map, &kf, &marked).unwrap(),
+        Correction::Started { .. }
+    ));
 }

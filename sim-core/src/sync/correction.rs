@@ -83,39 +83,70 @@ impl Default for HybridConfig {
     }
 }
 
-/// The local node states of the last steps (every node, as they were when each step began):
-/// what a late keyframe is compared with.
+/// The local node states of the last steps (every node, as they were when each step began,
+/// before that step's share of a correction): what a late keyframe is compared with.
 #[derive(Clone, Debug, Default)]
 pub struct StateHistory {
-    /// (simulated time s, lattice topology generation, positions, velocities), oldest
-    /// first.
-    states: std::collections::VecDeque<(f64, u64, Vec<V3>, Vec<V3>)>,
+    /// Oldest first.
+    states: std::collections::VecDeque<Recorded>,
+}
+
+#[derive(Clone, Debug)]
+struct Recorded {
+    /// Simulated time (s).
+    time: f64,
+    /// Lattice topology generation (node slots are the same while it is).
+    generation: u64,
+    /// A correction was under way: shares added after this state are not in it.
+    correcting: bool,
+    positions: Vec<V3>,
+    velocities: Vec<V3>,
 }
 
 impl StateHistory {
     /// Records the state at the simulation's current time, keeping `keep_s` (s) of them.
-    pub fn record(&mut self, sim: &Simulation, keep_s: f64) {
+    /// `correcting`: a correction adds its share to some node after this state.
+    pub fn record(&mut self, sim: &Simulation, keep_s: f64, correcting: bool) {
         let t = sim.time();
-        // A clock set back (a reset), or a time recorded twice, drops what is not older.
-        self.states.retain(|(s, ..)| *s < t && *s >= t - keep_s);
-        let generation = sim.lattice().topology_generation();
-        self.states.push_back((
-            t,
-            generation,
-            sim.positions().to_vec(),
-            sim.velocities().to_vec(),
-        ));
+        // A clock set back (a reset), or a time recorded twice, drops what is not older;
+        // the oldest entry dropped lends its buffers to the new one.
+        let mut spare = None;
+        while let Some(front) = self.states.front()
+            && front.time < t - keep_s
+        {
+            spare = self.states.pop_front();
+        }
+        self.states.retain(|r| r.time < t);
+        let mut entry = spare.unwrap_or(Recorded {
+            time: t,
+            generation: 0,
+            correcting,
+            positions: Vec::new(),
+            velocities: Vec::new(),
+        });
+        entry.time = t;
+        entry.generation = sim.lattice().topology_generation();
+        entry.correcting = correcting;
+        entry.positions.clear();
+        entry.positions.extend_from_slice(sim.positions());
+        entry.velocities.clear();
+        entry.velocities.extend_from_slice(sim.velocities());
+        self.states.push_back(entry);
     }
 
     /// The recorded state at simulated time `t` (within a thousandth of `dt`), if the
-    /// lattice is still the one it was recorded on.
+    /// lattice is still the one it was recorded on and no correction has moved nodes
+    /// since (its shares would not be in the difference measured there).
     fn at(&self, sim: &Simulation, t: f64) -> Option<(&[V3], &[V3])> {
         let tol = 1e-3 * sim.options().dt;
         let generation = sim.lattice().topology_generation();
-        self.states
-            .iter()
-            .find(|(s, g, ..)| (s - t).abs() <= tol && *g == generation)
-            .map(|(_, _, x, v)| (x.as_slice(), v.as_slice()))
+        let k = self.states.iter().position(|r| (r.time - t).abs() <= tol)?;
+        let since = self.states.iter().skip(k);
+        if since.clone().any(|r| r.correcting) {
+            return None;
+        }
+        let r = &self.states[k];
+        (r.generation == generation).then_some((r.positions.as_slice(), r.velocities.as_slice()))
     }
 
     /// Forgets every state (a reset, a change of strategy).
@@ -127,8 +158,9 @@ impl StateHistory {
 /// What [`CorrectedRegion::apply_keyframe`] did with a keyframe.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Correction {
-    /// A correction was started, spread over `steps` steps; `max_m`: its largest node
-    /// displacement (m).
+    /// A correction was started, spread over `steps` steps; `max_m`: the largest node
+    /// distance from the keyframe (m), at the local time, or at the keyframe's time for a
+    /// late keyframe compared with the history.
     Started { steps: u32, max_m: f64 },
     /// Not newer than the last keyframe used; ignored.
     Stale,
@@ -187,7 +219,8 @@ impl CorrectedRegion {
 
     /// Matches the region's tree state to the keyframe's and starts a correction towards
     /// its node states advanced to the local time (replacing any correction under way:
-    /// the new one is measured from the current, partly corrected, state). A keyframe
+    /// the new one is measured from the current, partly corrected, state, or, for a late
+    /// keyframe, from `history`'s state at its time when no correction ran since). A keyframe
     /// that is late is compared with `history`'s state at its time when there is one (see
     /// the module documentation).
     pub fn apply_keyframe(
@@ -224,7 +257,7 @@ impl CorrectedRegion {
         // Largest difference measured (m, m/s), and largest displacement to add (m).
         let (mut max_m, mut max_m_s, mut max_dx): (f64, f64, f64) = (0.0, 0.0, 0.0);
         // Differences measured at the keyframe's time need no rounding carried over.
-        let mut measured_ahead = ahead;
+        let measured_ahead = if then.is_some() { 0.0 } else { ahead };
         for (i, &n) in nodes.iter().enumerate() {
             if sim.is_fixed(n) {
                 continue;
@@ -233,7 +266,6 @@ impl CorrectedRegion {
             let (x_k, v_k) = (V3::from(kf.positions[i]), V3::from(kf.velocities[i]));
             let (dx, dv, gap) = match then {
                 Some((x, v)) if j < x.len() => {
-                    measured_ahead = 0.0;
                     let (dx_k, dv_k) = (x_k - x[j], v_k - v[j]);
                     (dx_k + dv_k * ahead, dv_k, dx_k.norm())
                 }

@@ -299,8 +299,9 @@ impl SiteSync {
 
     /// Remote region state (created on its first keyframe).
     /// The site's divergence from the owners (m): the largest node distance from the
-    /// owner's keyframe, moved on to this site's time, when the newest keyframe arrived;
-    /// `None` before any.
+    /// owner's keyframe, moved on to this site's time (or, under hybrid, measured at the
+    /// keyframe's time for a late one), when the newest keyframe arrived; `None` before
+    /// any.
     pub fn divergence_m(&self) -> Option<f64> {
         self.divergence_m
     }
@@ -322,11 +323,13 @@ impl SiteSync {
     /// Before every step: drives remote regions (drops those back to local simulation);
     /// under hybrid adds each correction's share for this step.
     pub fn before_step(&mut self, sim: &mut Simulation) {
-        if self.simulates_remote_regions() {
+        if self.simulates_remote_regions() && !self.corrected.is_empty() {
             // As the step begins, before this step's share of a correction: the state
-            // a keyframe of this time is compared with.
-            self.history
-                .record(sim, self.hybrid.max_age_s + sim.options().dt);
+            // a keyframe of this time is compared with (only on a site that has had
+            // keyframes to correct towards).
+            let correcting = self.corrected.values().any(|c| c.steps_left() > 0);
+            let keep = self.hybrid.max_age_s + sim.options().dt;
+            self.history.record(sim, keep, correcting);
         }
         for c in self.corrected.values_mut() {
             c.drive(sim);
