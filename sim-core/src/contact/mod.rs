@@ -390,44 +390,23 @@ impl ContactPipeline {
         }
     }
 
-    /// Contact points and grasped points of the last pass (m, deformed).
-    pub fn focus_points(&self) -> Vec<V3> {
-        let mut out = Vec::new();
-        for t in &self.state.tools {
-            out.extend(t.contacts.iter().map(|c| c.point));
-            out.extend(t.grasped_points.iter().copied());
-        }
-        out
-    }
-
-    /// The same points one list per tool in scene order, where they are now and in rest
-    /// coordinates (m): a contact's closest point on its triangle's rest pose (taken when
+    /// Contact points and grasped points of the last pass, one list per tool in scene
+    /// order, where they are now and in rest coordinates (m): a contact's closest point on its triangle's rest pose (taken when
     /// the contact was found, so a cut since does not move it), a grasped point's rest
     /// position. What tool-following adaptivity decides on ([`crate::adapt`]).
     pub fn focus_points_by_tool(&self) -> FocusPoints {
-        let tools = &self.state.tools;
-        FocusPoints {
-            rest: tools
-                .iter()
-                .map(|t| {
-                    t.contacts
-                        .iter()
-                        .map(|c| c.rest)
-                        .chain(t.grasped_rest.iter().copied())
-                        .collect()
-                })
-                .collect(),
-            deformed: tools
-                .iter()
-                .map(|t| {
-                    t.contacts
-                        .iter()
-                        .map(|c| c.point)
-                        .chain(t.grasped_points.iter().copied())
-                        .collect()
-                })
-                .collect(),
+        let mut focus = FocusPoints::default();
+        for t in &self.state.tools {
+            let rest = t.contacts.iter().map(|c| c.rest);
+            focus
+                .rest
+                .push(rest.chain(t.grasped_rest.iter().copied()).collect());
+            let now = t.contacts.iter().map(|c| c.point);
+            focus
+                .deformed
+                .push(now.chain(t.grasped_points.iter().copied()).collect());
         }
+        focus
     }
 
     /// Keeps the per-tool memory in step with the tool set (tools added or replaced).

@@ -25,8 +25,9 @@
 //! offset plus the velocity offset times `t_f − t_k`). Advancing the keyframe's state by
 //! its velocity instead is wrong by `½ a (t_f − t_k)²` in position and `a (t_f − t_k)` in
 //! velocity where the tissue accelerates (a release's spring-back), and that error started
-//! corrections between equal simulations. Without a history entry (the tree changed since,
-//! or no step was recorded at `t_k`) the keyframe's state is advanced as before.
+//! corrections between equal simulations. Without a usable entry (the tree changed since,
+//! no step was recorded at `t_k`, or a correction ran since: its shares are not in the
+//! recorded states) the keyframe's state is advanced as before.
 //!
 //! Keyframes older than [`HybridConfig::max_age_s`] at the time the local clock reaches
 //! them are not used: advancing a stale state by its velocity is worse than the local
@@ -91,7 +92,7 @@ pub struct StateHistory {
     states: std::collections::VecDeque<Recorded>,
 }
 
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 struct Recorded {
     /// Simulated time (s).
     time: f64,
@@ -117,13 +118,7 @@ impl StateHistory {
             spare = self.states.pop_front();
         }
         self.states.retain(|r| r.time < t);
-        let mut entry = spare.unwrap_or(Recorded {
-            time: t,
-            generation: 0,
-            correcting,
-            positions: Vec::new(),
-            velocities: Vec::new(),
-        });
+        let mut entry = spare.unwrap_or_default();
         entry.time = t;
         entry.generation = sim.lattice().topology_generation();
         entry.correcting = correcting;
@@ -141,8 +136,7 @@ impl StateHistory {
         let tol = 1e-3 * sim.options().dt;
         let generation = sim.lattice().topology_generation();
         let k = self.states.iter().position(|r| (r.time - t).abs() <= tol)?;
-        let since = self.states.iter().skip(k);
-        if since.clone().any(|r| r.correcting) {
+        if self.states.iter().skip(k).any(|r| r.correcting) {
             return None;
         }
         let r = &self.states[k];
@@ -220,9 +214,8 @@ impl CorrectedRegion {
     /// Matches the region's tree state to the keyframe's and starts a correction towards
     /// its node states advanced to the local time (replacing any correction under way:
     /// the new one is measured from the current, partly corrected, state, or, for a late
-    /// keyframe, from `history`'s state at its time when no correction ran since). A keyframe
-    /// that is late is compared with `history`'s state at its time when there is one (see
-    /// the module documentation).
+    /// keyframe, from `history`'s state at its time when it has a usable one: see the
+    /// module documentation).
     pub fn apply_keyframe(
         &mut self,
         sim: &mut Simulation,
