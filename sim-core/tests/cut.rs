@@ -276,6 +276,100 @@ fn keyframes_carry_the_virtual_nodes_of_a_cut() {
     assert!(worst < 1e-9, "surfaces differ by {worst} m after the frame");
 }
 
+/// Two equal simulations of the cut block, cut alike, the parts swinging apart under
+/// gravity (accelerating): a hybrid follower that gets the other's keyframe three steps
+/// late compares it with its own state at the keyframe's time, the cut's virtual nodes
+/// included, agrees, and moves nothing. Setting the virtual nodes to the keyframe's state
+/// advanced by its velocity (as before) moved them by about ½ g (3 Δt)² towards a wrong
+/// target. A follower that does disagree at a virtual node is corrected there, blended.
+#[test]
+fn a_hybrid_follower_corrects_the_virtual_nodes_of_a_cut_like_the_lattice_nodes() {
+    use cosurg_sim_core::sync::{
+        CorrectedRegion, Correction, HybridConfig, RegionMap, StateHistory, encode_keyframe,
+    };
+    // Both run the same script, step for step: equal (deterministic) simulations.
+    let (mut a, mut b) = (cut_block(), cut_block());
+    let (mut ia, mut ib) = (Interaction::new(&a), Interaction::new(&b));
+    let dt = a.options().dt;
+    let mut history = StateHistory::default();
+    let mut since_cut = None;
+    while since_cut.is_none_or(|n| n < 20) {
+        assert!(a.time() < 2.0, "the blade never cut");
+        let inputs = ia.scripted_inputs(&a, a.time());
+        let cuts = ia.before_step(&mut a, &inputs).expect("blade").cuts;
+        let inputs = ib.scripted_inputs(&b, b.time());
+        ib.before_step(&mut b, &inputs).expect("blade");
+        if cuts > 0 {
+            since_cut = Some(0);
+        }
+        history.record(&b, 0.2, false);
+        a.step().expect("step");
+        b.step().expect("step");
+        since_cut = since_cut.map(|n| n + 1);
+    }
+    let map = RegionMap::for_simulation(&a);
+    // A region whose keyframe carries virtual nodes.
+    let (region, kf) = map
+        .regions()
+        .map(|r| (r, encode_keyframe(&a, &map, r, 1).expect("encodes")))
+        .find(|(r, kf)| kf.positions.len() > map.canonical_nodes(a.lattice(), *r).len())
+        .expect("a region with virtual nodes");
+    let lattice_nodes = map.canonical_nodes(b.lattice(), region).len();
+    for _ in 0..3 {
+        history.record(&b, 0.2, false);
+        b.step().expect("step");
+    }
+    assert!(b.time() > kf.sim_time + 2.5 * dt);
+    let sep = b.separation().expect("cut").clone();
+    let virtual_dofs = sep.capacity..sep.dof_count();
+    let before: Vec<V3> = b.positions()[virtual_dofs.clone()].to_vec();
+    let mut follower = CorrectedRegion::new(region, HybridConfig::default());
+    match follower
+        .apply_keyframe(&mut b, &map, &kf, &history)
+        .expect("applies")
+    {
+        Correction::Agrees { max_m } => assert!(max_m <= 1e-9, "{max_m} m"),
+        other => panic!("a late keyframe of an equal simulation started {other:?}"),
+    }
+    let moved = b.positions()[virtual_dofs.clone()]
+        .iter()
+        .zip(&before)
+        .map(|(p, q)| (p - q).norm())
+        .fold(0.0f64, f64::max);
+    assert_eq!(moved, 0.0, "a virtual node moved by {moved} m");
+
+    // One virtual node of the keyframe 2 mm off (a follower that disagrees there): the
+    // correction brings it there over its steps (no physics in between here).
+    let mut off = encode_keyframe(&b, &map, region, 2).expect("encodes");
+    let entry = lattice_nodes;
+    off.positions[entry][1] += 2e-3;
+    let target = V3::from(off.positions[entry]);
+    let mut follower = CorrectedRegion::new(region, HybridConfig::default());
+    let steps = match follower
+        .apply_keyframe(&mut b, &map, &off, &StateHistory::default())
+        .expect("applies")
+    {
+        Correction::Started { steps, max_m } => {
+            assert!((max_m - 2e-3).abs() < 1e-9, "{max_m} m");
+            steps
+        }
+        other => panic!("a 2 mm difference started {other:?}"),
+    };
+    assert!(steps >= 8, "2 mm at 0.25 mm per step: {steps} steps");
+    let dof = (0..sep.dof_count())
+        .filter(|&d| d >= sep.capacity)
+        .find(|&d| (b.positions()[d] - (target - V3::new(0.0, 2e-3, 0.0))).norm() < 1e-12)
+        .expect("the entry's virtual node");
+    for _ in 0..steps {
+        let moved = follower.drive(&mut b);
+        assert!(moved <= 2.5e-4 + 1e-12, "{moved} m in one step");
+    }
+    assert!(
+        (b.positions()[dof] - target).norm() < 1e-9,
+        "not at the keyframe"
+    );
+}
+
 /// A cut of the bodies scene's cystic duct (a sheet across it, at rest) leaves every
 /// surface it does not cross exactly where it was, and the duct's vertices away from the
 /// sheet too: re-hosting the vertices on the element copies must not move them.

@@ -278,11 +278,11 @@ impl SiteSession {
         self.clocks.target_lag()
     }
 
-    /// Under hybrid: a new input sample of a remote tool this site simulates arrived
+    /// Under hybrid: a new input sample of `site`'s remote tool this site simulates arrived
     /// `late` seconds after the simulation needed it (negative: that much early) while
     /// the simulation was about to step to `at` (s). A late input raises the playout lag
     /// (see `PeerClocks::input_shortfall`).
-    pub fn input_lateness(&mut self, late: f64, at: f64, now: Now) {
+    pub fn input_lateness(&mut self, site: SiteId, late: f64, at: f64, now: Now) {
         if late > 0.0 {
             self.stats.late_inputs += 1;
             tracing::trace!(
@@ -293,7 +293,7 @@ impl SiteSession {
             );
         }
         let wall = self.wall(now.wall);
-        self.clocks.input_shortfall(late, at, wall);
+        self.clocks.input_shortfall(site, late, at, wall);
     }
 
     /// The regions holding an element that a cut separated (none without a cut).
@@ -382,12 +382,17 @@ impl SiteSession {
         let wall = self.wall(now.wall);
         match msg {
             Message::ToolPose(p) if self.sites.is_other(p.site) => {
-                self.clocks.tool_pose(p.site, p.sim_time_s, wall);
+                let pose = pacing::pose_key(p.position, p.orientation, p.jaw_rad);
+                self.clocks
+                    .tool_pose(p.site, p.tool, p.sim_time_s, pose, wall);
                 self.events.push_back(SessionEvent::RemotePose(p));
             }
             Message::ToolPoseHistory(h) if self.sites.is_other(h.site) => {
                 if let Some(newest) = h.samples.last() {
-                    self.clocks.tool_pose(h.site, newest.sim_time_s, wall);
+                    let pose =
+                        pacing::pose_key(newest.position, newest.orientation, newest.jaw_rad);
+                    self.clocks
+                        .tool_pose(h.site, h.tool, newest.sim_time_s, pose, wall);
                 }
                 let skip = h.samples.len().saturating_sub(proto::MAX_POSE_SAMPLES);
                 for s in h.samples.into_iter().skip(skip) {

@@ -239,7 +239,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
                 SessionEvent::RemotePose(p) => {
                     let at = sim.time() + sim.options().dt;
                     if let Some(late) = tools.remote_pose(&p, at) {
-                        session.input_lateness(late, at, now_of(&clock, link.as_ref()));
+                        session.input_lateness(p.site, late, at, now_of(&clock, link.as_ref()));
                     }
                 }
                 SessionEvent::SceneReset { epoch } => {
@@ -309,7 +309,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         // at once, as before. The schedule is not moved: after a wait the follower steps
         // without pause until it is back on it. A leader never waits: leaders run level,
         // and would wait for each other.
-        if !session.leads(tools.local_active())
+        if !session.leads(tools.local_moving(sim.time()))
             && let Some((short, newest)) = tools.input_awaited(sim.time() + dt, MAX_INPUT_WAIT_S)
         {
             let now = clock.now();
@@ -443,7 +443,7 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         }
 
         // 7. Pacing (`session::pacing`), and the state for a window to read.
-        let pace = session.end_step(t, tools.local_active(), clock.now());
+        let pace = session.end_step(t, tools.local_moving(t), clock.now());
         if let Some(board) = &cfg.status {
             board.publish(SiteStatus {
                 sim_time: t,

@@ -25,6 +25,13 @@ pub const IDLE_POSE_INTERVAL_S: f64 = 0.25;
 /// A remote tool's sample more than this (s of simulated time) after the one before it
 /// starts its stream again (longer than [`IDLE_POSE_INTERVAL_S`]).
 const STREAM_GAP_S: f64 = 0.3;
+/// The local tool counts as moving (its site leads) for this long (s of simulated time)
+/// after its input last moved it.
+pub const LEADS_AFTER_MOTION_S: f64 = 0.5;
+/// Input changes at or below these (m, rad, rad of jaw) are no motion: a script holding a
+/// pose interpolates between equal waypoints to within rounding.
+const STILL_M: f64 = 1e-7;
+const STILL_RAD: f64 = 1e-6;
 
 type V3 = Vector3<f64>;
 
@@ -53,6 +60,8 @@ pub struct Tools {
     remote_site: Vec<Option<proto::SiteId>>,
     /// Whether the local tool is being driven this step (its script is running).
     local_active: bool,
+    /// Simulated time (s) at which the local input last moved the tool in hand.
+    local_moved_at: Option<f64>,
     /// While the local tool rests after this site drove it (and nobody else has driven it
     /// since): that tool and the simulated time its held pose is next announced (see
     /// [`IDLE_POSE_INTERVAL_S`]).
@@ -91,6 +100,7 @@ impl Tools {
             remote_contact: strategy.simulates_remote_tools(),
             waits_for_inputs: strategy == SyncStrategy::Hybrid,
             local_active: false,
+            local_moved_at: None,
             idle_announce: None,
             touch_radius: 2.0 * sim.lattice().params().cell,
         })
@@ -128,6 +138,7 @@ impl Tools {
         Self::enable_own(&mut self.interaction, &self.instruments);
         self.local = self.instruments.first().copied();
         self.idle_announce = None;
+        self.local_moved_at = None;
         self.touch_radius = 2.0 * sim.lattice().params().cell;
     }
 
@@ -188,6 +199,7 @@ impl Tools {
         local: Option<ToolInput>,
         session: &SiteSession,
     ) -> Result<Vec<u32>> {
+        self.note_local_motion(local.as_ref(), sim.time());
         self.note_local_input(local.is_some(), sim.time());
         // A pose stamped t + dt is the input its site used for the step from t: sample
         // the remote tracks there, so that a follower behind the owner in simulated time
@@ -370,9 +382,26 @@ impl Tools {
         self.remote_site.get(i).copied().flatten()
     }
 
-    /// Whether the local tool was driven in the last step (its site then leads).
+    /// Whether the local tool was driven in the last step (its poses are then sent every
+    /// step).
     pub fn local_active(&self) -> bool {
         self.local_active
+    }
+
+    /// Whether the local tool is driven and moved within [`LEADS_AFTER_MOTION_S`] before
+    /// simulated time `t` (s): its site then leads (runs level with the other leaders, no
+    /// playout lag). A tool held still by its script or its hand, touching nothing, does
+    /// not: its site keeps the lag behind the sites it follows and gets their inputs in
+    /// time. (Counting every driven step, the demo's trainees, whose scripts hold a
+    /// resting pose for seconds, ran level with the instructor and simulated its grasp
+    /// from inputs a path's delay late: 4.6–5.3 mm off during the lift under `average`.)
+    /// A tool at rest that touches tissue still makes its site lead through the regions
+    /// it claims.
+    pub fn local_moving(&self, t: f64) -> bool {
+        self.local_active
+            && self
+                .local_moved_at
+                .is_some_and(|m| t - m <= LEADS_AFTER_MOTION_S)
     }
 
     /// Force of the tissue on the local tool (N).
@@ -424,6 +453,21 @@ impl Tools {
             },
             model,
         ))
+    }
+
+    /// Before the local input of the step from `t` (s) is set: whether it moves the tool
+    /// in hand (see [`Tools::local_moving`]).
+    fn note_local_motion(&mut self, local: Option<&ToolInput>, t: f64) {
+        if let Some((input, i)) = local.zip(self.local) {
+            let tool = &self.interaction.tools.tools[i];
+            let moved = (input.pose.translation.vector - tool.pose().translation.vector).norm()
+                > STILL_M
+                || input.pose.rotation.angle_to(&tool.pose().rotation) > STILL_RAD
+                || (input.jaw - tool.jaw()).abs() > STILL_RAD;
+            if moved {
+                self.local_moved_at = Some(t);
+            }
+        }
     }
 
     /// The local tool is driven this step (`active`, at simulated time `t`, s) or rests.
@@ -614,6 +658,51 @@ mod tests {
     /// A tool this site drove keeps announcing its resting pose every
     /// `IDLE_POSE_INTERVAL_S` until another site drives it; a tool never driven here is
     /// not announced.
+    /// A driven tool leads only while its input moves it: held still by its script (the
+    /// demo's trainees before their turn) it does not, from [`LEADS_AFTER_MOTION_S`] after
+    /// its last motion; the jaws closing alone are motion.
+    #[test]
+    fn a_driven_tool_held_still_does_not_make_its_site_lead() {
+        let scene = sim_core::sim_scene::builtin::cholecystectomy_bodies();
+        let options = sim_core::SimOptions::from_scene(&scene.scene);
+        let sim = Simulation::new(scene, options).unwrap();
+        let dt = sim.options().dt;
+        let mut tools = Tools::new(&sim, &["forceps".into()], SyncStrategy::Hybrid).unwrap();
+        let i = tools.local_index().unwrap();
+        let rest = ToolInput {
+            pose: *tools.interaction.tools.tools[i].pose(),
+            jaw: tools.interaction.tools.tools[i].jaw(),
+        };
+        let drive = |tools: &mut Tools, input: &ToolInput, t: f64| {
+            tools.note_local_motion(Some(input), t);
+            tools.note_local_input(true, t);
+            tools.interaction.tools.tools[i].set_input(input, dt);
+        };
+        for k in 0..100 {
+            let t = f64::from(k) * dt;
+            drive(&mut tools, &rest, t);
+            assert!(
+                tools.local_active() && !tools.local_moving(t),
+                "still at {t} s"
+            );
+        }
+        let closing = ToolInput {
+            jaw: rest.jaw + 0.05,
+            ..rest
+        };
+        let t = 100.0 * dt;
+        drive(&mut tools, &closing, t);
+        assert!(tools.local_moving(t), "the jaws moved");
+        assert!(tools.local_moving(t + LEADS_AFTER_MOTION_S - dt));
+        drive(&mut tools, &closing, t + dt);
+        assert!(
+            !tools.local_moving(t + LEADS_AFTER_MOTION_S + dt),
+            "still again"
+        );
+        tools.note_local_input(false, t + 2.0 * dt);
+        assert!(!tools.local_moving(t + 2.0 * dt), "not driven");
+    }
+
     #[test]
     fn a_resting_tool_is_announced_until_another_site_drives_it() {
         let scene = sim_core::sim_scene::builtin::cholecystectomy_bodies();

@@ -29,6 +29,11 @@
 //! no step was recorded at `t_k`, or a correction ran since: its shares are not in the
 //! recorded states) the keyframe's state is advanced as before.
 //!
+//! After a cut, the virtual nodes the keyframe carries (the corners of the element copies
+//! the cut made) are corrected like the lattice nodes, with the same history: setting them
+//! to the keyframe's advanced state nudged equal simulations apart by that error and by
+//! the wire's rounding.
+//!
 //! Keyframes older than [`HybridConfig::max_age_s`] at the time the local clock reaches
 //! them are not used: advancing a stale state by its velocity is worse than the local
 //! simulation (a newer keyframe follows within a heartbeat).
@@ -37,7 +42,7 @@
 
 use sim_lattice::NodeId;
 
-use super::frame::match_tree_and_nodes;
+use super::frame::{dof_grid, match_tree_and_nodes};
 use super::{Grid, KeyframeId, RegionId, RegionKeyframe, RegionMap, SyncError, V3};
 use crate::engine::Simulation;
 
@@ -173,9 +178,10 @@ pub struct CorrectedRegion {
     region: RegionId,
     config: HybridConfig,
     last_keyframe: Option<KeyframeId>,
-    /// Per node: id, grid coordinate (checked before use: the tree may change), and the
-    /// position and velocity added per step.
-    pending: Vec<(NodeId, Grid, V3, V3)>,
+    /// Per degree of freedom (a lattice node, or a cut's virtual node): its index, the
+    /// grid point it stands for (checked before use: the tree or the cuts may change), and
+    /// the position and velocity added per step.
+    pending: Vec<(usize, Grid, V3, V3)>,
     steps_left: u32,
     corrections: u64,
 }
@@ -237,7 +243,7 @@ impl CorrectedRegion {
             self.last_keyframe = Some(kf.keyframe_id);
             return Ok(Correction::TooOld);
         }
-        let nodes = match_tree_and_nodes(sim, map, kf)?;
+        let matched = match_tree_and_nodes(sim, map, kf)?;
         let ahead = age.max(0.0);
         // The local state at the keyframe's time, when the keyframe is late and it was
         // recorded on this lattice (matching the tree above may have changed it).
@@ -246,16 +252,19 @@ impl CorrectedRegion {
         } else {
             None
         };
-        let mut diffs = Vec::with_capacity(nodes.len());
+        let mut diffs = Vec::with_capacity(kf.positions.len());
         // Largest difference measured (m, m/s), and largest displacement to add (m).
         let (mut max_m, mut max_m_s, mut max_dx): (f64, f64, f64) = (0.0, 0.0, 0.0);
         // Differences measured at the keyframe's time need no rounding carried over.
         let measured_ahead = if then.is_some() { 0.0 } else { ahead };
-        for (i, &n) in nodes.iter().enumerate() {
-            if sim.is_fixed(n) {
+        // The lattice nodes and a cut's virtual nodes alike: both are simulated here.
+        for (i, j) in matched.dofs() {
+            if sim.is_fixed(NodeId(j as u32)) {
                 continue;
             }
-            let j = n.0 as usize;
+            let Some(grid) = dof_grid(sim, j) else {
+                continue;
+            };
             let (x_k, v_k) = (V3::from(kf.positions[i]), V3::from(kf.velocities[i]));
             let (dx, dv, gap) = match then {
                 Some((x, v)) if j < x.len() => {
@@ -270,7 +279,7 @@ impl CorrectedRegion {
             max_m = max_m.max(gap);
             max_m_s = max_m_s.max(dv.norm());
             max_dx = max_dx.max(dx.norm());
-            diffs.push((n, sim.lattice().node_grid(n), dx, dv));
+            diffs.push((j, grid, dx, dv));
         }
         self.last_keyframe = Some(kf.keyframe_id);
         // The velocity's rounding is carried into the target over `ahead`.
@@ -300,14 +309,12 @@ impl CorrectedRegion {
         }
         self.steps_left -= 1;
         let mut moved: f64 = 0.0;
-        let live = sim.positions().len();
-        for &(n, g, dx, dv) in &self.pending {
-            let i = n.0 as usize;
-            if i >= live || !sim.lattice().node_alive(n) || sim.lattice().node_grid(n) != g {
+        for &(d, g, dx, dv) in &self.pending {
+            if dof_grid(sim, d) != Some(g) {
                 continue;
             }
-            let (x, v) = (sim.positions()[i], sim.velocities()[i]);
-            sim.set_node_state(n, x + dx, v + dv);
+            let (x, v) = (sim.positions()[d], sim.velocities()[d]);
+            sim.set_dof_state(d, x + dx, v + dv);
             moved = moved.max(dx.norm());
         }
         if self.steps_left == 0 {

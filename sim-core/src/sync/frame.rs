@@ -160,21 +160,69 @@ pub fn apply_full_state(
             got: kf.region,
         });
     }
-    let nodes = match_tree_and_nodes(sim, map, kf)?;
-    for (i, &n) in nodes.iter().enumerate() {
-        sim.set_node_state(n, V3::from(kf.positions[i]), V3::from(kf.velocities[i]));
+    let matched = match_tree_and_nodes(sim, map, kf)?;
+    for (i, d) in matched.dofs() {
+        sim.set_dof_state(d, V3::from(kf.positions[i]), V3::from(kf.velocities[i]));
     }
     sim.update_surfaces();
     Ok(())
 }
 
+/// A keyframe's entries on this site, in its canonical order: the region's lattice nodes,
+/// then the cut's virtual nodes (degrees of freedom past the lattice's capacity).
+pub(super) struct MatchedNodes {
+    pub nodes: Vec<NodeId>,
+    /// Empty when the frame's virtual nodes are not ours (see [`match_tree_and_nodes`]).
+    pub virtual_dofs: Vec<usize>,
+}
+
+impl MatchedNodes {
+    /// Every matched degree of freedom with its entry in the frame, lattice nodes first.
+    pub fn dofs(&self) -> impl Iterator<Item = (usize, usize)> + '_ {
+        self.nodes
+            .iter()
+            .map(|n| n.0 as usize)
+            .chain(self.virtual_dofs.iter().copied())
+            .enumerate()
+    }
+
+    /// Sets the virtual nodes to the frame's states advanced by `ahead` (s) at their
+    /// velocity (the receivers that take the owner's state, not a blended correction).
+    pub fn set_virtual_dofs(&self, sim: &mut Simulation, kf: &RegionKeyframe, ahead: f64) {
+        for (j, &d) in self.virtual_dofs.iter().enumerate() {
+            let i = self.nodes.len() + j;
+            let v = V3::from(kf.velocities[i]);
+            if !sim.is_fixed(NodeId(d as u32)) {
+                sim.set_dof_state(d, V3::from(kf.positions[i]) + v * ahead, v);
+            }
+        }
+    }
+}
+
+/// The grid point a degree of freedom stands for (a virtual node's: the lattice node it
+/// duplicates), if it is live: what a correction checks before it moves the dof, since
+/// the tree or the cuts may have changed since it was measured.
+pub(super) fn dof_grid(sim: &Simulation, dof: usize) -> Option<Grid> {
+    if dof >= sim.positions().len() {
+        return None;
+    }
+    let node = match sim.separation() {
+        Some(sep) if dof >= sep.capacity => sep.dof_node(dof),
+        _ => NodeId(dof as u32),
+    };
+    let lattice = sim.lattice();
+    lattice.node_alive(node).then(|| lattice.node_grid(node))
+}
+
 /// Checks the frame, makes the region's tree state match it, and returns the region's
-/// canonical nodes (as many as the frame has).
+/// canonical nodes (as many as the frame has) and, when this site's cuts made the same
+/// virtual nodes for the region, those. The caller sets the states: a hybrid follower
+/// corrects both kinds alike, the other receivers take the owner's.
 pub(super) fn match_tree_and_nodes(
     sim: &mut Simulation,
     map: &RegionMap,
     kf: &RegionKeyframe,
-) -> Result<Vec<NodeId>, SyncError> {
+) -> Result<MatchedNodes, SyncError> {
     let region = kf.region;
     if !map.contains(region) {
         return Err(SyncError::UnknownRegion(region));
@@ -198,7 +246,7 @@ pub(super) fn match_tree_and_nodes(
         .map_err(|source| SyncError::TreeBits { region, source })?;
     apply_tree(sim, map, region, &target)?;
     let nodes = map.canonical_nodes(sim.lattice(), region);
-    let virtual_dofs = region_virtual_dofs(sim, map, region);
+    let mut virtual_dofs = region_virtual_dofs(sim, map, region);
     if nodes.len() > kf.positions.len() {
         return Err(SyncError::NodeCount {
             region,
@@ -215,20 +263,12 @@ pub(super) fn match_tree_and_nodes(
             theirs = kf.positions.len() - nodes.len(),
             "keyframe's virtual nodes not applied"
         );
-        return Ok(nodes);
+        virtual_dofs.clear();
     }
-    // The virtual nodes take the owner's state at once, extrapolated to our time like the
-    // lattice nodes' targets (they are few: the corners of the elements a cut crossed; the
-    // callers blend or extrapolate only the lattice nodes).
-    let ahead = (sim.time() - kf.sim_time).max(0.0);
-    for (j, &d) in virtual_dofs.iter().enumerate() {
-        let i = nodes.len() + j;
-        let v = V3::from(kf.velocities[i]);
-        if !sim.is_fixed(NodeId(d as u32)) {
-            sim.set_dof_state(d, V3::from(kf.positions[i]) + v * ahead, v);
-        }
-    }
-    Ok(nodes)
+    Ok(MatchedNodes {
+        nodes,
+        virtual_dofs,
+    })
 }
 
 /// Makes the region's trees equal `target` and lets the simulation follow.

@@ -159,7 +159,12 @@ impl RemoteRegion {
         if self.last_keyframe.is_some_and(|k| kf.keyframe_id <= k) {
             return Ok(Applied::Stale);
         }
-        let nodes = match_tree_and_nodes(sim, map, kf)?;
+        let matched = match_tree_and_nodes(sim, map, kf)?;
+        // The virtual nodes of a cut take the owner's state at once, advanced to our time
+        // (they are few: the corners of the elements a cut crossed; only the lattice
+        // nodes are extrapolated and blended).
+        matched.set_virtual_dofs(sim, kf, (sim.time() - kf.sim_time).max(0.0));
+        let nodes = matched.nodes;
         let lattice = sim.lattice();
         let grids: Vec<Grid> = nodes.iter().map(|&n| lattice.node_grid(n)).collect();
         self.motions
