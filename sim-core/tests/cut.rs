@@ -368,6 +368,28 @@ fn a_hybrid_follower_corrects_the_virtual_nodes_of_a_cut_like_the_lattice_nodes(
         (b.positions()[dof] - target).norm() < 1e-9,
         "not at the keyframe"
     );
+
+    // The same 2 mm, then a refinement before the correction runs: the separation is
+    // made again from a new capacity, so the virtual node's number now names another
+    // node (or none), and its entry is dropped; the lattice nodes' entries (all zero
+    // here) still apply. (Here the number lands on a node of another grid point, which
+    // the grid check alone catches; the separation check also covers a number that lands
+    // on another copy of the same lattice node.)
+    let mut off = encode_keyframe(&b, &map, region, 3).expect("encodes");
+    off.positions[entry][1] += 2e-3;
+    let mut follower = CorrectedRegion::new(region, HybridConfig::default());
+    assert!(matches!(
+        follower
+            .apply_keyframe(&mut b, &map, &off, &StateHistory::default())
+            .expect("applies"),
+        Correction::Started { .. }
+    ));
+    let before = b.separation().map(|s| (s.capacity, s.dof_count()));
+    let leaf = b.lattice().leaves()[0];
+    assert!(b.refine(leaf).expect("refine") > 0);
+    let after = b.separation().map(|s| (s.capacity, s.dof_count()));
+    assert_ne!(before, after, "the refinement made the separation again");
+    assert_eq!(follower.drive(&mut b), 0.0, "a virtual entry moved a node");
 }
 
 /// A cut of the bodies scene's cystic duct (a sheet across it, at rest) leaves every

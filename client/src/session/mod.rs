@@ -828,7 +828,7 @@ impl SiteSession {
     }
 
     /// The step ended at simulated time `t`: pacing against the sites followed. A leading
-    /// site (it owns or claims a region, or `tool_active`: drives its tool) runs level
+    /// site (it owns or claims a region, or `tool_active`: its tool is moving) runs level
     /// with the other leaders; a follower keeps the playout lag behind the sites it
     /// follows by slewing its step rate. The next step is due at [`Self::poll_timeout`].
     pub fn end_step(&mut self, t: f64, tool_active: bool, now: Instant) -> Pace {
@@ -868,8 +868,9 @@ impl SiteSession {
         pace
     }
 
-    /// Whether this site leads (owns or claims a region, or drives its own tool: it then
-    /// keeps no playout lag, see [`pacing`]) rather than follows.
+    /// Whether this site leads (owns or claims a region, or `tool_active`: its tool is
+    /// moving, `site::Tools::local_moving`; it then keeps no playout lag, see [`pacing`])
+    /// rather than follows.
     pub fn leads(&self, tool_active: bool) -> bool {
         self.claims.any() || tool_active
     }

@@ -29,10 +29,13 @@
 //! * The lag is reached and kept by slewing the step rate within
 //!   [`MIN_RATE`]–[`MAX_RATE`] of real time (under hybrid up to [`HYBRID_MAX_RATE`], and
 //!   [`HYBRID_CATCH_UP_RATE`] when far behind), never by jumps.
-//! * A *leading* site (it owns a region, has claimed one, or its own tool is being driven)
-//!   keeps no lag: it runs level with the other leaders it follows, so two owners
-//!   following each other never wait for each other. When ownership moves, the new leader
-//!   catches up and the old one falls back to the lag.
+//! * A *leading* site (it owns a region, has claimed one, or its tool moved within the last
+//!   half second: a tool held still leads nothing) keeps no lag: it runs level with the
+//!   other leaders it follows, so two owners following each other never wait for each
+//!   other. When ownership moves, or a resting tool begins to move, the new leader
+//!   catches up and the old one falls back to the lag (under hybrid a follower gets there
+//!   by waiting, see [`HYBRID_HOLD_BEYOND`]; a leader ahead of one catching up keeps real
+//!   time).
 //! * Independently of the lag, a site never runs more than [`MAX_LEAD`] ahead of an owner
 //!   it follows (owners' keyframes would arrive from its past); during a change of
 //!   leader that cap is relaxed by [`MAX_AUTO_LAG`] so that the change slews instead of
@@ -526,7 +529,7 @@ impl PeerClocks {
     }
 
     /// The pace of the next step for a site at simulation time `t` (s) at wall time
-    /// `now` (s); `leading`: it owns or claims a region or drives its own tool.
+    /// `now` (s); `leading`: it owns or claims a region or its tool is moving.
     pub fn pace(&self, t: f64, now: f64, leading: bool, realtime: bool) -> Pace {
         let lead = self
             .followed(now)
@@ -557,11 +560,18 @@ impl PeerClocks {
                 if !realtime && error < 0.0 {
                     pace.hold = (-error).min(0.02);
                 }
-                // Under hybrid a follower ahead of the inputs simulates the remote tool
-                // from stale samples, and the keyframes that would correct it arrive too
-                // old to use: rather than slewing there over seconds, it waits (the view
-                // pauses; nothing jumps).
-                if self.inputs_only && error < -HYBRID_HOLD_BEYOND {
+                if self.inputs_only && leading {
+                    // Under hybrid a leader ahead of another (one whose tool just began to
+                    // move after a rest, with its lag still to make up) keeps real time:
+                    // the one behind catches up. Slowing or waiting here paused the view
+                    // and the tissue under the haptic loop of a site driving its tool
+                    // whenever another site's tool began to move.
+                    pace.rate = pace.rate.max(1.0);
+                } else if self.inputs_only && error < -HYBRID_HOLD_BEYOND {
+                    // Under hybrid a follower ahead of the inputs simulates the remote tool
+                    // from stale samples, and the keyframes that would correct it arrive
+                    // too old to use: rather than slewing there over seconds, it waits (the
+                    // view pauses; nothing jumps).
                     pace.hold = pace.hold.max((-error - HYBRID_HOLD_BEYOND).min(0.02));
                 }
             }
@@ -757,6 +767,12 @@ mod tests {
         assert_eq!(pace.rate, HYBRID_MAX_RATE);
         let pace = c.pace(now - lag - 1.5, now, false, true);
         assert_eq!(pace.rate, HYBRID_CATCH_UP_RATE);
+        // A leader ahead of a site it follows (one whose tool began to move after a rest,
+        // its lag still to make up) neither waits nor slows: the other catches up.
+        let pace = c.pace(now + 0.1, now, true, true);
+        assert_eq!((pace.rate, pace.hold), (1.0, 0.0), "{pace:?}");
+        // Unless it is not paced by real time at all.
+        assert!(c.pace(now + 0.1, now, true, false).hold > 0.0);
     }
 
     /// Over a jittery path that keeps packet order (a delayed stamp holds back the next
@@ -794,7 +810,7 @@ mod tests {
         c
     }
 
-    /// A pose `x` m along x at time `t`, jaws open by `jaw` rad.
+    /// A pose `x` m along x, jaws open by `jaw` rad.
     fn at_x(x: f64, jaw: f32) -> [f32; 8] {
         pose_key([x as f32, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], jaw)
     }

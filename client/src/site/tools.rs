@@ -655,9 +655,6 @@ mod tests {
         )
     }
 
-    /// A tool this site drove keeps announcing its resting pose every
-    /// `IDLE_POSE_INTERVAL_S` until another site drives it; a tool never driven here is
-    /// not announced.
     /// A driven tool leads only while its input moves it: held still by its script (the
     /// demo's trainees before their turn) it does not, from [`LEADS_AFTER_MOTION_S`] after
     /// its last motion; the jaws closing alone are motion.
@@ -703,6 +700,9 @@ mod tests {
         assert!(!tools.local_moving(t + 2.0 * dt), "not driven");
     }
 
+    /// A tool this site drove keeps announcing its resting pose every
+    /// `IDLE_POSE_INTERVAL_S` until another site drives it; a tool never driven here is
+    /// not announced.
     #[test]
     fn a_resting_tool_is_announced_until_another_site_drives_it() {
         let scene = sim_core::sim_scene::builtin::cholecystectomy_bodies();

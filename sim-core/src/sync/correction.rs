@@ -135,7 +135,7 @@ impl StateHistory {
     }
 
     /// The recorded state at simulated time `t` (within a thousandth of `dt`), if the
-    /// lattice is still the one it was recorded on and no correction has moved nodes
+    /// lattice and its cuts' degrees of freedom are still the ones it was recorded on and no correction has moved nodes
     /// since (its shares would not be in the difference measured there).
     fn at(&self, sim: &Simulation, t: f64) -> Option<(&[V3], &[V3])> {
         let tol = 1e-3 * sim.options().dt;
@@ -145,7 +145,10 @@ impl StateHistory {
             return None;
         }
         let r = &self.states[k];
-        (r.generation == generation).then_some((r.positions.as_slice(), r.velocities.as_slice()))
+        // A cut that needs no refinement leaves the generation alone but adds virtual
+        // nodes, which renumbers the ones after them: the dof count tells.
+        (r.generation == generation && r.positions.len() == sim.positions().len())
+            .then_some((r.positions.as_slice(), r.velocities.as_slice()))
     }
 
     /// Forgets every state (a reset, a change of strategy).
@@ -182,6 +185,11 @@ pub struct CorrectedRegion {
     /// grid point it stands for (checked before use: the tree or the cuts may change), and
     /// the position and velocity added per step.
     pending: Vec<(usize, Grid, V3, V3)>,
+    /// The cuts' separation when the correction started (lattice capacity, dof count):
+    /// virtual nodes are numbered from the capacity in grid order, so once either changes
+    /// (a refinement, a new cut) the pending virtual entries name other nodes and are
+    /// dropped.
+    pending_separation: Option<(usize, usize)>,
     steps_left: u32,
     corrections: u64,
 }
@@ -193,6 +201,7 @@ impl CorrectedRegion {
             config,
             last_keyframe: None,
             pending: Vec::new(),
+            pending_separation: None,
             steps_left: 0,
             corrections: 0,
         }
@@ -292,6 +301,7 @@ impl CorrectedRegion {
         }
         let steps = ((max_dx / self.config.max_step_m).ceil() as u32).max(self.config.min_steps);
         let share = 1.0 / f64::from(steps);
+        self.pending_separation = separation_key(sim);
         self.pending = diffs
             .into_iter()
             .map(|(n, g, dx, dv)| (n, g, dx * share, dv * share))
@@ -308,9 +318,14 @@ impl CorrectedRegion {
             return 0.0;
         }
         self.steps_left -= 1;
+        // Virtual nodes' entries, once the separation changed, are no longer theirs.
+        let virtual_from = match self.pending_separation {
+            Some((capacity, _)) if separation_key(sim) != self.pending_separation => capacity,
+            _ => usize::MAX,
+        };
         let mut moved: f64 = 0.0;
         for &(d, g, dx, dv) in &self.pending {
-            if dof_grid(sim, d) != Some(g) {
+            if d >= virtual_from || dof_grid(sim, d) != Some(g) {
                 continue;
             }
             let (x, v) = (sim.positions()[d], sim.velocities()[d]);
@@ -323,4 +338,9 @@ impl CorrectedRegion {
         // The step that follows updates the embedded surfaces.
         moved
     }
+}
+
+/// The cuts' separation as a correction checks it: lattice capacity and dof count.
+fn separation_key(sim: &Simulation) -> Option<(usize, usize)> {
+    sim.separation().map(|s| (s.capacity, s.dof_count()))
 }
