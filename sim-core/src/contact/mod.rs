@@ -391,9 +391,9 @@ impl ContactPipeline {
     }
 
     /// Contact points and grasped points of the last pass, one list per tool in scene
-    /// order, where they are now and in rest coordinates (m): a contact's closest point on its triangle's rest pose (taken when
-    /// the contact was found, so a cut since does not move it), a grasped point's rest
-    /// position. What tool-following adaptivity decides on ([`crate::adapt`]).
+    /// order, where they are now and in rest coordinates (m): a contact's closest point on
+    /// its triangle's rest pose (taken when the contact was found, so a cut since does not
+    /// move it), a grasped point's rest position. What tool-following adaptivity decides on ([`crate::adapt`]).
     pub fn focus_points_by_tool(&self) -> FocusPoints {
         let mut focus = FocusPoints::default();
         for t in &self.state.tools {

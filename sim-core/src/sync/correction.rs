@@ -135,8 +135,9 @@ impl StateHistory {
     }
 
     /// The recorded state at simulated time `t` (within a thousandth of `dt`), if the
-    /// lattice and its cuts' degrees of freedom are still the ones it was recorded on and no correction has moved nodes
-    /// since (its shares would not be in the difference measured there).
+    /// lattice and its cuts' degrees of freedom are still the ones it was recorded on and
+    /// no correction has moved nodes since (its shares would not be in the difference
+    /// measured there).
     fn at(&self, sim: &Simulation, t: f64) -> Option<(&[V3], &[V3])> {
         let tol = 1e-3 * sim.options().dt;
         let generation = sim.lattice().topology_generation();
