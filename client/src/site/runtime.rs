@@ -13,7 +13,7 @@ use sim_core::sync::SyncStrategy;
 use super::config::{SiteConfig, SiteReport};
 use super::recording::{Recorder, SessionRecording};
 use super::status::SiteStatus;
-use super::tools::Tools;
+use super::tools::{InputWait, MAX_INPUT_WAIT_S, Tools};
 use super::view::{FrameContext, SiteViewer, ViewRequest};
 use crate::cli::Refused;
 use crate::haptic::site::{HapticLoop, Teaching};
@@ -27,11 +27,7 @@ pub const RECORD_INTERVAL: f64 = 0.05;
 /// Simulated time after a teaching start request at which trainees start the replay (s):
 /// the command reaches them first.
 const TEACHING_START_MARGIN: f64 = 0.3;
-/// Under hybrid: the longest a step waits for a late input of a remote tool that touches
-/// tissue (s of session time; `Tools::input_awaited`), and the latest such an input may be
-/// (s of simulated time) for the wait to start; how often it looks again. Without the
-/// second bound every step of a 3 s outage waited (measured: display delay 1.35 s).
-const MAX_INPUT_WAIT_S: f64 = 0.05;
+/// How often a step that waits for a late remote input looks again (`InputWait`).
 const INPUT_POLL: Duration = Duration::from_millis(1);
 /// Time a site waits for its session to be complete before giving up.
 const JOIN_WAIT: Duration = Duration::from_secs(20);
@@ -161,9 +157,8 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
     // Run until the session's simulated time reaches `seconds` (a late joiner starts
     // from the session's time, not from zero).
     let mut k: u64 = 0;
-    // The newest remote sample (its simulated time) a step last waited past, and since
-    // when (step 1b).
-    let mut input_wait: Option<(f64, Instant)> = None;
+    // The late remote input a step last waited for (step 1b).
+    let mut input_wait = InputWait::default();
     'run: while sim.time() + 0.5 * dt < cfg.seconds {
         // 0. The window's requests (instructor controls; closing it ends the run).
         if let Some(v) = view.as_mut() {
@@ -303,24 +298,14 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         flush(link.as_ref(), &mut session);
 
         // 1b. Under hybrid, on a follower: a remote tool that touches tissue and whose next
-        // input is late is waited for rather than carried on (see `Tools::input_awaited`),
-        // at most `MAX_INPUT_WAIT_S` for each newest sample, and only for a sample at most
-        // that late: a stream silent for longer (a burst of losses, an outage) is carried on
-        // at once, as before. The schedule is not moved: after a wait the follower steps
+        // input is late is waited for rather than carried on (see `Tools::input_awaited`
+        // and `InputWait`). The schedule is not moved: after a wait the follower steps
         // without pause until it is back on it. A leader never waits: leaders run level,
         // and would wait for each other.
-        if !session.leads(tools.local_moving(sim.time()))
-            && let Some((short, newest)) = tools.input_awaited(sim.time() + dt, MAX_INPUT_WAIT_S)
-        {
+        if !session.leads(tools.local_moving(sim.time())) {
             let now = clock.now();
-            let since = match input_wait {
-                Some((sample, since)) if sample == newest => since,
-                _ => {
-                    input_wait = Some((newest, now));
-                    now
-                }
-            };
-            if (now - since).as_secs_f64() < MAX_INPUT_WAIT_S {
+            let awaited = tools.input_awaited(sim.time() + dt, MAX_INPUT_WAIT_S);
+            if let Some(short) = input_wait.waits(awaited, now) {
                 tracing::trace!(short_ms = short * 1e3, "waiting for a remote input");
                 std::thread::sleep(clock.scale().to_real(INPUT_POLL));
                 report.input_wait_s += (clock.now() - now).as_secs_f64();

@@ -2,6 +2,7 @@
 //! simulated time, and their contact with the organ (sim-core's `Interaction`).
 
 use std::collections::VecDeque;
+use std::time::Instant;
 
 use anyhow::{Context, Result};
 use nalgebra::Vector3;
@@ -33,6 +34,47 @@ pub const LEADS_AFTER_MOTION_S: f64 = 0.5;
 const STILL_M: f64 = 1e-7;
 const STILL_RAD: f64 = 1e-6;
 
+/// Under hybrid: the longest a follower's step waits for a late input of a remote tool that
+/// touches tissue (s of session time), and the latest such an input may be (s of simulated
+/// time) for the wait to start ([`Tools::input_awaited`], [`InputWait`]). Past it the tool
+/// is carried on at its last rate ([`INPUT_EXTRAPOLATION_S`], which it equals).
+///
+/// Measured with `cosurg bench sync` (hybrid, ×2, seeds 11–15, 2026-11-28). At 50 ms, the
+/// value before, every equal-sites mark above 0.1 mm was a tool carried on past a stop
+/// after its wait ran out: the forceps' approach stopping on the fundus (2.0 s) or the lift
+/// stopping (3.5 s), pushed on 1.5–2 mm by a follower whose samples came about 130 ms late
+/// after a long loss burst; worst seed of `burst` 1.13 mm in two runs of three, of `poor`
+/// 1.37. At 150 ms: 0.13 and 0.12 mm. Without the lateness bound every step of a 3 s
+/// outage waited (display delay 1.35 s); with it, a stream that stays silent is waited for
+/// once.
+pub const MAX_INPUT_WAIT_S: f64 = INPUT_EXTRAPOLATION_S;
+
+/// A follower's wait for a late remote input (see [`MAX_INPUT_WAIT_S`]): at most that long
+/// (session time) for each newest sample, so a stream that stays silent (an outage, a site
+/// gone) costs one wait, and a burst of losses one per sample that arrives still late.
+#[derive(Debug, Default)]
+pub struct InputWait {
+    /// The newest remote sample (its simulated time) waited past, and since when.
+    waiting: Option<(f64, Instant)>,
+}
+
+impl InputWait {
+    /// Whether to wait now: `awaited` is [`Tools::input_awaited`]'s answer for this step
+    /// (shortfall and newest sample time), `now` the session clock. Returns the shortfall
+    /// (s) while the step should wait.
+    pub fn waits(&mut self, awaited: Option<(f64, f64)>, now: Instant) -> Option<f64> {
+        let (short, newest) = awaited?;
+        let since = match self.waiting {
+            Some((sample, since)) if sample == newest => since,
+            _ => {
+                self.waiting = Some((newest, now));
+                now
+            }
+        };
+        ((now - since).as_secs_f64() < MAX_INPUT_WAIT_S).then_some(short)
+    }
+}
+
 type V3 = Vector3<f64>;
 
 /// The scene's tools and their contact with the organ (sim-core's [`Interaction`]).
@@ -49,7 +91,7 @@ pub struct Tools {
     /// (one instrument at a time, as through one port).
     instruments: Vec<usize>,
     remote_contact: bool,
-    /// Under hybrid a follower waits briefly for a late input ([`Tools::input_awaited`]).
+    /// Under hybrid a follower waits for a late input ([`Tools::input_awaited`]).
     waits_for_inputs: bool,
     /// Poses of each tool from other sites, by their simulation time.
     remote_track: Vec<PoseTrack>,
@@ -698,6 +740,36 @@ mod tests {
         );
         tools.note_local_input(false, t + 2.0 * dt);
         assert!(!tools.local_moving(t + 2.0 * dt), "not driven");
+    }
+
+    /// A follower waits for one late sample at most [`MAX_INPUT_WAIT_S`] of session time,
+    /// then carries the tool on; a newer sample that is still late starts a new wait;
+    /// nothing awaited, no wait.
+    #[test]
+    fn a_late_input_is_waited_for_at_most_the_longest_wait_per_sample() {
+        let t0 = Instant::now();
+        let at = |s: f64| t0 + std::time::Duration::from_secs_f64(s);
+        let mut wait = InputWait::default();
+        assert_eq!(wait.waits(None, t0), None);
+        // The newest sample at 2.0 s; the step needs 2.1 s: 100 ms short.
+        assert_eq!(wait.waits(Some((0.1, 2.0)), at(0.0)), Some(0.1));
+        assert_eq!(
+            wait.waits(Some((0.1, 2.0)), at(MAX_INPUT_WAIT_S - 0.001)),
+            Some(0.1),
+            "still within the wait"
+        );
+        assert_eq!(
+            wait.waits(Some((0.1, 2.0)), at(MAX_INPUT_WAIT_S)),
+            None,
+            "waited long enough: carried on"
+        );
+        assert_eq!(wait.waits(Some((0.1, 2.0)), at(1.0)), None, "not again");
+        // A newer sample arrives, still short of the step: a new wait.
+        assert_eq!(wait.waits(Some((0.05, 2.06)), at(1.0)), Some(0.05));
+        assert_eq!(
+            wait.waits(Some((0.05, 2.06)), at(1.0 + MAX_INPUT_WAIT_S)),
+            None
+        );
     }
 
     /// A tool this site drove keeps announcing its resting pose every
