@@ -25,6 +25,7 @@
 pub mod claims;
 mod config;
 pub mod inbox;
+mod inputs;
 pub mod pacing;
 mod reconnect;
 pub mod sites;
@@ -60,12 +61,7 @@ pub const SIM_TIME_INTERVAL: f64 = 0.05;
 /// draw the remote tool then, and ~60 Hz leaves a lossy path's congestion window to the
 /// keyframe streams.
 pub const POSE_INTERVAL: f64 = 0.016;
-/// Under hybrid: simulated time between tool-input datagrams (s), and how many of the
-/// newest per-step samples each carries: every sample travels in
-/// `POSE_HISTORY_SAMPLES × dt / POSE_HISTORY_INTERVAL` datagrams (3 at the bench's 4 ms
-/// step), so up to two consecutive losses cost nothing.
-pub const POSE_HISTORY_INTERVAL: f64 = 0.008;
-pub const POSE_HISTORY_SAMPLES: usize = 6;
+pub use inputs::{POSE_HISTORY_INTERVAL, POSE_HISTORY_SAMPLES};
 /// Least and largest simulated time between a reset request and the reset (s).
 pub const RESET_MARGIN: f64 = 0.02;
 pub const MAX_RESET_MARGIN: f64 = 1.0;
@@ -152,8 +148,8 @@ pub struct SiteSession {
     start: Instant,
     next_stamp: f64,
     next_pose: f64,
-    /// Under hybrid: the local tool's newest samples (oldest first).
-    pose_history: VecDeque<proto::ToolPose>,
+    /// Under hybrid: the local tool's recent samples.
+    pose_history: inputs::InputHistory,
     /// Next step due (wall).
     next_due: Instant,
     /// When the driver should run the next step (wall).
@@ -205,7 +201,7 @@ impl SiteSession {
             start: now,
             next_stamp: 0.0,
             next_pose: 0.0,
-            pose_history: VecDeque::new(),
+            pose_history: inputs::InputHistory::default(),
             next_due: now,
             wake: None,
             welcomed_at: None,
@@ -394,8 +390,11 @@ impl SiteSession {
                     self.clocks
                         .tool_pose(h.site, h.tool, newest.sim_time_s, pose, wall);
                 }
+                // Newest first: the older samples a datagram repeats then fill gaps
+                // behind the newest, and only the newest tells how late the datagram came
+                // (`Tools::remote_pose`).
                 let skip = h.samples.len().saturating_sub(proto::MAX_POSE_SAMPLES);
-                for s in h.samples.into_iter().skip(skip) {
+                for s in h.samples.into_iter().skip(skip).rev() {
                     if !s.sim_time_s.is_finite() {
                         continue;
                     }
@@ -763,32 +762,13 @@ impl SiteSession {
             self.datagram(Message::ToolPose(pose));
             return;
         }
-        if self
-            .pose_history
-            .back()
-            .is_some_and(|p| p.tool != pose.tool)
-        {
-            self.pose_history.clear();
-        }
-        self.pose_history.push_back(pose);
-        while self.pose_history.len() > POSE_HISTORY_SAMPLES {
-            self.pose_history.pop_front();
-        }
+        self.pose_history.push(pose);
         // Half a step of slack: sample times are multiples of dt in floating point.
         if pose.sim_time_s + 0.5 * self.cfg.options.dt < self.next_pose {
             return;
         }
         self.next_pose = pose.sim_time_s + POSE_HISTORY_INTERVAL;
-        let samples = self
-            .pose_history
-            .iter()
-            .map(|p| proto::PoseSample {
-                sim_time_s: p.sim_time_s,
-                position: p.position,
-                orientation: p.orientation,
-                jaw_rad: p.jaw_rad,
-            })
-            .collect();
+        let samples = self.pose_history.datagram(self.cfg.options.dt);
         self.datagram(Message::ToolPoseHistory(proto::ToolPoseHistory {
             site: pose.site,
             tool: pose.tool,

@@ -332,8 +332,9 @@ impl Tools {
     /// `at` (s) is the simulated time of the next step's input (`sim.time() + dt`).
     /// Returns how late a new sample of a tool this site simulates arrived: `at` minus
     /// its time (positive: the simulation had already used a held pose in its place);
-    /// `None` for repeats, for tools that are only drawn, and for the samples handled at
-    /// the step the tool's stream starts or resumes after a gap ([`STREAM_GAP_S`]).
+    /// `None` for repeats, for samples older than one already held (they fill a gap), for
+    /// tools that are only drawn, and for the samples handled at the step the tool's stream
+    /// starts or resumes after a gap ([`STREAM_GAP_S`]).
     pub fn remote_pose(&mut self, p: &proto::ToolPose, at: f64) -> Option<f64> {
         if let Some(site) = self.remote_site.get_mut(p.tool as usize) {
             *site = Some(p.site);
@@ -366,6 +367,9 @@ impl Tools {
                 }
                 None => gap,
             };
+            // Only a sample newer than any before tells how late its datagram came: the
+            // older ones a datagram repeats (handed over after its newest) fill gaps.
+            let newest = track.poses.back().is_none_or(|(t, _)| p.sim_time_s > *t);
             let q = p.orientation.map(f64::from);
             let new = track.insert(
                 p.sim_time_s,
@@ -379,7 +383,7 @@ impl Tools {
                     p.jaw_rad.into(),
                 ),
             );
-            return (new && simulated && !resumed).then_some(at - p.sim_time_s);
+            return (new && newest && simulated && !resumed).then_some(at - p.sim_time_s);
         }
         None
     }

@@ -16,8 +16,9 @@ fn pose(site: SiteId, t: f64) -> proto::ToolPose {
 }
 
 /// Hybrid: the local tool's samples go out every `POSE_HISTORY_INTERVAL` as one datagram
-/// repeating the last `POSE_HISTORY_SAMPLES`; with every other datagram lost, the receiver
-/// still gets every sample (one loss costs nothing).
+/// repeating the last `POSE_HISTORY_SAMPLES` and older ones on a coarse grid; with every
+/// other datagram lost, the receiver still gets every sample (one loss costs nothing), and
+/// after a long burst of losses a coarse path through the gap.
 #[test]
 fn hybrid_input_datagrams_repeat_samples_so_a_loss_costs_nothing() {
     let clock = FakeClock::new();
@@ -49,11 +50,21 @@ fn hybrid_input_datagrams_repeat_samples_so_a_loss_costs_nothing() {
         "{} datagrams for {steps} steps",
         datagrams.len()
     );
-    assert!(
-        datagrams
-            .iter()
-            .all(|h| h.samples.len() <= POSE_HISTORY_SAMPLES)
-    );
+    assert!(datagrams.iter().all(|h| {
+        h.samples.len() <= proto::MAX_POSE_SAMPLES
+            && h.samples.is_sorted_by(|a, b| a.sim_time_s < b.sim_time_s)
+    }));
+    let heard = |b: &mut SiteSession| {
+        let mut heard: Vec<f64> = std::iter::from_fn(|| b.poll_event())
+            .filter_map(|e| match e {
+                SessionEvent::RemotePose(p) => Some(p.sim_time_s),
+                _ => None,
+            })
+            .collect();
+        heard.sort_by(f64::total_cmp);
+        heard.dedup();
+        heard
+    };
     for (i, h) in datagrams.iter().enumerate() {
         if i % 2 == 1 {
             continue; // lost
@@ -61,14 +72,6 @@ fn hybrid_input_datagrams_repeat_samples_so_a_loss_costs_nothing() {
         b.handle_message(&mut sim_b, Message::ToolPoseHistory(h.clone()), clock.now())
             .unwrap();
     }
-    let mut heard: Vec<f64> = std::iter::from_fn(|| b.poll_event())
-        .filter_map(|e| match e {
-            SessionEvent::RemotePose(p) => Some(p.sim_time_s),
-            _ => None,
-        })
-        .collect();
-    heard.sort_by(f64::total_cmp);
-    heard.dedup();
     // Every sample up to the last datagram delivered arrived.
     let last_delivered = (datagrams.len() - 1) / 2 * 2;
     let last = datagrams[last_delivered].samples.last().unwrap().sim_time_s;
@@ -76,7 +79,30 @@ fn hybrid_input_datagrams_repeat_samples_so_a_loss_costs_nothing() {
         .map(|k| k as f64 * dt)
         .filter(|t| *t <= last)
         .collect();
-    assert_eq!(heard, want);
+    assert_eq!(heard(&mut b), want);
+
+    // A burst loses 12 datagrams in a row (96 ms of samples): the next one still brings
+    // samples at most `COARSE_SPACING_S` apart across the gap, back to `COARSE_SPAN_S`.
+    let mut c = session_with(Role::Trainee, &sim_b, &clock, SyncStrategy::Hybrid);
+    c.handle_welcome(&welcome(2, &sites), clock.now());
+    let (before, after) = (20, 33);
+    for h in [&datagrams[before], &datagrams[after]] {
+        c.handle_message(&mut sim_b, Message::ToolPoseHistory(h.clone()), clock.now())
+            .unwrap();
+    }
+    let heard = heard(&mut c);
+    let gap_start = datagrams[before].samples.last().unwrap().sim_time_s;
+    let gap_end = datagrams[after].samples.last().unwrap().sim_time_s;
+    assert!(gap_end - gap_start > inputs::COARSE_SPAN_S - 0.03);
+    let widest = heard
+        .windows(2)
+        .filter(|w| w[0] >= gap_start - 1e-9)
+        .map(|w| w[1] - w[0])
+        .fold(0.0, f64::max);
+    assert!(
+        widest <= inputs::COARSE_SPACING_S + 1e-9,
+        "a gap of {widest} s between samples heard: {heard:?}"
+    );
 }
 
 /// A hybrid follower that shows keyframes (`--follow keyframes`) says so in its
