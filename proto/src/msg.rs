@@ -277,7 +277,9 @@ pub struct PoseSample {
 
 /// The newest input samples of one tool (datagram, relayed), oldest first. Each datagram
 /// repeats the samples of the previous few, so that a lost datagram costs nothing as long
-/// as the next one arrives (`SyncStrategy::Hybrid`'s input channel).
+/// as the next one arrives, and may repeat older ones at a coarser spacing, so that a long
+/// burst of losses leaves a coarse path through the gap (`SyncStrategy::Hybrid`'s input
+/// channel). Receivers take the samples by their times; the spacing is the sender's.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ToolPoseHistory {
     pub site: SiteId,

@@ -61,7 +61,7 @@ pub const SIM_TIME_INTERVAL: f64 = 0.05;
 /// draw the remote tool then, and ~60 Hz leaves a lossy path's congestion window to the
 /// keyframe streams.
 pub const POSE_INTERVAL: f64 = 0.016;
-pub use inputs::{POSE_HISTORY_INTERVAL, POSE_HISTORY_SAMPLES};
+pub use inputs::POSE_HISTORY_INTERVAL;
 /// Least and largest simulated time between a reset request and the reset (s).
 pub const RESET_MARGIN: f64 = 0.02;
 pub const MAX_RESET_MARGIN: f64 = 1.0;
@@ -754,8 +754,8 @@ impl SiteSession {
     }
 
     /// The local tool's pose (made by the site's tools with our id) goes out. Under
-    /// hybrid it joins the tool's newest samples, sent every [`POSE_HISTORY_INTERVAL`]
-    /// as one [`proto::ToolPoseHistory`] of the last [`POSE_HISTORY_SAMPLES`].
+    /// hybrid it joins the tool's recent samples, sent every [`POSE_HISTORY_INTERVAL`] as
+    /// one [`proto::ToolPoseHistory`] (what it repeats: `inputs::InputHistory`).
     pub fn send_pose(&mut self, pose: proto::ToolPose) {
         if self.cfg.strategy != SyncStrategy::Hybrid {
             self.next_pose = pose.sim_time_s + POSE_INTERVAL;

@@ -37,7 +37,9 @@ const STILL_RAD: f64 = 1e-6;
 /// Under hybrid: the longest a follower's step waits for a late input of a remote tool that
 /// touches tissue (s of session time), and the latest such an input may be (s of simulated
 /// time) for the wait to start ([`Tools::input_awaited`], [`InputWait`]). Past it the tool
-/// is carried on at its last rate ([`INPUT_EXTRAPOLATION_S`], which it equals).
+/// is carried on at its last rate for up to [`INPUT_EXTRAPOLATION_S`] past its newest
+/// sample, then held. (The two are equal by choice, not by necessity: a wait as long as the
+/// carrying on covers the same lateness.)
 ///
 /// Measured with `cosurg bench sync` (hybrid, ×2, seeds 11–15, 2026-11-28). At 50 ms, the
 /// value before, every equal-sites mark above 0.1 mm was a tool carried on past a stop
@@ -54,15 +56,16 @@ pub const MAX_INPUT_WAIT_S: f64 = INPUT_EXTRAPOLATION_S;
 /// gone) costs one wait, and a burst of losses one per sample that arrives still late.
 #[derive(Debug, Default)]
 pub struct InputWait {
-    /// The newest remote sample (its simulated time) waited past, and since when.
-    waiting: Option<(f64, Instant)>,
+    /// The remote tool and its newest sample (simulated time) waited past, and since when
+    /// (several tools may have samples of the same time).
+    waiting: Option<((usize, f64), Instant)>,
 }
 
 impl InputWait {
     /// Whether to wait now: `awaited` is [`Tools::input_awaited`]'s answer for this step
     /// (shortfall and newest sample time), `now` the session clock. Returns the shortfall
     /// (s) while the step should wait.
-    pub fn waits(&mut self, awaited: Option<(f64, f64)>, now: Instant) -> Option<f64> {
+    pub fn waits(&mut self, awaited: Option<(f64, (usize, f64))>, now: Instant) -> Option<f64> {
         let (short, newest) = awaited?;
         let since = match self.waiting {
             Some((sample, since)) if sample == newest => since,
@@ -397,9 +400,9 @@ impl Tools {
     /// or the release (5.25 s), with inputs 40–56 ms late. Only a shortfall of at most
     /// `within` (s) counts (a stream silent for longer has stopped or lost samples for
     /// good, and is carried on); only under hybrid (input-only's lag keeps a margin, and
-    /// its rows were measured without waiting). Returns the largest such shortfall and that
-    /// tool's newest sample time; `None`: nothing to wait for.
-    pub fn input_awaited(&self, at: f64, within: f64) -> Option<(f64, f64)> {
+    /// its rows were measured without waiting). Returns the largest such shortfall, and that
+    /// tool with its newest sample time; `None`: nothing to wait for.
+    pub fn input_awaited(&self, at: f64, within: f64) -> Option<(f64, (usize, f64))> {
         if !self.waits_for_inputs {
             return None;
         }
@@ -414,11 +417,11 @@ impl Tools {
                     .get(*i)
                     .is_some_and(|c| c.grasped > 0 || !c.contacts.is_empty())
             })
-            .filter_map(|(_, track)| {
+            .filter_map(|(i, track)| {
                 let mut times = track.poses.iter().rev().map(|p| p.0);
                 let (t1, t0) = (times.next()?, times.next()?);
                 let driven = t1 - t0 <= PoseTrack::RATE_FROM_WITHIN_S;
-                (driven && at > t1 && at - t1 <= within).then_some((at - t1, t1))
+                (driven && at > t1 && at - t1 <= within).then_some((at - t1, (i, t1)))
             })
             .reduce(|a, b| if b.0 > a.0 { b } else { a })
     }
@@ -756,24 +759,62 @@ mod tests {
         let mut wait = InputWait::default();
         assert_eq!(wait.waits(None, t0), None);
         // The newest sample at 2.0 s; the step needs 2.1 s: 100 ms short.
-        assert_eq!(wait.waits(Some((0.1, 2.0)), at(0.0)), Some(0.1));
+        assert_eq!(wait.waits(Some((0.1, (0, 2.0))), at(0.0)), Some(0.1));
         assert_eq!(
-            wait.waits(Some((0.1, 2.0)), at(MAX_INPUT_WAIT_S - 0.001)),
+            wait.waits(Some((0.1, (0, 2.0))), at(MAX_INPUT_WAIT_S - 0.001)),
             Some(0.1),
             "still within the wait"
         );
         assert_eq!(
-            wait.waits(Some((0.1, 2.0)), at(MAX_INPUT_WAIT_S)),
+            wait.waits(Some((0.1, (0, 2.0))), at(MAX_INPUT_WAIT_S + 0.001)),
             None,
             "waited long enough: carried on"
         );
-        assert_eq!(wait.waits(Some((0.1, 2.0)), at(1.0)), None, "not again");
-        // A newer sample arrives, still short of the step: a new wait.
-        assert_eq!(wait.waits(Some((0.05, 2.06)), at(1.0)), Some(0.05));
         assert_eq!(
-            wait.waits(Some((0.05, 2.06)), at(1.0 + MAX_INPUT_WAIT_S)),
+            wait.waits(Some((0.1, (0, 2.0))), at(1.0)),
+            None,
+            "not again"
+        );
+        // Another tool whose newest sample has the same time has a wait of its own.
+        assert_eq!(wait.waits(Some((0.1, (1, 2.0))), at(1.0)), Some(0.1));
+        // A newer sample arrives, still short of the step: a new wait.
+        assert_eq!(wait.waits(Some((0.05, (0, 2.06))), at(2.0)), Some(0.05));
+        assert_eq!(
+            wait.waits(Some((0.05, (0, 2.06))), at(2.0 + MAX_INPUT_WAIT_S + 0.001)),
             None
         );
+    }
+
+    /// Only a sample newer than every sample of its track measures lateness: the older
+    /// ones a datagram repeats (handed over after its newest) fill gaps, however late.
+    #[test]
+    fn only_a_tracks_newest_sample_measures_lateness() {
+        let scene = sim_core::sim_scene::builtin::cholecystectomy_bodies();
+        let options = sim_core::SimOptions::from_scene(&scene.scene);
+        let sim = Simulation::new(scene, options).unwrap();
+        // No instrument of our own: every tool is simulated from the others' samples.
+        let mut tools = Tools::new(&sim, &[], SyncStrategy::Hybrid).unwrap();
+        let sample = |t: f64| proto::ToolPose {
+            site: 8,
+            tool: 0,
+            sim_time_s: t,
+            position: [0.0; 3],
+            orientation: [1.0, 0.0, 0.0, 0.0],
+            jaw_rad: 0.1,
+            velocity: [0.0; 3],
+            angular_velocity: [0.0; 3],
+        };
+        // The stream starts (no lateness at its first step), then runs.
+        assert_eq!(tools.remote_pose(&sample(1.0), 1.0), None);
+        assert_eq!(tools.remote_pose(&sample(1.004), 1.004), Some(0.0));
+        // A datagram after a burst, newest first: 1.2 is late by 10 ms; the older samples
+        // it repeats (1.1, 1.16) fill the gap and say nothing of the path.
+        let late = tools.remote_pose(&sample(1.2), 1.21).unwrap();
+        assert!((late - 0.01).abs() < 1e-12, "{late}");
+        assert_eq!(tools.remote_pose(&sample(1.16), 1.21), None);
+        assert_eq!(tools.remote_pose(&sample(1.1), 1.21), None);
+        // A repeat of the newest is no news either.
+        assert_eq!(tools.remote_pose(&sample(1.2), 1.22), None);
     }
 
     /// A tool this site drove keeps announcing its resting pose every

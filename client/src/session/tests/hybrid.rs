@@ -16,7 +16,7 @@ fn pose(site: SiteId, t: f64) -> proto::ToolPose {
 }
 
 /// Hybrid: the local tool's samples go out every `POSE_HISTORY_INTERVAL` as one datagram
-/// repeating the last `POSE_HISTORY_SAMPLES` and older ones on a coarse grid; with every
+/// repeating the last `inputs::RECENT_S` of samples and older ones on a coarse grid; with every
 /// other datagram lost, the receiver still gets every sample (one loss costs nothing), and
 /// after a long burst of losses a coarse path through the gap.
 #[test]
@@ -29,8 +29,9 @@ fn hybrid_input_datagrams_repeat_samples_so_a_loss_costs_nothing() {
     let sites = [(1, Role::Instructor), (2, Role::Trainee)];
     a.handle_welcome(&welcome(1, &sites), clock.now());
     b.handle_welcome(&welcome(2, &sites), clock.now());
-    let dt = 0.004;
-    let steps = 100;
+    // The session's own step (the test scene's), 0.4 s of it.
+    let dt = sim_a.options().dt;
+    let steps = (0.4 / dt).round() as usize;
     let mut datagrams = Vec::new();
     for k in 0..steps {
         let t = k as f64 * dt;
@@ -91,6 +92,22 @@ fn hybrid_input_datagrams_repeat_samples_so_a_loss_costs_nothing() {
             .unwrap();
     }
     let heard = heard(&mut c);
+    // A datagram's samples are handed over newest first (only the newest measures how
+    // late it came; `Tools::remote_pose`).
+    c.handle_message(
+        &mut sim_b,
+        Message::ToolPoseHistory(datagrams[40].clone()),
+        clock.now(),
+    )
+    .unwrap();
+    let order: Vec<f64> = std::iter::from_fn(|| c.poll_event())
+        .filter_map(|e| match e {
+            SessionEvent::RemotePose(p) => Some(p.sim_time_s),
+            _ => None,
+        })
+        .collect();
+    assert!(order.len() as f64 > inputs::RECENT_S / dt, "{order:?}");
+    assert!(order.is_sorted_by(|a, b| a > b), "{order:?}");
     let gap_start = datagrams[before].samples.last().unwrap().sim_time_s;
     let gap_end = datagrams[after].samples.last().unwrap().sim_time_s;
     assert!(gap_end - gap_start > inputs::COARSE_SPAN_S - 0.03);
