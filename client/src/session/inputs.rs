@@ -79,7 +79,7 @@ impl InputHistory {
             .enumerate()
             .filter(|(i, p)| {
                 if *i >= first_recent {
-                    (last - i) % thin == 0
+                    (last - i).is_multiple_of(thin)
                 } else {
                     on_grid(p)
                 }
