@@ -7,7 +7,7 @@ use sim_fem::{
     ElementDesc, FemDesc, FemSystem, LinearSolver, Model, RotationSourceDesc, ShapeRef, StepStats,
 };
 use sim_lattice::{Embedding, Lattice, LatticeParams, NodeId, ShapeKey, TetId, TopologyEvent};
-use sim_scene::{Aabb, BodyShape, InclusionShape, LoadedScene, TriMesh};
+use sim_scene::{Aabb, BodyShape, Containment, InclusionShape, LoadedScene, TriMesh};
 
 use crate::attach::Attachments;
 use crate::cut::TopologyLog;
@@ -58,7 +58,9 @@ struct MaterialMap {
 #[derive(Clone, Debug)]
 enum Region {
     Box(Aabb),
-    Mesh(Box<TriMesh>),
+    /// A closed mesh's inside, with the grid that answers most queries
+    /// ([`sim_scene::Containment`]: new tets come by the hundred when the lattice refines).
+    Mesh(Box<sim_scene::Containment>),
     Capsules(Vec<sim_scene::Capsule>),
 }
 
@@ -218,7 +220,8 @@ impl Simulation {
                     let tmp = Lattice::from_surface(params, &mesh.vertices, &mesh.triangles)?;
                     cells.extend_from_slice(tmp.cells());
                     surface_meshes.push((body.name.clone(), mesh.clone()));
-                    map.bodies.push((Region::Mesh(Box::new(mesh.clone())), mat));
+                    map.bodies
+                        .push((Region::Mesh(Box::new(Containment::new(mesh.clone()))), mat));
                 }
             }
             for inc in &body.inclusions {
@@ -227,7 +230,7 @@ impl Simulation {
                 })?;
                 let region = match inc.shape() {
                     InclusionShape::Capsules(c) => Region::Capsules(c.to_vec()),
-                    InclusionShape::Mesh(path) => Region::Mesh(Box::new(
+                    InclusionShape::Mesh(path) => Region::Mesh(Box::new(Containment::new(
                         scene
                             .mesh(path)
                             .ok_or_else(|| {
@@ -238,7 +241,7 @@ impl Simulation {
                                 )
                             })?
                             .clone(),
-                    )),
+                    ))),
                 };
                 map.inclusions.push((region, mi, inc.refine_boundary));
             }

@@ -27,12 +27,14 @@
 #![warn(missing_docs)]
 
 pub mod builtin;
+pub mod containment;
 pub mod mesh;
 pub mod scene;
 pub mod script;
 pub mod surf;
 pub mod vtk;
 
+pub use containment::Containment;
 pub use mesh::{MeshError, MeshFormat, TriMesh};
 pub use scene::{
     Aabb, Attachment, Body, BodyShape, CameraSpec, Capsule, DEFAULT_CAMERA_FOV_DEG, FORMAT_VERSION,
