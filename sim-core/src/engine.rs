@@ -450,7 +450,7 @@ impl Simulation {
             LinearSolver::MgPcg => true,
             LinearSolver::Auto => match self.auto_multigrid {
                 Some(chosen) => chosen,
-                None => free > sim_fem::mg::MgParams::default().coarsest_nodes,
+                None => free > sim_fem::AUTO_MG_MIN_FREE_NODES,
             },
             LinearSolver::JacobiPcg | LinearSolver::Direct => false,
         };

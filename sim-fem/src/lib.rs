@@ -27,9 +27,10 @@ pub use polar::{
 };
 pub use solver::{CgResult, SolverParams};
 pub use system::{
-    AUTO_MG_ABOVE_JACOBI_ITERATIONS, ElementDesc, FALLBACK_NEWTON, FemDesc, FemSystem,
-    LinearSolver, Material, NewtonParams, OperatorMode, RotationSourceDesc, ShapeRef, StaticParams,
-    StaticStats, StepParams, StepStats, StiffnessMode, TemplateInfo, UnknownLinearSolver,
+    AUTO_MG_ABOVE_JACOBI_ITERATIONS, AUTO_MG_MIN_FREE_NODES, ElementDesc, FALLBACK_NEWTON, FemDesc,
+    FemSystem, LinearSolver, Material, NewtonParams, OperatorMode, RotationSourceDesc, ShapeRef,
+    StaticParams, StaticStats, StepParams, StepStats, StiffnessMode, TemplateInfo,
+    UnknownLinearSolver,
 };
 
 /// Errors of this crate.

@@ -29,7 +29,15 @@ impl Default for MgParams {
     fn default() -> Self {
         Self {
             smoothing_steps: 1,
-            coarsest_nodes: 200,
+            // 100, not the 200 it was: on the 1.33 cm organ (1,198 nodes, the liver's
+            // upper half fixed) 200 stopped at a coarsest level of 143 nodes, whose dense
+            // factorisation (every coarse refresh) and triangular solves (every V-cycle)
+            // took 23 % of the step, and every refresh step ran past 4 ms. At 100 the
+            // hierarchy goes on to 48 nodes: p50 3.4–3.6 → 2.8 ms, steps over 4 ms
+            // 586–686 → 39 of 2,000, 13.0 → 13.2 iterations (`cosurg run --cell
+            // 0.013333333 --script --solver mg-pcg`, 2026-11-28). The beams' coarsest
+            // levels (72 and 81 nodes) are under both floors and stay as they were.
+            coarsest_nodes: 100,
             direct_max_nodes: 800,
         }
     }

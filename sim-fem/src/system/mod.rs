@@ -50,7 +50,7 @@ use nalgebra::{Matrix3, Vector3};
 
 pub use crate::model::Model;
 pub use desc::{ElementDesc, FemDesc, Material, RotationSourceDesc, ShapeRef, TemplateInfo};
-pub use multigrid::AUTO_MG_ABOVE_JACOBI_ITERATIONS;
+pub use multigrid::{AUTO_MG_ABOVE_JACOBI_ITERATIONS, AUTO_MG_MIN_FREE_NODES};
 pub use statics::{StaticParams, StaticStats};
 pub use step::StepStats;
 pub use step_params::{

@@ -18,6 +18,12 @@ use crate::system::{LinearSolver, StepParams};
 /// or fewer.
 pub const AUTO_MG_ABOVE_JACOBI_ITERATIONS: usize = 64;
 
+/// [`LinearSolver::Auto`] considers MG-PCG only for systems with more free nodes than
+/// this. The crossover above was measured when the V-cycle stopped descending at 200
+/// nodes, so that smaller systems had no coarse level; the default organ (170 free nodes
+/// on 2 cm cells) stays on Jacobi-PCG, as measured.
+pub const AUTO_MG_MIN_FREE_NODES: usize = 200;
+
 /// A built preconditioner and its age.
 #[derive(Clone, Debug)]
 pub(super) struct MgCache {
@@ -71,9 +77,8 @@ impl FemSystem {
 
     /// After the first Jacobi-PCG solve that iterated, under [`LinearSolver::Auto`]:
     /// chooses MG-PCG for good if the solve needed more than
-    /// [`AUTO_MG_ABOVE_JACOBI_ITERATIONS`] iterations and the V-cycle would have a coarse
-    /// level (a hierarchy is set and there are more free nodes than its coarsest level
-    /// holds), else Jacobi-PCG for good.
+    /// [`AUTO_MG_ABOVE_JACOBI_ITERATIONS`] iterations, a hierarchy is set and there are
+    /// more than [`AUTO_MG_MIN_FREE_NODES`] free nodes, else Jacobi-PCG for good.
     pub(super) fn auto_observe_jacobi(&mut self, p: &StepParams, res: &CgResult) {
         // A solve with nothing to solve (a zero right-hand side: no load yet) says
         // nothing about the system; the next one decides.
@@ -87,7 +92,7 @@ impl FemSystem {
         let needed = jacobi_iterations_needed(res, p.solver.tol);
         let multigrid = needed > AUTO_MG_ABOVE_JACOBI_ITERATIONS as f64
             && self.caches.mg_hierarchy.is_some()
-            && free > MgParams::default().coarsest_nodes;
+            && free > AUTO_MG_MIN_FREE_NODES;
         tracing::info!(
             jacobi_iterations = res.iterations,
             residual = res.relative_residual,

@@ -54,7 +54,8 @@ pub enum LinearSolver {
     Direct,
     /// Chosen on the first solve, which runs Jacobi-PCG: MG-PCG from then on if that solve
     /// needed more than [`crate::AUTO_MG_ABOVE_JACOBI_ITERATIONS`] iterations to the
-    /// tolerance and the V-cycle would have a coarse level, else Jacobi-PCG: the crossover
+    /// tolerance and the system has more than [`crate::AUTO_MG_MIN_FREE_NODES`] free
+    /// nodes, else Jacobi-PCG: the crossover
     /// measured in `cosurg bench scale` (docs/RESULTS.md, "Choosing the solver"). Chosen
     /// once, so that sites starting from the same state with the same CG budget choose
     /// alike (a site that joins late decides on the state it joins at, and a budget that
