@@ -59,8 +59,8 @@ struct MaterialMap {
 enum Region {
     Box(Aabb),
     /// A closed mesh's inside, with the grid that answers most queries
-    /// ([`sim_scene::Containment`]: new tets come by the hundred when the lattice refines).
-    Mesh(Box<sim_scene::Containment>),
+    /// ([`Containment`]: new tets come by the hundred when the lattice refines).
+    Mesh(Box<Containment>),
     Capsules(Vec<sim_scene::Capsule>),
 }
 
@@ -443,8 +443,8 @@ impl Simulation {
             fixed: fixed.clone(),
             rotation_sources,
         })?;
-        // Auto needs the hierarchy where it chose MG-PCG, and before it chooses where the
-        // V-cycle would have a coarse level.
+        // Auto needs the hierarchy where it chose MG-PCG, and before it chooses where it
+        // could choose it (more than `AUTO_MG_MIN_FREE_NODES` free nodes).
         let free = fixed.iter().filter(|f| !**f).count();
         let wants_hierarchy = match self.options.step.linear_solver {
             LinearSolver::MgPcg => true,

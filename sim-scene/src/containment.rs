@@ -13,9 +13,9 @@
 //! the same integer everywhere in it. Each such set (the inside, the outside, a cavity)
 //! is labelled once by one exact winding number; a point in one of its cells gets that
 //! label, a point in a cell the surface may cross gets its own exact winding number, and a
-//! point outside the grid (which covers the mesh's bounding box) is outside. Meshes that
-//! are not closed (their generalised winding number varies off the surface) are always
-//! evaluated exactly.
+//! point outside the grid (which covers the mesh's bounding box) is outside. This holds
+//! for closed, consistently oriented meshes (what scene loading accepts); for any other
+//! mesh the generalised winding number varies off the surface, and every query is exact.
 
 use nalgebra::Vector3;
 
@@ -41,7 +41,8 @@ enum Cell {
 #[derive(Clone, Debug)]
 pub struct Containment {
     mesh: TriMesh,
-    /// `None`: no grid (the mesh is empty or not closed); every query is exact.
+    /// `None`: no grid (the mesh is empty, not closed or not consistently oriented);
+    /// every query is exact.
     grid: Option<Grid>,
 }
 
@@ -90,9 +91,10 @@ impl Grid {
 }
 
 impl Containment {
-    /// The grid for `mesh` (kept); for an empty or open mesh, no grid.
+    /// The grid for `mesh` (kept); for an empty, open or inconsistently oriented mesh, no
+    /// grid.
     pub fn new(mesh: TriMesh) -> Self {
-        let grid = (mesh.is_closed())
+        let grid = (mesh.is_closed() && mesh.is_consistently_oriented())
             .then(|| mesh.bounding_box())
             .flatten()
             .map(|bb| build_grid(&mesh, bb.min, bb.max));
@@ -133,8 +135,9 @@ fn build_grid(mesh: &TriMesh, min: V3, max: V3) -> Grid {
     } else {
         1e-3
     };
-    // One cell of margin on every side: the outside reaches around the mesh, so that it
-    // is one connected set.
+    // One cell of margin on every side, so that the grid covers the bounding box with
+    // room to spare (a surface on the box's faces marks the margin's cells too, which
+    // may split the outside into several sets: each is labelled, only the count grows).
     let origin = min - V3::repeat(cell);
     let dims: [usize; 3] = std::array::from_fn(|ax| (extent[ax] / cell).ceil() as usize + 3);
     let mut g = Grid {
@@ -260,6 +263,87 @@ mod tests {
             .enumerate()
         {
             agrees_with_the_winding_number(organ_mesh(name), i as u64);
+        }
+    }
+
+    /// A box `[lo, hi]³` as 12 triangles, outward (or inward when `inward`).
+    fn cube(lo: f64, hi: f64, inward: bool) -> TriMesh {
+        let mut m = crate::mesh::tests::cube();
+        for v in &mut m.vertices {
+            *v = v.map(|c| lo + c * (hi - lo));
+        }
+        if inward {
+            m.flip();
+        }
+        m
+    }
+
+    fn join(a: &TriMesh, b: &TriMesh) -> TriMesh {
+        let n = a.vertices.len() as u32;
+        TriMesh {
+            vertices: a.vertices.iter().chain(&b.vertices).copied().collect(),
+            triangles: a
+                .triangles
+                .iter()
+                .copied()
+                .chain(b.triangles.iter().map(|t| t.map(|v| v + n)))
+                .collect(),
+        }
+    }
+
+    /// Every point of a lattice through and around `mesh`'s box, on and between cell
+    /// corners: the grid's answers against the winding number's; returns how many were
+    /// inside.
+    fn agrees_on_a_lattice(mesh: &TriMesh) -> usize {
+        let c = Containment::new(mesh.clone());
+        assert!(c.grid.is_some());
+        let bb = mesh.bounding_box().unwrap();
+        let mut inside = 0;
+        for i in -3..=43 {
+            for j in -3..=43 {
+                for k in [-2, 0, 7, 20, 21, 33, 40, 42] {
+                    let f = |n: i32, ax: usize| {
+                        bb.min[ax] + (bb.max[ax] - bb.min[ax]) * f64::from(n) / 40.0
+                    };
+                    let p = V3::new(f(i, 0), f(j, 1), f(k, 2));
+                    let want = mesh.contains(&p);
+                    assert_eq!(c.contains(&p), want, "at {p:?}");
+                    inside += usize::from(want);
+                }
+            }
+        }
+        inside
+    }
+
+    #[test]
+    fn cavities_and_separate_shells_are_labelled_apart() {
+        // A box with an inward-facing box inside it (a hollow shell), and two separate
+        // boxes: the cavity and the gap between the boxes are outside.
+        let hollow = join(&cube(0.0, 1.0, false), &cube(0.3, 0.7, true));
+        let inside = agrees_on_a_lattice(&hollow);
+        assert!(inside > 0);
+        assert!(!Containment::new(hollow.clone()).contains(&V3::repeat(0.5)));
+        assert!(Containment::new(hollow).contains(&V3::new(0.15, 0.5, 0.5)));
+        let two = join(&cube(0.0, 0.4, false), &cube(0.6, 1.0, false));
+        assert!(agrees_on_a_lattice(&two) > 0);
+        assert!(!Containment::new(two).contains(&V3::repeat(0.5)));
+    }
+
+    #[test]
+    fn a_mesh_with_a_flipped_triangle_gets_no_grid() {
+        // Closed, but its winding number is no longer a whole number off the surface, so
+        // one label per set of cells would be wrong: every query is exact.
+        let mut m = cube(0.0, 1.0, false);
+        m.triangles[0].swap(1, 2);
+        assert!(m.is_closed() && !m.is_consistently_oriented());
+        let c = Containment::new(m.clone());
+        assert!(c.grid.is_none());
+        for p in [
+            V3::new(0.2, 0.8, 0.03),
+            V3::repeat(0.5),
+            V3::new(0.2, 0.8, -0.03),
+        ] {
+            assert_eq!(c.contains(&p), m.contains(&p));
         }
     }
 
