@@ -37,9 +37,31 @@ fn summary(out: &Output) -> (String, usize) {
     (hash, tets)
 }
 
+/// `(p50, p99, max)` step times (ms) from the run's result line on stdout: `simulated T s
+/// in N steps: step p50 A ms, p99 B ms, max C ms`.
+fn step_times(out: &Output) -> (f64, f64, f64) {
+    let text = String::from_utf8_lossy(&out.stdout);
+    let line = text
+        .lines()
+        .find(|l| l.starts_with("simulated "))
+        .unwrap_or_else(|| panic!("no result line in {text:?}"));
+    let after = |key: &str| -> f64 {
+        line.split(key)
+            .nth(1)
+            .and_then(|r| r.split(' ').next())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("no {key:?} in {line:?}"))
+    };
+    (after("p50 "), after("p99 "), after("max "))
+}
+
 #[test]
 fn a_finer_cell_gives_more_tets_and_another_scene_hash() {
-    let (hash_2cm, tets_2cm) = summary(&run(&[]));
+    let out = run(&[]);
+    // The result line names the longest step, which bounds the percentiles.
+    let (p50, p99, max) = step_times(&out);
+    assert!(0.0 < p50 && p50 <= p99 && p99 <= max, "{p50} {p99} {max}");
+    let (hash_2cm, tets_2cm) = summary(&out);
     let (hash_fine, tets_fine) = summary(&run(&["--cell", "0.013333333"]));
     assert_ne!(hash_2cm, hash_fine, "the scene hash names the cell size");
     // (2 / 1.33)^3 ≈ 3.4 times the cells; the bodies' boundaries are refined alike.
