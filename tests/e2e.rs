@@ -153,6 +153,17 @@ fn assert_receiver_follows(
     motion: MotionBound,
     what: &str,
 ) {
+    for r in [&owner, &receiver] {
+        // A site reports its longest step, which bounds its percentiles.
+        assert!(
+            0.0 < r.step_ms_p50 && r.step_ms_p50 <= r.step_ms_p99 && r.step_ms_p99 <= r.step_ms_max,
+            "{}: step p50 {} p99 {} max {} ms",
+            r.name,
+            r.step_ms_p50,
+            r.step_ms_p99,
+            r.step_ms_max
+        );
+    }
     let owner_surf = owner.surf_file.clone();
     let mut reports = vec![owner, receiver];
     let series = fill_divergence(&mut reports).unwrap();

@@ -191,6 +191,8 @@ pub struct SiteRow {
     pub sim_rate_hz: f64,
     pub step_ms_p50: f64,
     pub step_ms_p99: f64,
+    /// The longest step (ms).
+    pub step_ms_max: f64,
     pub keyframes_sent: u64,
     pub keyframes_received: u64,
     pub up_bytes_per_s: f64,
@@ -542,6 +544,7 @@ pub fn demo(args: DemoArgs) -> Result<()> {
             sim_rate_hz: r.sim_rate_hz,
             step_ms_p50: r.step_ms_p50,
             step_ms_p99: r.step_ms_p99,
+            step_ms_max: r.step_ms_max,
             keyframes_sent: r.keyframes_sent,
             keyframes_received: r.keyframes_received,
             up_bytes_per_s: r.up_bytes_per_s,
@@ -602,12 +605,13 @@ pub fn demo(args: DemoArgs) -> Result<()> {
 
 fn print_table(s: &DemoSummary) {
     println!(
-        "\n{:<12} {:<10} {:>9} {:>9} {:>9} {:>7} {:>7} {:>10} {:>10} {:>9} {:>9}",
+        "\n{:<12} {:<10} {:>9} {:>9} {:>9} {:>9} {:>7} {:>7} {:>10} {:>10} {:>9} {:>9}",
         "site",
         "role",
         "rate Hz",
         "p50 ms",
         "p99 ms",
+        "max ms",
         "kf out",
         "kf in",
         "up B/s",
@@ -617,12 +621,13 @@ fn print_table(s: &DemoSummary) {
     );
     for r in &s.sites {
         println!(
-            "{:<12} {:<10} {:>9.0} {:>9.3} {:>9.3} {:>7} {:>7} {:>10.0} {:>10.0} {:>6.2} mm {:>6.2} mm",
+            "{:<12} {:<10} {:>9.0} {:>9.3} {:>9.3} {:>9.3} {:>7} {:>7} {:>10.0} {:>10.0} {:>6.2} mm {:>6.2} mm",
             r.name,
             r.role,
             r.sim_rate_hz,
             r.step_ms_p50,
             r.step_ms_p99,
+            r.step_ms_max,
             r.keyframes_sent,
             r.keyframes_received,
             r.up_bytes_per_s,

@@ -449,7 +449,7 @@ pub fn print_report(r: &SiteReport, json: bool) -> Result<()> {
         println!("{}", serde_json::to_string(r)?);
     } else {
         println!(
-            "site {} ({}, {}): {:.2} s simulated in {:.2} s wall, {:.0} steps/s, step p50 {:.3} ms p99 {:.3} ms, keyframes sent {} received {} applied {}, up {:.0} B/s down {:.0} B/s",
+            "site {} ({}, {}): {:.2} s simulated in {:.2} s wall, {:.0} steps/s, step p50 {:.3} ms p99 {:.3} ms max {:.3} ms, keyframes sent {} received {} applied {}, up {:.0} B/s down {:.0} B/s",
             r.name,
             r.role,
             r.strategy,
@@ -458,6 +458,7 @@ pub fn print_report(r: &SiteReport, json: bool) -> Result<()> {
             r.sim_rate_hz,
             r.step_ms_p50,
             r.step_ms_p99,
+            r.step_ms_max,
             r.keyframes_sent,
             r.keyframes_received,
             r.keyframes_applied,

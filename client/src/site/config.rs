@@ -146,6 +146,10 @@ pub struct SiteReport {
     pub sim_rate_hz: f64,
     pub step_ms_p50: f64,
     pub step_ms_p99: f64,
+    /// The longest step (ms): a hitch the user feels (a refinement, a rebuild) shows
+    /// here before it shows in p99. Absent from reports of earlier versions.
+    #[serde(default)]
+    pub step_ms_max: f64,
     /// Wall time of the session recording's work per step (ms), p50 and p99; `None`
     /// when not recording.
     #[serde(default)]
