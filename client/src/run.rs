@@ -222,7 +222,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         steps,
         percentile(&step_ms, 50.0),
         percentile(&step_ms, 99.0),
-        step_ms.iter().copied().fold(0.0, f64::max)
+        percentile(&step_ms, 100.0)
     );
     for (solver, (n, iterations)) in &solves {
         println!(

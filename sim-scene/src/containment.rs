@@ -5,7 +5,7 @@
 //! Why: the engine gives every new tet the material of the region its centroid lies in,
 //! by winding number over every triangle of the region's mesh (5,120 on the liver). When
 //! the lattice refines under a grasping tool, hundreds of tets appear in one step: on the
-//! 1.33 cm organ that step took 66–70 ms, and the refinements every tenth step 7–17 ms,
+//! 1.33 cm organ that step took 65–72 ms, and the refinements every tenth step 7–17 ms,
 //! against a 4 ms budget (`cosurg run --cell 0.013333333 --script`, 2026-11-28).
 //!
 //! How: a cell that no triangle's bounding box touches holds no part of the surface, and
@@ -101,11 +101,6 @@ impl Containment {
         Self { mesh, grid }
     }
 
-    /// The mesh.
-    pub fn mesh(&self) -> &TriMesh {
-        &self.mesh
-    }
-
     /// True when `p` is inside the mesh, as [`TriMesh::contains`] says.
     pub fn contains(&self, p: &V3) -> bool {
         let Some(g) = &self.grid else {
@@ -118,9 +113,9 @@ impl Containment {
         }
     }
 
-    /// Share of the grid's cells that need the exact winding number (for tests and logs;
-    /// 1 without a grid).
-    pub fn surface_fraction(&self) -> f64 {
+    /// Share of the grid's cells that need the exact winding number (1 without a grid).
+    #[cfg(test)]
+    fn surface_fraction(&self) -> f64 {
         self.grid.as_ref().map_or(1.0, |g| {
             g.cells.iter().filter(|c| **c == Cell::Surface).count() as f64 / g.cells.len() as f64
         })

@@ -33,8 +33,9 @@ impl Default for MgParams {
             // upper half fixed) 200 stopped at a coarsest level of 143 nodes, whose dense
             // factorisation (every coarse refresh) and triangular solves (every V-cycle)
             // took 23 % of the step, and every refresh step ran past 4 ms. At 100 the
-            // hierarchy goes on to 48 nodes: p50 3.4–3.6 → 2.8 ms, steps over 4 ms
-            // 586–686 → 39 of 2,000, 13.0 → 13.2 iterations (`cosurg run --cell
+            // hierarchy goes on to 48 nodes: p50 3.55–3.63 → 2.80–3.34 ms, steps over
+            // 4 ms 586–686 → 39–309 of 2,000 (the 309 a disturbed run), 13.0 → 13.2
+            // iterations, two interleaved pairs (`cosurg run --cell
             // 0.013333333 --script --solver mg-pcg`, 2026-11-28). The beams' coarsest
             // levels (72 and 81 nodes) are under both floors and stay as they were.
             coarsest_nodes: 100,
