@@ -163,16 +163,20 @@ impl RotationExtractor for ByersXu {
             Some((a, b)) if a > 0.0 && b >= a && b.is_finite() => (a, b),
             _ => (det.abs() / cof.norm(), f.norm()),
         };
+        // Reciprocals, not divisions: a 3×3 matrix over a scalar is nine divisions, and
+        // they were most of an iteration's latency (`benches/polar.rs`). The stopping test
+        // compares squares, so no square root either.
         let mut x = *f;
-        let mut xinvt = cof / det;
+        let mut xinvt = cof * (1.0 / det);
         let mut zeta = 1.0 / (a * b).sqrt();
         let mut iterations = 0;
+        let tol_sq = self.tol * self.tol;
         for k in 0..self.max_iters {
-            let xn = (x * zeta + xinvt / zeta) * 0.5;
-            let diff = (xn - x).norm();
+            let xn = x * (0.5 * zeta) + xinvt * (0.5 / zeta);
+            let diff_sq = (xn - x).norm_squared();
             x = xn;
             iterations = k + 1;
-            if diff < self.tol {
+            if diff_sq < tol_sq {
                 break;
             }
             zeta = if k == 0 {
@@ -181,7 +185,7 @@ impl RotationExtractor for ByersXu {
                 (2.0 / (zeta + 1.0 / zeta)).sqrt()
             };
             let (c, d) = cofactor(&x);
-            xinvt = c / d;
+            xinvt = c * (1.0 / d);
         }
         let inverted = det < 0.0;
         let rotation = if inverted {
