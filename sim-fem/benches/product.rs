@@ -4,7 +4,7 @@
 //! full-row product needs. A step makes one copy and one product per CG iteration.
 
 use cosurg_sim_fem::mesh::kuhn_box;
-use cosurg_sim_fem::solver::{BlockPattern, PaddedBlock};
+use cosurg_sim_fem::solver::{BlockPattern, RowBlock};
 use divan::Bencher;
 use nalgebra::{Matrix3, Vector3};
 use rand::{Rng, SeedableRng};
@@ -60,6 +60,6 @@ fn full_row_product(bencher: Bencher, cells: [usize; 3]) {
 #[divan::bench(args = CELLS)]
 fn copy_into_full_rows(bencher: Bencher, cells: [usize; 3]) {
     let (pat, upper, _) = setup(cells);
-    let mut full: Vec<PaddedBlock> = pat.full_rows(&upper);
+    let mut full: Vec<RowBlock> = pat.full_rows(&upper);
     bencher.bench_local(|| pat.full_rows_into(&upper, &mut full));
 }

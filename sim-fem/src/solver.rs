@@ -4,7 +4,7 @@
 use nalgebra::{Matrix3, Vector3};
 
 mod full_product;
-pub use full_product::PaddedBlock;
+pub use full_product::RowBlock;
 
 type V3 = Vector3<f64>;
 

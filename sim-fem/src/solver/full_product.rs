@@ -1,7 +1,15 @@
 //! CG's sparse product by full rows: the symmetric operator's upper blocks copied once per
 //! step into every row in full (the lower ones transposed), each block as its three
-//! columns padded to four lanes, so that `(A p)_i = Σ_j A_ij p_j` is three lane-wise
-//! multiply-adds per block with the broadcast components of `p_j`.
+//! columns (nine f64, column-major), so that `(A p)_i = Σ_j A_ij p_j` is three lane-wise
+//! multiply-adds per block with the broadcast components of `p_j`: a column is read as
+//! four lanes starting at its first entry, the fourth lane (the next column's first entry,
+//! or nothing for the last column: a masked load) accumulating a sum that is thrown away.
+//!
+//! Why nine and not twelve f64 per block (each column padded to four lanes, as until
+//! 2026-11-28): the product streams the whole matrix every CG iteration and is bound by
+//! that stream, not by its arithmetic. At 72 instead of 96 bytes per block the 5,184-tet
+//! beam's matrix is 1.1 MB, about what the level-2 cache of this machine's cores holds
+//! (1 MiB), against 1.47 MB (`benches/product.rs`, measured in docs/RESULTS.md).
 //!
 //! Why: the symmetric upper product ([`BlockPattern::multiply_upper`]) does 36 scalar
 //! flops per stored block, half of them for the transposed product it scatters to another
@@ -22,15 +30,15 @@ use super::BlockPattern;
 
 type V3 = Vector3<f64>;
 
-/// A 3×3 block as its columns, `[a_00, a_10, a_20, 0, a_01, a_11, a_21, 0, a_02, …]`.
-pub type PaddedBlock = [f64; 12];
+/// A 3×3 block as its columns, `[a_00, a_10, a_20, a_01, a_11, a_21, a_02, a_12, a_22]`.
+pub type RowBlock = [f64; 9];
 
 impl BlockPattern {
     /// The full rows of the symmetric matrix whose blocks on and above the diagonal are
     /// `upper` (slot-indexed as [`BlockPattern::multiply_upper`] reads them), into `out`
-    /// (its storage reused): one padded block per slot of the pattern, below-diagonal
-    /// slots taken from their mirror, transposed.
-    pub fn full_rows_into(&self, upper: &[Matrix3<f64>], out: &mut Vec<PaddedBlock>) {
+    /// (its storage reused): one block per slot of the pattern, below-diagonal slots
+    /// taken from their mirror, transposed.
+    pub fn full_rows_into(&self, upper: &[Matrix3<f64>], out: &mut Vec<RowBlock>) {
         out.clear();
         out.reserve(self.cols.len());
         for i in 0..self.row_ptr.len() - 1 {
@@ -40,17 +48,15 @@ impl BlockPattern {
                 } else {
                     upper[self.mirror[s]].transpose()
                 };
-                // Column-major: columns at 0..3, 3..6, 6..9.
+                // nalgebra is column-major: columns at 0..3, 3..6, 6..9.
                 let c = b.as_slice();
-                out.push([
-                    c[0], c[1], c[2], 0.0, c[3], c[4], c[5], 0.0, c[6], c[7], c[8], 0.0,
-                ]);
+                out.push(std::array::from_fn(|k| c[k]));
             }
         }
     }
 
     /// [`BlockPattern::full_rows_into`] a new vector.
-    pub fn full_rows(&self, upper: &[Matrix3<f64>]) -> Vec<PaddedBlock> {
+    pub fn full_rows(&self, upper: &[Matrix3<f64>]) -> Vec<RowBlock> {
         let mut out = Vec::new();
         self.full_rows_into(upper, &mut out);
         out
@@ -58,7 +64,7 @@ impl BlockPattern {
 
     /// `out = A p` from [`BlockPattern::full_rows`]: vectorised where the CPU has AVX,
     /// with the same result bit for bit elsewhere.
-    pub fn multiply_full(&self, full: &[PaddedBlock], p: &[V3], out: &mut [V3]) {
+    pub fn multiply_full(&self, full: &[RowBlock], p: &[V3], out: &mut [V3]) {
         assert_eq!(full.len(), self.cols.len(), "full rows of this pattern");
         assert!(
             p.len() == out.len() && out.len() + 1 == self.row_ptr.len(),
@@ -75,7 +81,7 @@ impl BlockPattern {
     }
 
     /// [`BlockPattern::multiply_full`] in plain Rust (the reference order of operations).
-    pub(crate) fn multiply_full_portable(&self, full: &[PaddedBlock], p: &[V3], out: &mut [V3]) {
+    pub(crate) fn multiply_full_portable(&self, full: &[RowBlock], p: &[V3], out: &mut [V3]) {
         for (i, o) in out.iter_mut().enumerate() {
             let (mut a0, mut a1, mut a2) = ([0.0; 3], [0.0; 3], [0.0; 3]);
             let (from, to) = (self.row_ptr[i], self.row_ptr[i + 1]);
@@ -83,8 +89,8 @@ impl BlockPattern {
                 let pj = &p[j];
                 for l in 0..3 {
                     a0[l] += b[l] * pj.x;
-                    a1[l] += b[4 + l] * pj.y;
-                    a2[l] += b[8 + l] * pj.z;
+                    a1[l] += b[3 + l] * pj.y;
+                    a2[l] += b[6 + l] * pj.z;
                 }
             }
             *o = V3::new(
@@ -97,15 +103,21 @@ impl BlockPattern {
 
     /// [`BlockPattern::multiply_full`] on 4-lane AVX vectors.
     ///
+    /// (A second set of accumulators, for a row's odd blocks, did not make it faster on
+    /// this machine: the loop is bound by its loads, three of the block and three
+    /// broadcasts per block, not by the additions' latency.)
+    ///
     /// # Safety
     /// The CPU must support AVX.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx")]
-    pub(crate) unsafe fn multiply_full_avx(&self, full: &[PaddedBlock], p: &[V3], out: &mut [V3]) {
+    pub(crate) unsafe fn multiply_full_avx(&self, full: &[RowBlock], p: &[V3], out: &mut [V3]) {
         use std::arch::x86_64::{
-            _mm256_add_pd, _mm256_broadcast_sd, _mm256_loadu_pd, _mm256_mul_pd, _mm256_setzero_pd,
-            _mm256_storeu_pd,
+            _mm256_add_pd, _mm256_broadcast_sd, _mm256_loadu_pd, _mm256_maskload_pd, _mm256_mul_pd,
+            _mm256_set_epi64x, _mm256_setzero_pd, _mm256_storeu_pd,
         };
+        // Lanes 0–2 of the last column; lane 3 would read past the block.
+        let last = _mm256_set_epi64x(0, -1, -1, -1);
         for (i, o) in out.iter_mut().enumerate() {
             let (mut a0, mut a1, mut a2) = (
                 _mm256_setzero_pd(),
@@ -115,8 +127,9 @@ impl BlockPattern {
             let (from, to) = (self.row_ptr[i], self.row_ptr[i + 1]);
             for (b, &j) in full[from..to].iter().zip(&self.cols[from..to]) {
                 let pj = &p[j];
-                // SAFETY: `b` holds 12 f64 (three loads of four); the broadcasts read one
-                // f64 each of `pj`.
+                // SAFETY: `b` holds 9 f64: the loads at 0 and 3 read four of them each,
+                // the masked load at 6 reads three (the masked lane is not accessed); the
+                // broadcasts read one f64 each of `pj`.
                 unsafe {
                     let c = b.as_ptr();
                     a0 = _mm256_add_pd(
@@ -125,11 +138,14 @@ impl BlockPattern {
                     );
                     a1 = _mm256_add_pd(
                         a1,
-                        _mm256_mul_pd(_mm256_loadu_pd(c.add(4)), _mm256_broadcast_sd(&pj.y)),
+                        _mm256_mul_pd(_mm256_loadu_pd(c.add(3)), _mm256_broadcast_sd(&pj.y)),
                     );
                     a2 = _mm256_add_pd(
                         a2,
-                        _mm256_mul_pd(_mm256_loadu_pd(c.add(8)), _mm256_broadcast_sd(&pj.z)),
+                        _mm256_mul_pd(
+                            _mm256_maskload_pd(c.add(6), last),
+                            _mm256_broadcast_sd(&pj.z),
+                        ),
                     );
                 }
             }

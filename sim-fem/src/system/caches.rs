@@ -27,7 +27,7 @@ pub(super) struct Caches {
     pub(super) block_buf: Vec<Matrix3<f64>>,
     /// The same by full rows for the one-thread product, kept likewise (a new 1.7 MB
     /// buffer per step at 5,184 tets cost as much in page faults as the copy itself).
-    pub(super) full_buf: Vec<crate::solver::PaddedBlock>,
+    pub(super) full_buf: Vec<crate::solver::RowBlock>,
     /// Per-element rotated blocks of earlier assemblies (`element_blocks.rs`), kept while
     /// most rotations stay as they were.
     pub(super) element_blocks: Vec<super::element_blocks::CachedBlocks>,

@@ -12,7 +12,7 @@ use super::element_blocks::{
 use super::{FemSystem, V3, gather};
 use crate::element::{Mat12, apply_dense};
 use crate::parallel::{multiply_upper_parts, split_ranges};
-use crate::solver::{LinearOperator, PaddedBlock};
+use crate::solver::{LinearOperator, RowBlock};
 use crate::system::{OperatorMode, StiffnessMode};
 
 /// Element matrices entering a linear operator.
@@ -85,7 +85,7 @@ impl FemSystem {
 /// The storage an operator hands back for the next one ([`SysOp::into_buffers`]).
 pub(super) struct OperatorBuffers {
     pub(super) blocks: Vec<Matrix3<f64>>,
-    pub(super) full: Vec<PaddedBlock>,
+    pub(super) full: Vec<RowBlock>,
     pub(super) element_blocks: Vec<CachedBlocks>,
 }
 
@@ -101,8 +101,8 @@ pub(super) struct SysOp<'a> {
     /// ([`crate::solver::BlockPattern::full_rows_into`]), made at the first product in the
     /// storage of `full_spare` (the previous step's). `assembled` must not change after
     /// that product (only [`SysOp::assemble`], in `build_operator`, writes it).
-    full: OnceLock<Vec<PaddedBlock>>,
-    full_spare: Mutex<Vec<PaddedBlock>>,
+    full: OnceLock<Vec<RowBlock>>,
+    full_spare: Mutex<Vec<RowBlock>>,
     /// Per-element rotated blocks kept from earlier assemblies (one per element, or empty:
     /// not used this step; see `element_blocks.rs`).
     element_blocks: Vec<CachedBlocks>,
