@@ -132,12 +132,15 @@ pub fn pcg_with(
         x.iter_mut().for_each(|v| *v = V3::zeros());
         return CgResult::default();
     }
-    let mut r = vec![V3::zeros(); n];
-    op.apply(x, &mut r);
-    for i in 0..n {
-        r[i] = bb[i] - r[i];
+    // From zero (a cold start) the residual is `b` itself: no product.
+    let mut r = bb.clone();
+    if x.iter().any(|v| *v != V3::zeros()) {
+        op.apply(x, &mut r);
+        for i in 0..n {
+            r[i] = bb[i] - r[i];
+        }
+        project(&mut r, fixed);
     }
-    project(&mut r, fixed);
     // Guard the initial guess: keep it only if it lowers φ(x) = ½xᵀAx − bᵀx below
     // φ(0) = 0, i.e. −½ xᵀ(b + r) < 0.
     let phi0: f64 = -0.5
