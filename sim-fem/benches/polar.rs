@@ -77,3 +77,33 @@ fn warm_sequence_1000(bencher: divan::Bencher, name: &str) {
         its
     });
 }
+
+/// Byers–Xu on four gradients at once ([`ByersXu::extract4`]): the warm sequence above
+/// for four phase-shifted copies (per sequence of 1000 batches; divide by 4000 for per
+/// gradient).
+#[divan::bench(sample_count = 30)]
+fn byers_xu_four_at_once_1000(bencher: divan::Bencher) {
+    let m = ByersXu::default();
+    let axis = Vector3::new(0.3, -0.5, 0.8).normalize();
+    let seq: Vec<[Matrix3<f64>; 4]> = (0..1000)
+        .map(|k| {
+            std::array::from_fn(|l| {
+                let t = k as f64 * 0.01 + l as f64 * 0.37;
+                Rotation3::new(axis * t).into_inner()
+                    * Matrix3::from_diagonal(&Vector3::new(1.0 + 0.2 * (3.0 * t).sin(), 1.0, 0.9))
+            })
+        })
+        .collect();
+    bencher.bench_local(|| {
+        let mut bounds = [None; 4];
+        let mut its = 0;
+        for f in &seq {
+            let r = m.extract4(divan::black_box(f), &bounds);
+            for l in 0..4 {
+                bounds[l] = Some(r[l].sigma_bounds);
+                its += r[l].iterations;
+            }
+        }
+        its
+    });
+}

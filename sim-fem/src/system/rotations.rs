@@ -6,7 +6,7 @@ use nalgebra::Matrix3;
 use super::{FemSystem, V3, gather};
 use crate::FemError;
 use crate::element::edge_matrix;
-use crate::polar::{PolarMethod, RotationExtractor, WarmStart};
+use crate::polar::{ByersXu, PolarMethod, PolarResult, RotationExtractor, WarmStart};
 
 /// The rotation sources and the bookkeeping of their extraction passes.
 #[derive(Clone, Debug)]
@@ -234,6 +234,15 @@ impl FemSystem {
                 })
                 .reduce(ExtractCount::default, ExtractCount::merge);
             c = c.merge(counts);
+        } else if let PolarMethod::ByersXu(bx) = polar {
+            extract_batched(
+                &mut self.rotations.sources,
+                x,
+                bx,
+                rest_threshold,
+                pass,
+                &mut c,
+            );
         } else {
             for s in &mut self.rotations.sources {
                 visit(s, &mut c);
@@ -245,15 +254,76 @@ impl FemSystem {
     }
 }
 
-/// Extract (or, at rest, reuse) one source's rotation at `x` and mark it fresh.
-pub(super) fn extract_source(
-    s: &mut Source,
+/// The single-thread pass of [`FemSystem::update_rotations`] with Byers–Xu: the sources
+/// to extract go four at a time through [`ByersXu::extract4`], which gives each the bits
+/// [`extract_source`] would (so the rotations do not depend on the batching).
+fn extract_batched(
+    sources: &mut [Source],
     x: &[V3],
-    polar: &PolarMethod,
+    bx: &ByersXu,
     rest_threshold: f64,
     pass: u64,
     c: &mut ExtractCount,
 ) {
+    let mut batch: Vec<(usize, Matrix3<f64>, [V3; 4])> = Vec::with_capacity(4);
+    let flush = |batch: &mut Vec<(usize, Matrix3<f64>, [V3; 4])>,
+                 sources: &mut [Source],
+                 c: &mut ExtractCount| {
+        if batch.len() == 4 {
+            let f = std::array::from_fn(|l| batch[l].1);
+            let warm = std::array::from_fn(|l| sources[batch[l].0].warm().sigma_bounds);
+            let out = bx.extract4(&f, &warm);
+            for ((i, _, xs), r) in batch.drain(..).zip(out) {
+                record(&mut sources[i], r, xs, pass, c);
+            }
+        } else {
+            for (i, f, xs) in batch.drain(..) {
+                let r = bx.extract(&f, Some(&sources[i].warm()));
+                record(&mut sources[i], r, xs, pass, c);
+            }
+        }
+    };
+    for i in 0..sources.len() {
+        let s = &mut sources[i];
+        if s.fresh {
+            s.fresh = false;
+            continue;
+        }
+        if s.users == 0 {
+            continue;
+        }
+        let prepared = prepare_source(s, x, rest_threshold, c);
+        s.fresh = false;
+        if let Some((f, xs)) = prepared {
+            batch.push((i, f, xs));
+            if batch.len() == 4 {
+                flush(&mut batch, sources, c);
+            }
+        }
+    }
+    flush(&mut batch, sources, c);
+}
+
+impl Source {
+    /// The warm start of its next extraction: its last rotation and singular value
+    /// bounds, if it has been extracted.
+    fn warm(&self) -> WarmStart {
+        WarmStart {
+            rotation: self.valid.then_some(self.rotation),
+            sigma_bounds: if self.valid { self.sigma } else { None },
+        }
+    }
+}
+
+/// Marks the source fresh; at rest (every node within `rest_threshold` of where it was
+/// extracted) counts a reuse and returns `None`, else its gradient `F` at `x` and its
+/// nodes' positions.
+fn prepare_source(
+    s: &mut Source,
+    x: &[V3],
+    rest_threshold: f64,
+    c: &mut ExtractCount,
+) -> Option<(Matrix3<f64>, [V3; 4])> {
     let xs = gather(x, &s.nodes);
     s.fresh = true;
     let thr2 = rest_threshold * rest_threshold;
@@ -265,14 +335,29 @@ pub(super) fn extract_source(
             .all(|(a, b)| (a - b).norm_squared() < thr2)
     {
         c.reused += 1;
-        return;
+        return None;
     }
-    let f = edge_matrix(&xs) * s.dm_inv;
-    let warm = WarmStart {
-        rotation: s.valid.then_some(s.rotation),
-        sigma_bounds: if s.valid { s.sigma } else { None },
+    Some((edge_matrix(&xs) * s.dm_inv, xs))
+}
+
+/// Extract (or, at rest, reuse) one source's rotation at `x` and mark it fresh.
+pub(super) fn extract_source(
+    s: &mut Source,
+    x: &[V3],
+    polar: &PolarMethod,
+    rest_threshold: f64,
+    pass: u64,
+    c: &mut ExtractCount,
+) {
+    let Some((f, xs)) = prepare_source(s, x, rest_threshold, c) else {
+        return;
     };
-    let r = polar.extract(&f, Some(&warm));
+    let r = polar.extract(&f, Some(&s.warm()));
+    record(s, r, xs, pass, c);
+}
+
+/// Stores an extraction's result in its source and counts it.
+fn record(s: &mut Source, r: PolarResult, xs: [V3; 4], pass: u64, c: &mut ExtractCount) {
     // Rotation change per step; a source not extracted in the previous pass (e.g. one
     // that was shared) has no meaningful previous rotation.
     if s.valid && s.pass + 1 >= pass {

@@ -20,6 +20,9 @@
 
 use nalgebra::{Matrix3, SymmetricEigen, Unit, UnitQuaternion, Vector3};
 
+mod byers_xu;
+pub use byers_xu::ByersXu;
+
 /// Relative determinant below which `F` counts as degenerate (rank < 3 numerically).
 pub const DEGENERATE_DET: f64 = 1e-14;
 
@@ -122,86 +125,6 @@ fn svd_fallback(f: &Matrix3<f64>, det: f64) -> PolarResult {
         iterations: 0,
         inverted: det <= 0.0,
         sigma_bounds: (0.0, f.norm()),
-    }
-}
-
-/// Byers & Xu (2008) scaled Newton iteration for the polar factor
-/// `X₀ = F`, `X_{k+1} = ½(ζ_k X_k + ζ_k⁻¹ X_k⁻ᵀ)`, with `ζ₀ = 1/√(ab)`,
-/// `ζ₁ = √(2√(ab)/(a+b))`, `ζ_k = √(2/(ζ_{k−1} + ζ_{k−1}⁻¹))`.
-///
-/// Cold bounds: `a = 1/‖F⁻¹‖_F = |det F| / ‖cof F‖_F ≤ σ_min`, `b = ‖F‖_F ≥ σ_max`.
-/// Stops when `‖X_{k+1} − X_k‖_F < tol`; near convergence Newton is quadratic,
-/// `‖X_{k+1} − Q‖ ≈ ½‖X_k − Q‖² ≈ ½‖X_{k+1} − X_k‖²`, so the returned factor is
-/// orthogonal to about `tol²` (plus rounding).
-#[derive(Clone, Copy, Debug)]
-pub struct ByersXu {
-    /// Stopping threshold on `‖X_{k+1} − X_k‖_F` (dimensionless).
-    pub tol: f64,
-    /// Iteration cap (Byers–Xu converge in ≤ 9 iterations in double precision).
-    pub max_iters: u32,
-}
-
-impl Default for ByersXu {
-    fn default() -> Self {
-        Self {
-            tol: 1e-8,
-            max_iters: 20,
-        }
-    }
-}
-
-impl RotationExtractor for ByersXu {
-    fn extract(&self, f: &Matrix3<f64>, warm: Option<&WarmStart>) -> PolarResult {
-        if !f.iter().all(|v| v.is_finite()) {
-            return non_finite(warm);
-        }
-        let (cof, det) = cofactor(f);
-        if degenerate(f, det) {
-            return svd_fallback(f, det);
-        }
-        let (a, b) = match warm.and_then(|w| w.sigma_bounds) {
-            Some((a, b)) if a > 0.0 && b >= a && b.is_finite() => (a, b),
-            _ => (det.abs() / cof.norm(), f.norm()),
-        };
-        // Reciprocals, not divisions: a 3×3 matrix over a scalar is nine divisions, and
-        // they were most of an iteration's latency (`benches/polar.rs`). The stopping test
-        // compares squares, so no square root either.
-        let mut x = *f;
-        let mut xinvt = cof * (1.0 / det);
-        let mut zeta = 1.0 / (a * b).sqrt();
-        let mut iterations = 0;
-        let tol_sq = self.tol * self.tol;
-        for k in 0..self.max_iters {
-            let xn = x * (0.5 * zeta) + xinvt * (0.5 / zeta);
-            let diff_sq = (xn - x).norm_squared();
-            x = xn;
-            iterations = k + 1;
-            if diff_sq < tol_sq {
-                break;
-            }
-            zeta = if k == 0 {
-                (2.0 * (a * b).sqrt() / (a + b)).sqrt()
-            } else {
-                (2.0 / (zeta + 1.0 / zeta)).sqrt()
-            };
-            let (c, d) = cofactor(&x);
-            xinvt = c * (1.0 / d);
-        }
-        let inverted = det < 0.0;
-        let rotation = if inverted {
-            flip_least_stretch(&x, f)
-        } else {
-            x
-        };
-        PolarResult {
-            rotation,
-            iterations,
-            inverted,
-            sigma_bounds: (a, b),
-        }
-    }
-    fn name(&self) -> &'static str {
-        "byers_xu"
     }
 }
 
