@@ -11,6 +11,7 @@
 
 pub mod direct;
 pub mod element;
+mod lanes;
 pub mod mesh;
 pub mod mg;
 pub mod model;
