@@ -11,6 +11,7 @@
 //! levels, as is a coarse node no free fine node interpolates from. Coarse levels thus
 //! hold free nodes only and need no projection.
 
+mod dense;
 mod full_rows;
 mod galerkin;
 mod smoother;
@@ -73,6 +74,7 @@ impl Prolongation {
     }
 
     /// Entries `(coarse node, weight)` of fine node `i`.
+    #[inline]
     pub fn row(&self, i: usize) -> impl Iterator<Item = (usize, f64)> + '_ {
         let (a, b) = (self.row_ptr[i] as usize, self.row_ptr[i + 1] as usize);
         self.cols[a..b]

@@ -1,6 +1,8 @@
 //! The multigrid hierarchy with its operators and the V-cycle.
 
-use nalgebra::{Cholesky, DVector, Dyn, Matrix3, Vector3};
+use nalgebra::{Matrix3, Vector3};
+
+use super::dense::DenseCholesky;
 
 use super::full_rows::FullRows;
 use super::galerkin::{GalerkinPlan, mask_prolongation};
@@ -72,7 +74,9 @@ pub struct Multigrid {
     /// V-cycle with coarse levels (`full_rows.rs`; built with the first refresh).
     fine_full: Option<FullRows>,
     levels: Vec<Level>,
-    coarsest: Option<Cholesky<f64, Dyn>>,
+    coarsest: Option<DenseCholesky>,
+    /// The coarsest level's right-hand side and solution, flattened.
+    coarsest_rhs: Vec<f64>,
     fine_res: Vec<V3>,
 }
 
@@ -168,6 +172,7 @@ impl Multigrid {
             fine_full: None,
             levels,
             coarsest: None,
+            coarsest_rhs: Vec::new(),
             fine_res: vec![V3::zeros(); n],
         })
     }
@@ -238,7 +243,7 @@ impl Multigrid {
         self.coarsest = match self.levels.last() {
             Some(l) if l.p.coarse_len() <= self.params.direct_max_nodes => {
                 let m = l.plan.coarse.to_dense(&l.blocks);
-                let c = Cholesky::new(m);
+                let c = DenseCholesky::new(&m);
                 if c.is_none() {
                     tracing::warn!("multigrid: coarsest operator not positive definite");
                 }
@@ -315,13 +320,12 @@ impl Multigrid {
             if k == last {
                 match &self.coarsest {
                     Some(c) => {
-                        let b = DVector::from_iterator(
-                            3 * l.r.len(),
-                            l.r.iter().flat_map(|v| v.iter().copied()),
-                        );
-                        let x = c.solve(&b);
-                        for (i, zi) in l.z.iter_mut().enumerate() {
-                            *zi = V3::new(x[3 * i], x[3 * i + 1], x[3 * i + 2]);
+                        let x = &mut self.coarsest_rhs;
+                        x.clear();
+                        x.extend(l.r.iter().flat_map(|v| v.iter().copied()));
+                        c.solve_in_place(x);
+                        for (zi, xi) in l.z.iter_mut().zip(x.chunks_exact(3)) {
+                            *zi = V3::new(xi[0], xi[1], xi[2]);
                         }
                     }
                     None => symmetric_smooth(&l.rows, &l.blocks, &l.dinv, &l.r, &mut l.z, 2 * nu),
