@@ -52,7 +52,7 @@ impl DenseCholesky {
             let (done, rest) = l.split_at_mut((k + 1) * n);
             let col_k = &mut done[k * n..];
             let d = col_k[k];
-            if !(d > 0.0) {
+            if d.is_nan() || d <= 0.0 {
                 return None;
             }
             let lkk = d.sqrt();
