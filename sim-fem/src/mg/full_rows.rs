@@ -24,49 +24,76 @@
 //! the dense Cholesky solve at 1e-9 (the V-cycle symmetry test allows 1e-6 on this path).
 //! The sums multiply then add (no fused multiply-add, whatever the build's target
 //! features), so that every site computes the same bits.
+//!
+//! **Blocks in pairs** (2026-11-28): a row's blocks are stored two by two, column `k` of
+//! the first block in lanes 0–3 and of the second in lanes 4–7 of an 8-lane row, so that
+//! on a CPU with AVX one 8-lane multiply and add takes two blocks, with `[z_j | z_j']`
+//! loaded once and each component spread over its half by an in-lane permute. The
+//! portable path sums the same lanes in the same order (the two halves added at the end
+//! of each product), so both give the same bits (test
+//! `avx_and_portable_paired_sweeps_are_bit_identical`). A row's lower and upper parts
+//! are each padded to whole pairs with a zero block whose column is a zero entry past the
+//! last node.
 
 use nalgebra::{Matrix3, Vector3};
-use wide::f32x4;
 
 use super::smoother::SymRows;
 
 type V3 = Vector3<f64>;
 
-/// A 3×3 block in single precision: its columns, each `[a_0k, a_1k, a_2k, 0]`.
-type Block32 = [f32x4; 3];
+/// Two 3×3 blocks in single precision: for each column `k`, `[a_0k, a_1k, a_2k, 0]` of
+/// the first block then of the second.
+type Pair32 = [[f32; 8]; 3];
 
 /// Bit of [`FullRows::src`] marking a block taken transposed.
 const TRANSPOSED: u32 = 1 << 31;
 
+/// [`FullRows::src`] of a padding block (zero).
+const PAD: u32 = u32::MAX;
+
+/// One pass over the rows.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Pass {
+    /// Forward sweep from `z = 0` (lower parts only).
+    ForwardFromZero,
+    /// Forward sweep from `z` (`z32` holds `z`).
+    Forward,
+    /// Backward sweep from `z` (`z32` holds `z`).
+    Backward,
+    /// `out = −U z` (`z32` holds `z`).
+    MinusUpper,
+    /// `out = r − A z` (`z32` holds `z`).
+    Residual,
+}
+
 /// The finest level's off-diagonal blocks by full rows (see the module documentation).
 #[derive(Clone, Debug, Default)]
 pub(super) struct FullRows {
-    /// Row `i`'s entries are `row_ptr[i]..row_ptr[i + 1]`; its lower ones (columns below
+    /// Row `i`'s pairs are `row_ptr[i]..row_ptr[i + 1]`; its lower ones (columns below
     /// `i`) end at `upper_start[i]`.
     row_ptr: Vec<u32>,
     upper_start: Vec<u32>,
-    cols: Vec<u32>,
-    /// Slot of each entry in the fine block storage ([`TRANSPOSED`]: taken transposed).
-    src: Vec<u32>,
-    /// The entries' blocks, refreshed by [`FullRows::fill`].
-    blocks: Vec<Block32>,
+    /// Columns of each pair's two blocks (a padding block's: the zero entry `n` of `z32`).
+    cols: Vec<[u32; 2]>,
+    /// Slot of each block in the fine block storage ([`TRANSPOSED`]: taken transposed;
+    /// [`PAD`]: a zero block).
+    src: Vec<[u32; 2]>,
+    /// The pairs' blocks, refreshed by [`FullRows::fill`].
+    blocks: Vec<Pair32>,
     /// Diagonal blocks (f64: the sweeps divide by them through their inverses, kept by
     /// the caller; the residual of several sweeps multiplies by them).
     diag: Vec<Matrix3<f64>>,
     /// The iterate in single precision, `[x, y, z, 0]` per node, as the products read it:
     /// set from `z` when a sweep starts and updated row by row as the sweep writes `z`.
+    /// One more entry, always zero, for padding blocks.
     z32: Vec<[f32; 4]>,
+    /// Never use AVX (tests).
+    portable: bool,
 }
 
 #[inline]
 fn to_f32(v: &V3) -> [f32; 4] {
     [v.x as f32, v.y as f32, v.z as f32, 0.0]
-}
-
-#[inline]
-fn to_v3(a: f32x4) -> V3 {
-    let [x, y, z, _] = a.to_array();
-    V3::new(f64::from(x), f64::from(y), f64::from(z))
 }
 
 impl FullRows {
@@ -77,44 +104,60 @@ impl FullRows {
         let mut upper_start = Vec::with_capacity(n);
         let mut cols = Vec::new();
         let mut src = Vec::new();
+        // Entries `(slot with flags, column)` two by two, the last padded.
+        let pairs = |entries: Vec<(u32, u32)>, cols: &mut Vec<[u32; 2]>, src: &mut Vec<_>| {
+            for two in entries.chunks(2) {
+                let second = two.get(1).copied().unwrap_or((PAD, n as u32));
+                cols.push([two[0].1, second.1]);
+                src.push([two[0].0, second.0]);
+            }
+        };
         row_ptr.push(0);
         for i in 0..n {
-            for (slot, j) in rows.lower_entries(i) {
-                cols.push(j as u32);
-                src.push(slot as u32 | TRANSPOSED);
-            }
+            let lower = rows
+                .lower_entries(i)
+                .map(|(slot, j)| (slot as u32 | TRANSPOSED, j as u32))
+                .collect();
+            pairs(lower, &mut cols, &mut src);
             upper_start.push(cols.len() as u32);
-            for (slot, j) in rows.upper_entries(i) {
-                cols.push(j as u32);
-                src.push(slot as u32);
-            }
+            let upper = rows
+                .upper_entries(i)
+                .map(|(slot, j)| (slot as u32, j as u32))
+                .collect();
+            pairs(upper, &mut cols, &mut src);
             row_ptr.push(cols.len() as u32);
         }
-        let entries = cols.len();
+        let len = cols.len();
         Self {
             row_ptr,
             upper_start,
             cols,
             src,
-            blocks: vec![[f32x4::ZERO; 3]; entries],
+            blocks: vec![[[0.0; 8]; 3]; len],
             diag: vec![Matrix3::zeros(); n],
-            z32: vec![[0.0; 4]; n],
+            z32: vec![[0.0; 4]; n + 1],
+            portable: false,
         }
     }
 
     /// Copies the step's blocks (`fine`: the upper storage `rows` indexes) in.
     pub fn fill(&mut self, rows: &SymRows, fine: &[Matrix3<f64>]) {
-        for (out, &s) in self.blocks.iter_mut().zip(&self.src) {
-            let b = &fine[(s & !TRANSPOSED) as usize];
-            let b = if s & TRANSPOSED != 0 {
-                b.transpose()
-            } else {
-                *b
-            };
-            // nalgebra stores column-major: column k is `b.column(k)`.
-            *out = std::array::from_fn(|k| {
-                f32x4::new([b[(0, k)] as f32, b[(1, k)] as f32, b[(2, k)] as f32, 0.0])
-            });
+        for (out, two) in self.blocks.iter_mut().zip(&self.src) {
+            for (half, &s) in two.iter().enumerate() {
+                let b = if s == PAD {
+                    Matrix3::zeros()
+                } else if s & TRANSPOSED != 0 {
+                    fine[(s & !TRANSPOSED) as usize].transpose()
+                } else {
+                    fine[s as usize]
+                };
+                for (k, col) in out.iter_mut().enumerate() {
+                    for row in 0..3 {
+                        col[4 * half + row] = b[(row, k)] as f32;
+                    }
+                    col[4 * half + 3] = 0.0;
+                }
+            }
         }
         for (i, d) in self.diag.iter_mut().enumerate() {
             *d = fine[rows.diagonal_slot(i)];
@@ -125,101 +168,223 @@ impl FullRows {
         self.upper_start.len()
     }
 
-    /// The f32 copy of the iterate set from `z`.
+    /// The f32 copy of the iterate set from `z` (the padding entry stays zero).
     fn load(&mut self, z: &[V3]) {
         for (a, v) in self.z32.iter_mut().zip(z) {
             *a = to_f32(v);
         }
     }
 
-    /// `Σ A_ij z_j` over entries `from..to`, from the f32 iterate.
-    #[inline]
-    fn product(&self, from: usize, to: usize) -> V3 {
-        // One accumulator per column: three independent chains of multiply-adds rather
-        // than one three times as long (the sweep waits on this sum row after row).
-        let (mut a0, mut a1, mut a2) = (f32x4::ZERO, f32x4::ZERO, f32x4::ZERO);
-        for (b, &j) in self.blocks[from..to].iter().zip(&self.cols[from..to]) {
-            let zj = &self.z32[j as usize];
-            // Multiply, then add: `mul_add` would fuse in builds with FMA enabled and
-            // change the bits between sites built differently.
-            a0 += b[0] * f32x4::splat(zj[0]);
-            a1 += b[1] * f32x4::splat(zj[1]);
-            a2 += b[2] * f32x4::splat(zj[2]);
+    /// `Σ A_ij z_j` over pairs `from..to`, from the f32 iterate: the reference order of
+    /// operations. Per column `k` an 8-lane sum of `block_k · z_j[k]` (first block of
+    /// each pair in lanes 0–3, second in 4–7), the halves added at the end, then the
+    /// columns: `(s_0 + s_1) + s_2`.
+    #[inline(always)]
+    fn product_portable(&self, from: usize, to: usize) -> V3 {
+        let mut acc = [[0.0f32; 8]; 3];
+        for (b, cols) in self.blocks[from..to].iter().zip(&self.cols[from..to]) {
+            let (z0, z1) = (&self.z32[cols[0] as usize], &self.z32[cols[1] as usize]);
+            for (k, (a, bk)) in acc.iter_mut().zip(b).enumerate() {
+                for l in 0..4 {
+                    // Multiply, then add: `mul_add` would fuse in builds with FMA
+                    // enabled and change the bits between sites built differently.
+                    a[l] += bk[l] * z0[k];
+                    a[4 + l] += bk[4 + l] * z1[k];
+                }
+            }
         }
-        to_v3(a0 + a1 + a2)
+        let s: [[f32; 3]; 3] =
+            std::array::from_fn(|k| std::array::from_fn(|l| acc[k][l] + acc[k][4 + l]));
+        V3::from_fn(|l, _| f64::from((s[0][l] + s[1][l]) + s[2][l]))
     }
 
-    #[inline]
-    fn lower(&self, i: usize) -> V3 {
-        self.product(self.row_ptr[i] as usize, self.upper_start[i] as usize)
+    /// [`FullRows::product_portable`] on 8-lane AVX registers (same operations, same
+    /// order).
+    ///
+    /// # Safety
+    /// The CPU must support AVX; only called from functions compiled for it, into which
+    /// it is inlined.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn product_avx(&self, from: usize, to: usize) -> V3 {
+        use std::arch::x86_64::{
+            _mm_add_ps, _mm_storeu_ps, _mm256_add_ps, _mm256_castps256_ps128,
+            _mm256_extractf128_ps, _mm256_loadu_ps, _mm256_loadu2_m128, _mm256_mul_ps,
+            _mm256_permute_ps, _mm256_setzero_ps,
+        };
+        // SAFETY: AVX (this function's contract); every pointer read is within its
+        // array: a pair holds 3 × 8 f32, a `z32` entry 4.
+        unsafe {
+            let (mut a0, mut a1, mut a2) = (
+                _mm256_setzero_ps(),
+                _mm256_setzero_ps(),
+                _mm256_setzero_ps(),
+            );
+            for (b, cols) in self.blocks[from..to].iter().zip(&self.cols[from..to]) {
+                let z = _mm256_loadu2_m128(
+                    self.z32[cols[1] as usize].as_ptr(),
+                    self.z32[cols[0] as usize].as_ptr(),
+                );
+                a0 = _mm256_add_ps(
+                    a0,
+                    _mm256_mul_ps(_mm256_loadu_ps(b[0].as_ptr()), _mm256_permute_ps(z, 0x00)),
+                );
+                a1 = _mm256_add_ps(
+                    a1,
+                    _mm256_mul_ps(_mm256_loadu_ps(b[1].as_ptr()), _mm256_permute_ps(z, 0x55)),
+                );
+                a2 = _mm256_add_ps(
+                    a2,
+                    _mm256_mul_ps(_mm256_loadu_ps(b[2].as_ptr()), _mm256_permute_ps(z, 0xAA)),
+                );
+            }
+            let half = |a| _mm_add_ps(_mm256_castps256_ps128(a), _mm256_extractf128_ps(a, 1));
+            let sum = _mm_add_ps(_mm_add_ps(half(a0), half(a1)), half(a2));
+            let mut out = [0.0f32; 4];
+            _mm_storeu_ps(out.as_mut_ptr(), sum);
+            V3::new(f64::from(out[0]), f64::from(out[1]), f64::from(out[2]))
+        }
     }
 
-    #[inline]
-    fn upper(&self, i: usize) -> V3 {
-        self.product(self.upper_start[i] as usize, self.row_ptr[i + 1] as usize)
+    #[inline(always)]
+    fn product<const AVX: bool>(&self, from: usize, to: usize) -> V3 {
+        #[cfg(target_arch = "x86_64")]
+        if AVX {
+            // SAFETY: `AVX` is true only in `run_avx`, compiled for AVX and called
+            // after the CPU was found to have it.
+            return unsafe { self.product_avx(from, to) };
+        }
+        self.product_portable(from, to)
     }
 
-    #[inline]
-    fn off_diagonal(&self, i: usize) -> V3 {
-        self.product(self.row_ptr[i] as usize, self.row_ptr[i + 1] as usize)
+    #[inline(always)]
+    fn lower<const AVX: bool>(&self, i: usize) -> V3 {
+        self.product::<AVX>(self.row_ptr[i] as usize, self.upper_start[i] as usize)
+    }
+
+    #[inline(always)]
+    fn upper<const AVX: bool>(&self, i: usize) -> V3 {
+        self.product::<AVX>(self.upper_start[i] as usize, self.row_ptr[i + 1] as usize)
+    }
+
+    #[inline(always)]
+    fn off_diagonal<const AVX: bool>(&self, i: usize) -> V3 {
+        self.product::<AVX>(self.row_ptr[i] as usize, self.row_ptr[i + 1] as usize)
     }
 
     /// Row `i` of a sweep: `z_i = D_i⁻¹ (r_i − Σ_{j≠i} A_ij z_j)` (only the lower part
     /// from zero), in both copies of the iterate.
-    #[inline]
-    fn relax(&mut self, dinv: &[Matrix3<f64>], r: &[V3], z: &mut [V3], i: usize, lower: bool) {
+    #[inline(always)]
+    fn relax<const AVX: bool>(
+        &mut self,
+        dinv: &[Matrix3<f64>],
+        r: &[V3],
+        z: &mut [V3],
+        i: usize,
+        lower: bool,
+    ) {
         let off = if lower {
-            self.lower(i)
+            self.lower::<AVX>(i)
         } else {
-            self.off_diagonal(i)
+            self.off_diagonal::<AVX>(i)
         };
         z[i] = dinv[i] * (r[i] - off);
         self.z32[i] = to_f32(&z[i]);
     }
 
+    /// One pass over the rows (see [`Pass`]); `out` is written by the residual passes.
+    #[inline(always)]
+    fn pass<const AVX: bool>(
+        &mut self,
+        pass: Pass,
+        dinv: &[Matrix3<f64>],
+        r: &[V3],
+        z: &mut [V3],
+        out: &mut [V3],
+    ) {
+        let n = self.num_rows();
+        match pass {
+            Pass::ForwardFromZero => (0..n).for_each(|i| self.relax::<AVX>(dinv, r, z, i, true)),
+            Pass::Forward => (0..n).for_each(|i| self.relax::<AVX>(dinv, r, z, i, false)),
+            Pass::Backward => (0..n)
+                .rev()
+                .for_each(|i| self.relax::<AVX>(dinv, r, z, i, false)),
+            Pass::MinusUpper => {
+                for (i, o) in out.iter_mut().enumerate() {
+                    *o = -self.upper::<AVX>(i);
+                }
+            }
+            Pass::Residual => {
+                for (i, o) in out.iter_mut().enumerate() {
+                    *o = r[i] - self.diag[i] * z[i] - self.off_diagonal::<AVX>(i);
+                }
+            }
+        }
+    }
+
+    /// [`FullRows::pass`] compiled for AVX.
+    ///
+    /// # Safety
+    /// The CPU must support AVX.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx")]
+    unsafe fn run_avx(
+        &mut self,
+        pass: Pass,
+        dinv: &[Matrix3<f64>],
+        r: &[V3],
+        z: &mut [V3],
+        out: &mut [V3],
+    ) {
+        self.pass::<true>(pass, dinv, r, z, out);
+    }
+
+    /// [`FullRows::pass`] on AVX where the CPU has it (`portable`: never).
+    fn run(
+        &mut self,
+        pass: Pass,
+        dinv: &[Matrix3<f64>],
+        r: &[V3],
+        z: &mut [V3],
+        out: &mut [V3],
+        portable: bool,
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if !portable && std::arch::is_x86_feature_detected!("avx") {
+            // SAFETY: the CPU has AVX (checked just above).
+            unsafe { self.run_avx(pass, dinv, r, z, out) };
+            return;
+        }
+        let _ = portable;
+        self.pass::<false>(pass, dinv, r, z, out);
+    }
+
     /// One forward sweep from `z = 0` ([`SymRows::forward_from_zero`]): the lower part
     /// reads only rows this sweep has already written.
+    #[cfg(test)]
     pub fn forward_from_zero(&mut self, dinv: &[Matrix3<f64>], r: &[V3], z: &mut [V3]) {
-        for i in 0..self.num_rows() {
-            self.relax(dinv, r, z, i, true);
-        }
+        self.run(Pass::ForwardFromZero, dinv, r, z, &mut [], self.portable);
     }
 
     /// The residual right after [`FullRows::forward_from_zero`]: `−U z`.
     #[cfg(test)]
     pub fn residual_after_forward_from_zero(&mut self, z: &[V3], out: &mut [V3]) {
         self.load(z);
-        for (i, o) in out.iter_mut().enumerate() {
-            *o = -self.upper(i);
-        }
-    }
-
-    /// One forward sweep (`z32` must hold `z`).
-    fn forward_loaded(&mut self, dinv: &[Matrix3<f64>], r: &[V3], z: &mut [V3]) {
-        for i in 0..self.num_rows() {
-            self.relax(dinv, r, z, i, false);
-        }
-    }
-
-    /// One backward sweep (the forward sweep's adjoint; `z32` must hold `z`).
-    fn backward_loaded(&mut self, dinv: &[Matrix3<f64>], r: &[V3], z: &mut [V3]) {
-        for i in (0..self.num_rows()).rev() {
-            self.relax(dinv, r, z, i, false);
-        }
+        let mut z = z.to_vec();
+        self.run(Pass::MinusUpper, &[], &[], &mut z, out, self.portable);
     }
 
     /// One backward sweep from `z`.
     #[cfg(test)]
     pub fn backward(&mut self, dinv: &[Matrix3<f64>], r: &[V3], z: &mut [V3]) {
         self.load(z);
-        self.backward_loaded(dinv, r, z);
+        self.run(Pass::Backward, dinv, r, z, &mut [], self.portable);
     }
 
-    /// `out = r − A z` (`z32` must hold `z`).
-    fn residual_loaded(&self, r: &[V3], z: &[V3], out: &mut [V3]) {
-        for (i, o) in out.iter_mut().enumerate() {
-            *o = r[i] - self.diag[i] * z[i] - self.off_diagonal(i);
-        }
+    /// Sweeps and products without AVX from now on (tests compare both paths).
+    #[cfg(test)]
+    pub fn set_portable(&mut self, portable: bool) {
+        self.portable = portable;
     }
 
     /// Pre-smoothing: `sweeps` forward sweeps from zero, then the residual into `res`
@@ -232,25 +397,24 @@ impl FullRows {
         res: &mut [V3],
         sweeps: usize,
     ) {
-        self.forward_from_zero(dinv, r, z);
+        let portable = self.portable;
+        self.run(Pass::ForwardFromZero, dinv, r, z, &mut [], portable);
         if sweeps <= 1 {
             // z32 holds z: the sweep wrote every row of both.
-            for (i, o) in res.iter_mut().enumerate() {
-                *o = -self.upper(i);
-            }
+            self.run(Pass::MinusUpper, dinv, r, z, res, portable);
             return;
         }
         for _ in 1..sweeps {
-            self.forward_loaded(dinv, r, z);
+            self.run(Pass::Forward, dinv, r, z, &mut [], portable);
         }
-        self.residual_loaded(r, z, res);
+        self.run(Pass::Residual, dinv, r, z, res, portable);
     }
 
     /// Post-smoothing: `sweeps` backward sweeps from `z`.
     pub fn post_smooth(&mut self, dinv: &[Matrix3<f64>], r: &[V3], z: &mut [V3], sweeps: usize) {
         self.load(z);
         for _ in 0..sweeps {
-            self.backward_loaded(dinv, r, z);
+            self.run(Pass::Backward, dinv, r, z, &mut [], self.portable);
         }
     }
 }
