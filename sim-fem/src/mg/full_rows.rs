@@ -1,7 +1,12 @@
-//! The finest level's matrix as the sequential Gauss–Seidel sweeps read it: every row's
+//! A level's matrix as the sequential Gauss–Seidel sweeps read it: every row's
 //! off-diagonal blocks in one contiguous run (its lower part, transposed from the upper
-//! storage, then its upper part), in single precision, rebuilt from the step's assembled
-//! blocks every solve.
+//! storage, then its upper part), in single precision; the finest level's rebuilt from the
+//! step's assembled blocks every solve, a coarse level's with its Galerkin operator.
+//!
+//! The coarse levels' sweeps moved here from [`SymRows`] on 2026-11-28: on the 12,288-tet
+//! beam (levels of 400 and 81 nodes) their gathered lower parts were 4–5 % of an MG-PCG
+//! step, and the step went from 5.40 to 5.24 ms (stiff) and 5.61 to 5.24 ms (soft), the
+//! medians of five interleaved runs (docs/RESULTS.md).
 //!
 //! Why: `perf` over 60 steps of the 12,288-tet soft beam at dt 10 ms (MG-PCG to 1e-6, one
 //! thread, 2026-11-27) put 20 % of the step in the lower-part products of [`SymRows`],

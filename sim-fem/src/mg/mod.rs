@@ -4,7 +4,8 @@
 //! from the two ends of the edge a node bisects), Galerkin coarse operators `Pᵀ A P`
 //! refreshed every few steps (CG stays convergent with a slightly stale preconditioner),
 //! symmetric 3×3-block Gauss–Seidel smoothing (forward sweeps down, backward sweeps up:
-//! `smoother.rs`) and a dense Cholesky solve on the coarsest level.
+//! `smoother.rs`, in single precision by full rows: `full_rows.rs`) and a dense Cholesky
+//! solve on the coarsest level (`dense.rs`).
 //!
 //! Fixed (Dirichlet) nodes: their prolongation rows are zero on the finest level, and a
 //! coarse node that is the image (weight 1) of a fixed node is dropped from the coarse

@@ -55,6 +55,9 @@ struct Level {
     plan: GalerkinPlan,
     rows: SymRows,
     blocks: Vec<Matrix3<f64>>,
+    /// The blocks by full rows in f32 for the sweeps (as the finest level's; refreshed
+    /// with the blocks).
+    full: FullRows,
     dinv: Vec<Matrix3<f64>>,
     r: Vec<V3>,
     z: Vec<V3>,
@@ -150,6 +153,7 @@ impl Multigrid {
             levels.push(Level {
                 p: masked,
                 plan,
+                full: FullRows::of(&rows),
                 rows,
                 blocks: Vec::new(),
                 dinv: Vec::new(),
@@ -239,6 +243,7 @@ impl Multigrid {
             let level = &mut rest[0];
             level.plan.apply(finer, &mut level.blocks);
             level.dinv = level.rows.diagonal_inverses(&level.blocks, &[]);
+            level.full.fill(&level.rows, &level.blocks);
         }
         self.coarsest = match self.levels.last() {
             Some(l) if l.p.coarse_len() <= self.params.direct_max_nodes => {
@@ -332,7 +337,7 @@ impl Multigrid {
                 }
                 break;
             }
-            pre_smooth(&l.rows, &l.blocks, &l.dinv, &l.r, &mut l.z, &mut l.t, nu);
+            l.full.pre_smooth(&l.dinv, &l.r, &mut l.z, &mut l.t, nu);
             let next = &mut tail[0];
             restrict(&next.p, &l.t, &mut next.r);
         }
@@ -341,7 +346,7 @@ impl Multigrid {
             let (head, tail) = self.levels.split_at_mut(k + 1);
             let l = &mut head[k];
             prolong_add(&tail[0].p, &tail[0].z, &mut l.z);
-            post_smooth(&l.rows, &l.blocks, &l.dinv, &l.r, &mut l.z, nu);
+            l.full.post_smooth(&l.dinv, &l.r, &mut l.z, nu);
         }
         prolong_add(&self.levels[0].p, &self.levels[0].z, z);
         match (&mut self.fine_hybrid, &mut self.fine_full) {
