@@ -85,9 +85,12 @@ pub(super) struct FullRows {
     src: Vec<[u32; 2]>,
     /// The pairs' blocks, refreshed by [`FullRows::fill`].
     blocks: Vec<Pair32>,
-    /// Diagonal blocks (f64: the sweeps divide by them through their inverses, kept by
-    /// the caller; the residual of several sweeps multiplies by them).
+    /// Diagonal blocks (f64: the residual of several sweeps multiplies by them).
     diag: Vec<Matrix3<f64>>,
+    /// The diagonal blocks' inverses in f32, by columns `[d_0k, d_1k, d_2k, 0]` (zero for
+    /// rows the sweeps leave at zero): a row's update is all in single precision, so that
+    /// the next row, which waits on it, waits less (below).
+    dinv: Vec<[[f32; 4]; 3]>,
     /// The iterate in single precision, `[x, y, z, 0]` per node, as the products read it:
     /// set from `z` when a sweep starts and updated row by row as the sweep writes `z`.
     /// One more entry, always zero, for padding blocks.
@@ -140,13 +143,20 @@ impl FullRows {
             src,
             blocks: vec![[[0.0; 8]; 3]; len],
             diag: vec![Matrix3::zeros(); n],
+            dinv: vec![[[0.0; 4]; 3]; n],
             z32: vec![[0.0; 4]; n + 1],
             portable: false,
         }
     }
 
-    /// Copies the step's blocks (`fine`: the upper storage `rows` indexes) in.
-    pub fn fill(&mut self, rows: &SymRows, fine: &[Matrix3<f64>]) {
+    /// Copies the step's blocks (`fine`: the upper storage `rows` indexes) and the
+    /// diagonal blocks' inverses the sweeps divide by (zero: the row stays zero) in.
+    pub fn fill(&mut self, rows: &SymRows, fine: &[Matrix3<f64>], dinv: &[Matrix3<f64>]) {
+        for (out, d) in self.dinv.iter_mut().zip(dinv) {
+            *out = std::array::from_fn(|k| {
+                [d[(0, k)] as f32, d[(1, k)] as f32, d[(2, k)] as f32, 0.0]
+            });
+        }
         for (out, two) in self.blocks.iter_mut().zip(&self.src) {
             for (half, &s) in two.iter().enumerate() {
                 let b = if s == PAD {
@@ -183,9 +193,9 @@ impl FullRows {
     /// `Σ A_ij z_j` over pairs `from..to`, from the f32 iterate: the reference order of
     /// operations. Per column `k` an 8-lane sum of `block_k · z_j[k]` (first block of
     /// each pair in lanes 0–3, second in 4–7), the halves added at the end, then the
-    /// columns: `(s_0 + s_1) + s_2`.
+    /// columns: `(s_0 + s_1) + s_2` (lane 3 is zero).
     #[inline(always)]
-    fn product_portable(&self, from: usize, to: usize) -> V3 {
+    fn sum_portable(&self, from: usize, to: usize) -> [f32; 4] {
         let mut acc = [[0.0f32; 8]; 3];
         for (b, cols) in self.blocks[from..to].iter().zip(&self.cols[from..to]) {
             let (z0, z1) = (&self.z32[cols[0] as usize], &self.z32[cols[1] as usize]);
@@ -198,24 +208,23 @@ impl FullRows {
                 }
             }
         }
-        let s: [[f32; 3]; 3] =
+        let s: [[f32; 4]; 3] =
             std::array::from_fn(|k| std::array::from_fn(|l| acc[k][l] + acc[k][4 + l]));
-        V3::from_fn(|l, _| f64::from((s[0][l] + s[1][l]) + s[2][l]))
+        std::array::from_fn(|l| (s[0][l] + s[1][l]) + s[2][l])
     }
 
-    /// [`FullRows::product_portable`] on 8-lane AVX registers (same operations, same
-    /// order).
+    /// [`FullRows::sum_portable`] on 8-lane AVX registers (same operations, same order).
     ///
     /// # Safety
     /// The CPU must support AVX; only called from functions compiled for it, into which
     /// it is inlined.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    unsafe fn product_avx(&self, from: usize, to: usize) -> V3 {
+    unsafe fn sum_avx(&self, from: usize, to: usize) -> std::arch::x86_64::__m128 {
         use std::arch::x86_64::{
-            _mm_add_ps, _mm_storeu_ps, _mm256_add_ps, _mm256_castps256_ps128,
-            _mm256_extractf128_ps, _mm256_loadu_ps, _mm256_loadu2_m128, _mm256_mul_ps,
-            _mm256_permute_ps, _mm256_setzero_ps,
+            _mm_add_ps, _mm256_add_ps, _mm256_castps256_ps128, _mm256_extractf128_ps,
+            _mm256_loadu_ps, _mm256_loadu2_m128, _mm256_mul_ps, _mm256_permute_ps,
+            _mm256_setzero_ps,
         };
         // SAFETY: AVX (this function's contract); every pointer read is within its
         // array: a pair holds 3 × 8 f32, a `z32` entry 4.
@@ -244,28 +253,26 @@ impl FullRows {
                 );
             }
             let half = |a| _mm_add_ps(_mm256_castps256_ps128(a), _mm256_extractf128_ps(a, 1));
-            let sum = _mm_add_ps(_mm_add_ps(half(a0), half(a1)), half(a2));
-            let mut out = [0.0f32; 4];
-            _mm_storeu_ps(out.as_mut_ptr(), sum);
-            V3::new(f64::from(out[0]), f64::from(out[1]), f64::from(out[2]))
+            _mm_add_ps(_mm_add_ps(half(a0), half(a1)), half(a2))
         }
     }
 
+    /// The sum of [`FullRows::sum_portable`] as f64.
     #[inline(always)]
     fn product<const AVX: bool>(&self, from: usize, to: usize) -> V3 {
         #[cfg(target_arch = "x86_64")]
         if AVX {
+            use std::arch::x86_64::_mm_storeu_ps;
+            let mut s = [0.0f32; 4];
             // SAFETY: `AVX` is true only in `run_avx`, compiled for AVX and called
-            // after the CPU was found to have it.
-            return unsafe { self.product_avx(from, to) };
+            // after the CPU was found to have it; `s` holds four f32.
+            unsafe { _mm_storeu_ps(s.as_mut_ptr(), self.sum_avx(from, to)) };
+            return V3::new(f64::from(s[0]), f64::from(s[1]), f64::from(s[2]));
         }
-        self.product_portable(from, to)
+        let s = self.sum_portable(from, to);
+        V3::new(f64::from(s[0]), f64::from(s[1]), f64::from(s[2]))
     }
 
-    #[inline(always)]
-    fn lower<const AVX: bool>(&self, i: usize) -> V3 {
-        self.product::<AVX>(self.row_ptr[i] as usize, self.upper_start[i] as usize)
-    }
 
     #[inline(always)]
     fn upper<const AVX: bool>(&self, i: usize) -> V3 {
@@ -278,42 +285,79 @@ impl FullRows {
     }
 
     /// Row `i` of a sweep: `z_i = D_i⁻¹ (r_i − Σ_{j≠i} A_ij z_j)` (only the lower part
-    /// from zero), in both copies of the iterate.
+    /// from zero), in both copies of the iterate, all in single precision: `d = r_i − s`,
+    /// `z_i = (D⁻¹_0 d_x + D⁻¹_1 d_y) + D⁻¹_2 d_z` by columns.
+    ///
+    /// Why single precision here too: a forward or backward sweep waits, row after row,
+    /// on the previous row's `z` (the lattice's order makes it a neighbour), so its time
+    /// is the chain from one row's product to the next row's read of `z`; an update in
+    /// f64 added conversions and a longer product to that chain.
     #[inline(always)]
-    fn relax<const AVX: bool>(
-        &mut self,
-        dinv: &[Matrix3<f64>],
-        r: &[V3],
-        z: &mut [V3],
-        i: usize,
-        lower: bool,
-    ) {
-        let off = if lower {
-            self.lower::<AVX>(i)
-        } else {
-            self.off_diagonal::<AVX>(i)
+    fn relax<const AVX: bool>(&mut self, r: &[V3], z: &mut [V3], i: usize, lower: bool) {
+        let (from, to) = (
+            self.row_ptr[i] as usize,
+            if lower {
+                self.upper_start[i] as usize
+            } else {
+                self.row_ptr[i + 1] as usize
+            },
+        );
+        let ri = [r[i].x as f32, r[i].y as f32, r[i].z as f32, 0.0];
+        #[cfg(target_arch = "x86_64")]
+        if AVX {
+            // SAFETY: `AVX` is true only in `run_avx`, compiled for AVX and called after
+            // the CPU was found to have it.
+            let zi = unsafe { self.relax_avx(from, to, i, &ri) };
+            self.z32[i] = zi;
+            z[i] = V3::new(f64::from(zi[0]), f64::from(zi[1]), f64::from(zi[2]));
+            return;
+        }
+        let s = self.sum_portable(from, to);
+        let d: [f32; 4] = std::array::from_fn(|l| ri[l] - s[l]);
+        let c = &self.dinv[i];
+        let zi: [f32; 4] =
+            std::array::from_fn(|l| (c[0][l] * d[0] + c[1][l] * d[1]) + c[2][l] * d[2]);
+        self.z32[i] = zi;
+        z[i] = V3::new(f64::from(zi[0]), f64::from(zi[1]), f64::from(zi[2]));
+    }
+
+    /// [`FullRows::relax`]'s arithmetic on SSE/AVX registers (same operations, same
+    /// order): the row's sum, `d = r_i − s`, `z_i` by the inverse's columns.
+    ///
+    /// # Safety
+    /// The CPU must support AVX; only called from functions compiled for it.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn relax_avx(&self, from: usize, to: usize, i: usize, ri: &[f32; 4]) -> [f32; 4] {
+        use std::arch::x86_64::{
+            _mm_add_ps, _mm_loadu_ps, _mm_mul_ps, _mm_permute_ps, _mm_storeu_ps, _mm_sub_ps,
         };
-        z[i] = dinv[i] * (r[i] - off);
-        self.z32[i] = to_f32(&z[i]);
+        // SAFETY: AVX (this function's contract); the loads read 4 f32 each.
+        unsafe {
+            let s = self.sum_avx(from, to);
+            let d = _mm_sub_ps(_mm_loadu_ps(ri.as_ptr()), s);
+            let c = &self.dinv[i];
+            let z = _mm_add_ps(
+                _mm_add_ps(
+                    _mm_mul_ps(_mm_loadu_ps(c[0].as_ptr()), _mm_permute_ps(d, 0x00)),
+                    _mm_mul_ps(_mm_loadu_ps(c[1].as_ptr()), _mm_permute_ps(d, 0x55)),
+                ),
+                _mm_mul_ps(_mm_loadu_ps(c[2].as_ptr()), _mm_permute_ps(d, 0xAA)),
+            );
+            let mut out = [0.0f32; 4];
+            _mm_storeu_ps(out.as_mut_ptr(), z);
+            out
+        }
     }
 
     /// One pass over the rows (see [`Pass`]); `out` is written by the residual passes.
     #[inline(always)]
-    fn pass<const AVX: bool>(
-        &mut self,
-        pass: Pass,
-        dinv: &[Matrix3<f64>],
-        r: &[V3],
-        z: &mut [V3],
-        out: &mut [V3],
-    ) {
+    fn pass<const AVX: bool>(&mut self, pass: Pass, r: &[V3], z: &mut [V3], out: &mut [V3]) {
         let n = self.num_rows();
         match pass {
-            Pass::ForwardFromZero => (0..n).for_each(|i| self.relax::<AVX>(dinv, r, z, i, true)),
-            Pass::Forward => (0..n).for_each(|i| self.relax::<AVX>(dinv, r, z, i, false)),
-            Pass::Backward => (0..n)
-                .rev()
-                .for_each(|i| self.relax::<AVX>(dinv, r, z, i, false)),
+            Pass::ForwardFromZero => (0..n).for_each(|i| self.relax::<AVX>(r, z, i, true)),
+            Pass::Forward => (0..n).for_each(|i| self.relax::<AVX>(r, z, i, false)),
+            Pass::Backward => (0..n).rev().for_each(|i| self.relax::<AVX>(r, z, i, false)),
             Pass::MinusUpper => {
                 for (i, o) in out.iter_mut().enumerate() {
                     *o = -self.upper::<AVX>(i);
@@ -333,42 +377,27 @@ impl FullRows {
     /// The CPU must support AVX.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx")]
-    unsafe fn run_avx(
-        &mut self,
-        pass: Pass,
-        dinv: &[Matrix3<f64>],
-        r: &[V3],
-        z: &mut [V3],
-        out: &mut [V3],
-    ) {
-        self.pass::<true>(pass, dinv, r, z, out);
+    unsafe fn run_avx(&mut self, pass: Pass, r: &[V3], z: &mut [V3], out: &mut [V3]) {
+        self.pass::<true>(pass, r, z, out);
     }
 
     /// [`FullRows::pass`] on AVX where the CPU has it (`portable`: never).
-    fn run(
-        &mut self,
-        pass: Pass,
-        dinv: &[Matrix3<f64>],
-        r: &[V3],
-        z: &mut [V3],
-        out: &mut [V3],
-        portable: bool,
-    ) {
+    fn run(&mut self, pass: Pass, r: &[V3], z: &mut [V3], out: &mut [V3], portable: bool) {
         #[cfg(target_arch = "x86_64")]
         if !portable && std::arch::is_x86_feature_detected!("avx") {
             // SAFETY: the CPU has AVX (checked just above).
-            unsafe { self.run_avx(pass, dinv, r, z, out) };
+            unsafe { self.run_avx(pass, r, z, out) };
             return;
         }
         let _ = portable;
-        self.pass::<false>(pass, dinv, r, z, out);
+        self.pass::<false>(pass, r, z, out);
     }
 
     /// One forward sweep from `z = 0` ([`SymRows::forward_from_zero`]): the lower part
     /// reads only rows this sweep has already written.
     #[cfg(test)]
-    pub fn forward_from_zero(&mut self, dinv: &[Matrix3<f64>], r: &[V3], z: &mut [V3]) {
-        self.run(Pass::ForwardFromZero, dinv, r, z, &mut [], self.portable);
+    pub fn forward_from_zero(&mut self, r: &[V3], z: &mut [V3]) {
+        self.run(Pass::ForwardFromZero, r, z, &mut [], self.portable);
     }
 
     /// The residual right after [`FullRows::forward_from_zero`]: `−U z`.
@@ -376,14 +405,14 @@ impl FullRows {
     pub fn residual_after_forward_from_zero(&mut self, z: &[V3], out: &mut [V3]) {
         self.load(z);
         let mut z = z.to_vec();
-        self.run(Pass::MinusUpper, &[], &[], &mut z, out, self.portable);
+        self.run(Pass::MinusUpper, &[], &mut z, out, self.portable);
     }
 
     /// One backward sweep from `z`.
     #[cfg(test)]
-    pub fn backward(&mut self, dinv: &[Matrix3<f64>], r: &[V3], z: &mut [V3]) {
+    pub fn backward(&mut self, r: &[V3], z: &mut [V3]) {
         self.load(z);
-        self.run(Pass::Backward, dinv, r, z, &mut [], self.portable);
+        self.run(Pass::Backward, r, z, &mut [], self.portable);
     }
 
     /// Sweeps and products without AVX from now on (tests compare both paths).
@@ -394,32 +423,25 @@ impl FullRows {
 
     /// Pre-smoothing: `sweeps` forward sweeps from zero, then the residual into `res`
     /// (as [`super::smoother::pre_smooth`]).
-    pub fn pre_smooth(
-        &mut self,
-        dinv: &[Matrix3<f64>],
-        r: &[V3],
-        z: &mut [V3],
-        res: &mut [V3],
-        sweeps: usize,
-    ) {
+    pub fn pre_smooth(&mut self, r: &[V3], z: &mut [V3], res: &mut [V3], sweeps: usize) {
         let portable = self.portable;
-        self.run(Pass::ForwardFromZero, dinv, r, z, &mut [], portable);
+        self.run(Pass::ForwardFromZero, r, z, &mut [], portable);
         if sweeps <= 1 {
             // z32 holds z: the sweep wrote every row of both.
-            self.run(Pass::MinusUpper, dinv, r, z, res, portable);
+            self.run(Pass::MinusUpper, r, z, res, portable);
             return;
         }
         for _ in 1..sweeps {
-            self.run(Pass::Forward, dinv, r, z, &mut [], portable);
+            self.run(Pass::Forward, r, z, &mut [], portable);
         }
-        self.run(Pass::Residual, dinv, r, z, res, portable);
+        self.run(Pass::Residual, r, z, res, portable);
     }
 
     /// Post-smoothing: `sweeps` backward sweeps from `z`.
-    pub fn post_smooth(&mut self, dinv: &[Matrix3<f64>], r: &[V3], z: &mut [V3], sweeps: usize) {
+    pub fn post_smooth(&mut self, r: &[V3], z: &mut [V3], sweeps: usize) {
         self.load(z);
         for _ in 0..sweeps {
-            self.run(Pass::Backward, dinv, r, z, &mut [], self.portable);
+            self.run(Pass::Backward, r, z, &mut [], self.portable);
         }
     }
 }

@@ -637,9 +637,9 @@ fn full_row_sweeps_match_dense_block_substitutions() {
     let n = a.fixed.len();
     let r = rhs(n, &a.fixed);
     let rows = SymRows::of_pattern(&a.pattern);
-    let mut full = FullRows::of(&rows);
-    full.fill(&rows, &a.blocks);
     let dinv = rows.diagonal_inverses(&a.blocks, &a.fixed);
+    let mut full = FullRows::of(&rows);
+    full.fill(&rows, &a.blocks, &dinv);
     // Dense parts: D + L and D + U (block triangles), fixed rows and columns replaced by
     // the identity's, and L, U alone.
     let m = dense_matrix(&a);
@@ -673,7 +673,7 @@ fn full_row_sweeps_match_dense_block_substitutions() {
     };
     // Forward from zero.
     let mut z = vec![V3::zeros(); n];
-    full.forward_from_zero(&dinv, &r, &mut z);
+    full.forward_from_zero(&r, &mut z);
     let z_ref = unflat(&part(&lower, true).lu().solve(&flat(&r)).unwrap());
     let d = rel_diff(&z, &z_ref);
     assert!(
@@ -691,7 +691,7 @@ fn full_row_sweeps_match_dense_block_substitutions() {
     );
     // Backward from z.
     let rhs_back = flat(&r) - part(&lower, false) * flat(&z_ref);
-    full.backward(&dinv, &r, &mut z);
+    full.backward(&r, &mut z);
     let z2_ref = unflat(&part(&upper, true).lu().solve(&rhs_back).unwrap());
     let d = rel_diff(&z, &z2_ref);
     assert!(d < 1e-5, "backward sweep: relative difference {d:e}");
@@ -716,13 +716,13 @@ fn avx_and_portable_paired_sweeps_are_bit_identical() {
     let dinv = rows.diagonal_inverses(&a.blocks, &a.fixed);
     let run = |portable: bool| {
         let mut full = FullRows::of(&rows);
-        full.fill(&rows, &a.blocks);
+        full.fill(&rows, &a.blocks, &dinv);
         full.set_portable(portable);
         let mut z = vec![V3::zeros(); n];
-        full.forward_from_zero(&dinv, &r, &mut z);
+        full.forward_from_zero(&r, &mut z);
         let mut res = vec![V3::zeros(); n];
         full.residual_after_forward_from_zero(&z, &mut res);
-        full.backward(&dinv, &r, &mut z);
+        full.backward(&r, &mut z);
         (z, res)
     };
     let bits = |v: &[V3]| -> Vec<u64> {

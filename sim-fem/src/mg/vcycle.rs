@@ -243,7 +243,7 @@ impl Multigrid {
             let level = &mut rest[0];
             level.plan.apply(finer, &mut level.blocks);
             level.dinv = level.rows.diagonal_inverses(&level.blocks, &[]);
-            level.full.fill(&level.rows, &level.blocks);
+            level.full.fill(&level.rows, &level.blocks, &level.dinv);
         }
         self.coarsest = match self.levels.last() {
             Some(l) if l.p.coarse_len() <= self.params.direct_max_nodes => {
@@ -273,7 +273,7 @@ impl Multigrid {
             let rows = &self.fine_rows;
             self.fine_full
                 .get_or_insert_with(|| FullRows::of(rows))
-                .fill(rows, fine);
+                .fill(rows, fine, &self.fine_dinv);
         } else {
             self.fine_full = None;
         }
@@ -312,7 +312,7 @@ impl Multigrid {
         let res = &mut self.fine_res;
         match (&mut self.fine_hybrid, &mut self.fine_full) {
             (Some(h), _) => h.pre_smooth(rows, fine, dinv, r, z, res, nu),
-            (None, Some(full)) => full.pre_smooth(dinv, r, z, res, nu),
+            (None, Some(full)) => full.pre_smooth(r, z, res, nu),
             (None, None) => pre_smooth(rows, fine, dinv, r, z, res, nu),
         }
         let l0 = &mut self.levels[0];
@@ -337,7 +337,7 @@ impl Multigrid {
                 }
                 break;
             }
-            l.full.pre_smooth(&l.dinv, &l.r, &mut l.z, &mut l.t, nu);
+            l.full.pre_smooth(&l.r, &mut l.z, &mut l.t, nu);
             let next = &mut tail[0];
             restrict(&next.p, &l.t, &mut next.r);
         }
@@ -346,12 +346,12 @@ impl Multigrid {
             let (head, tail) = self.levels.split_at_mut(k + 1);
             let l = &mut head[k];
             prolong_add(&tail[0].p, &tail[0].z, &mut l.z);
-            l.full.post_smooth(&l.dinv, &l.r, &mut l.z, nu);
+            l.full.post_smooth(&l.r, &mut l.z, nu);
         }
         prolong_add(&self.levels[0].p, &self.levels[0].z, z);
         match (&mut self.fine_hybrid, &mut self.fine_full) {
             (Some(h), _) => h.post_smooth(rows, fine, dinv, r, z, nu),
-            (None, Some(full)) => full.post_smooth(dinv, r, z, nu),
+            (None, Some(full)) => full.post_smooth(r, z, nu),
             (None, None) => post_smooth(rows, fine, dinv, r, z, nu),
         }
     }
