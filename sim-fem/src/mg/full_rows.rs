@@ -273,7 +273,6 @@ impl FullRows {
         V3::new(f64::from(s[0]), f64::from(s[1]), f64::from(s[2]))
     }
 
-
     #[inline(always)]
     fn upper<const AVX: bool>(&self, i: usize) -> V3 {
         self.product::<AVX>(self.upper_start[i] as usize, self.row_ptr[i + 1] as usize)

@@ -197,9 +197,15 @@ impl SysOp<'_> {
         for &ei in elements {
             let ei = ei as usize;
             let e = &sys.mesh.elements[ei];
-            for (s, abs) in slots.iter_mut().zip(pat.element_slots(ei)) {
-                *s = abs - offset;
-            }
+            // One thread assembles the whole matrix (offset 0): the pattern's own slots.
+            let slots = if offset == 0 {
+                pat.element_slots(ei)
+            } else {
+                for (s, abs) in slots.iter_mut().zip(pat.element_slots(ei)) {
+                    *s = abs - offset;
+                }
+                &slots
+            };
             // `R K Rᵀ` is symmetric: store the upper triangle only.
             let upper = pat.element_upper(ei);
             match (templated, e.template, self.mode) {
@@ -222,17 +228,17 @@ impl SysOp<'_> {
                             i
                         }
                     };
-                    scatter_blocks(blocks, &slots, upper, &cache[i], coef[ei] * h);
+                    scatter_blocks(blocks, slots, upper, &cache[i], coef[ei] * h);
                 }
                 (_, _, StiffnessMode::Dense) => {
                     let k0 = sys.k0_matrix(ei, self.mode);
                     let r = rotated.then(|| &sys.rotations.sources[e.source].rotation);
                     let k = rotated_blocks(&k0, r);
-                    scatter_blocks(blocks, &slots, upper, &k, coef[ei]);
+                    scatter_blocks(blocks, slots, upper, &k, coef[ei]);
                 }
                 _ => {
                     iso(ei, e.volume, &mut local);
-                    scatter_blocks(blocks, &slots, upper, &local, coef[ei]);
+                    scatter_blocks(blocks, slots, upper, &local, coef[ei]);
                 }
             }
         }
