@@ -95,12 +95,13 @@ fn byers_xu_four_at_once_1000(bencher: divan::Bencher) {
         })
         .collect();
     bencher.bench_local(|| {
-        let mut bounds = [None; 4];
+        let mut warm = [WarmStart::default(); 4];
         let mut its = 0;
         for f in &seq {
-            let r = m.extract4(divan::black_box(f), &bounds);
+            let r = m.extract4(divan::black_box(f), &warm);
             for l in 0..4 {
-                bounds[l] = Some(r[l].sigma_bounds);
+                warm[l].rotation = Some(r[l].rotation);
+                warm[l].sigma_bounds = Some(r[l].sigma_bounds);
                 its += r[l].iterations;
             }
         }

@@ -162,22 +162,13 @@ impl ByersXu {
     /// [`RotationExtractor::extract`] of four gradients at once, each with its own
     /// warm-start bounds: bit for bit the four results one at a time would give (see
     /// the module documentation).
-    pub fn extract4(
-        &self,
-        f: &[Matrix3<f64>; 4],
-        warm: &[Option<(f64, f64)>; 4],
-    ) -> [PolarResult; 4] {
+    pub fn extract4(&self, f: &[Matrix3<f64>; 4], warm: &[WarmStart; 4]) -> [PolarResult; 4] {
         if !f.iter().all(regular) {
-            return std::array::from_fn(|l| {
-                let w = WarmStart {
-                    rotation: None,
-                    sigma_bounds: warm[l],
-                };
-                self.extract(&f[l], Some(&w))
-            });
+            return std::array::from_fn(|l| self.extract(&f[l], Some(&warm[l])));
         }
         let fx: M3<F64x4> = std::array::from_fn(|i| F64x4(std::array::from_fn(|l| f[l][i])));
-        let (x, a, b, its) = self.iterate4(&fx, warm);
+        let bounds = warm.map(|w| w.sigma_bounds);
+        let (x, a, b, its) = self.iterate4(&fx, &bounds);
         std::array::from_fn(|l| PolarResult {
             rotation: Matrix3::from_fn(|r, c| x[3 * c + r].0[l]),
             iterations: its[l],
@@ -276,20 +267,20 @@ mod tests {
             // different iteration counts; some lanes warm, some cold.
             let f: [Matrix3<f64>; 4] =
                 std::array::from_fn(|l| random_f(&mut rng, [0.01, 0.1, 0.3, 0.6][l]));
-            let warm: [Option<(f64, f64)>; 4] = std::array::from_fn(|l| {
+            let bounds: [Option<(f64, f64)>; 4] = std::array::from_fn(|l| {
                 (round % 2 == l % 2)
                     .then(|| (rng.random_range(0.5..0.9), rng.random_range(1.1..1.6)))
+            });
+            let warm = bounds.map(|b| WarmStart {
+                rotation: None,
+                sigma_bounds: b,
             });
             let batch = p.extract4(&f, &warm);
             if batch.iter().any(|b| b.iterations != batch[0].iterations) {
                 mixed += 1;
             }
             for l in 0..4 {
-                let w = WarmStart {
-                    rotation: None,
-                    sigma_bounds: warm[l],
-                };
-                let one = p.extract(&f[l], Some(&w));
+                let one = p.extract(&f[l], Some(&warm[l]));
                 assert_eq!(
                     batch[l].iterations, one.iterations,
                     "round {round} lane {l}"
@@ -311,10 +302,14 @@ mod tests {
         let inverted = Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, -0.5));
         let nan = Matrix3::from_element(f64::NAN);
         let flat = Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, 0.0));
-        let out = p.extract4(&[rigid, inverted, nan, flat], &[None; 4]);
+        // The non-finite lane keeps its warm start's rotation, as one at a time.
+        let previous = Rotation3::new(Vector3::new(0.0, 0.4, 0.0)).into_inner();
+        let mut warm = [WarmStart::default(); 4];
+        warm[2].rotation = Some(previous);
+        let out = p.extract4(&[rigid, inverted, nan, flat], &warm);
         assert!((out[0].rotation - rigid).norm() < 1e-12);
         assert!(out[1].inverted && (out[1].rotation.determinant() - 1.0).abs() < 1e-12);
-        assert_eq!(out[2].rotation, Matrix3::identity());
+        assert_eq!(out[2].rotation, previous);
         assert!(out[3].inverted);
         for o in &out {
             assert!((o.rotation.determinant() - 1.0).abs() < 1e-9);

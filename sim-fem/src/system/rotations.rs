@@ -271,7 +271,7 @@ fn extract_batched(
                  c: &mut ExtractCount| {
         if batch.len() == 4 {
             let f = std::array::from_fn(|l| batch[l].1);
-            let warm = std::array::from_fn(|l| sources[batch[l].0].warm().sigma_bounds);
+            let warm = std::array::from_fn(|l| sources[batch[l].0].warm());
             let out = bx.extract4(&f, &warm);
             for ((i, _, xs), r) in batch.drain(..).zip(out) {
                 record(&mut sources[i], r, xs, pass, c);
