@@ -203,9 +203,10 @@ mod product_tests {
                     } else {
                         blk
                     };
-                    full[slots[4 * a + b]] += blk;
+                    let s = slots[4 * a + b] as usize;
+                    full[s] += blk;
                     if mask & (1 << (4 * a + b)) != 0 {
-                        upper[slots[4 * a + b]] += blk;
+                        upper[s] += blk;
                     }
                 }
             }

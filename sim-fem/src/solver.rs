@@ -240,7 +240,9 @@ pub struct BlockPattern {
     diag: Vec<usize>,
     /// Per slot, the slot of its mirror block (row and column swapped).
     mirror: Vec<usize>,
-    elem_slots: Vec<[usize; 16]>,
+    /// Per element, the slot of each of its 16 blocks (u32: half the bytes that assembly
+    /// streams per element; a pattern has far fewer than 2³² blocks).
+    elem_slots: Vec<[u32; 16]>,
     /// Per element, bit `4a + b` set when block `(a, b)` lies on or above the diagonal
     /// (row node ≤ column node): the blocks a symmetric assembly stores.
     elem_upper: Vec<u16>,
@@ -278,10 +280,11 @@ impl BlockPattern {
         let elem_slots = tets
             .iter()
             .map(|t| {
-                let mut s = [0; 16];
+                let mut s = [0u32; 16];
                 for a in 0..4 {
                     for b in 0..4 {
-                        s[4 * a + b] = find(t[a], t[b]);
+                        s[4 * a + b] =
+                            u32::try_from(find(t[a], t[b])).expect("fewer than 2³² blocks");
                     }
                 }
                 s
@@ -327,7 +330,7 @@ impl BlockPattern {
         self.cols.len()
     }
     /// Block slots of element `e`, index `4a + b`.
-    pub fn element_slots(&self, e: usize) -> &[usize; 16] {
+    pub fn element_slots(&self, e: usize) -> &[u32; 16] {
         &self.elem_slots[e]
     }
     /// Slot of each diagonal block.

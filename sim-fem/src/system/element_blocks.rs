@@ -97,7 +97,7 @@ pub(super) fn rotated_iso_blocks(
 #[inline]
 pub(super) fn scatter_blocks(
     blocks: &mut [Matrix3<f64>],
-    slots: &[usize; 16],
+    slots: &[u32; 16],
     mask: u16,
     local: &UpperBlocks,
     c: f64,
@@ -106,7 +106,7 @@ pub(super) fn scatter_blocks(
         if mask & (1 << i) == 0 {
             continue;
         }
-        let (out, m) = (&mut blocks[*s], &local[k]);
+        let (out, m) = (&mut blocks[*s as usize], &local[k]);
         if transposed {
             // Block (a, b) = block (b, a)ᵀ, read transposed in place.
             for col in 0..3 {

@@ -180,7 +180,7 @@ impl SysOp<'_> {
         let mut cached = 0;
         let mut group = usize::MAX;
         let mut local: UpperBlocks = [Matrix3::zeros(); 10];
-        let mut slots = [0usize; 16];
+        let mut slots = [0u32; 16];
         // An element's blocks at volume `v`: from the per-element cache when there is one
         // and the element is rotated, else computed into `out`.
         let mut iso = |ei: usize, v: f64, out: &mut UpperBlocks| {
@@ -202,7 +202,7 @@ impl SysOp<'_> {
                 pat.element_slots(ei)
             } else {
                 for (s, abs) in slots.iter_mut().zip(pat.element_slots(ei)) {
-                    *s = abs - offset;
+                    *s = abs - offset as u32;
                 }
                 &slots
             };
@@ -258,7 +258,7 @@ impl SysOp<'_> {
                     let slots = pat.element_slots(ei);
                     for a in 0..4 {
                         for b in 0..4 {
-                            blocks[slots[4 * a + b]] += k.fixed_view::<3, 3>(3 * a, 3 * b);
+                            blocks[slots[4 * a + b] as usize] += k.fixed_view::<3, 3>(3 * a, 3 * b);
                         }
                     }
                 }
