@@ -17,13 +17,13 @@
 //! block is the rounded upper one, transposed), and the sweeps read the iterate in f32 too,
 //! so the V-cycle is symmetric and linear only to single precision (below).
 //!
-//! The products are 4-lane single-precision vectors ([`wide::f32x4`]: SSE on x86-64, NEON
-//! on aarch64, scalar elsewhere): a block is its three columns, each padded to four lanes,
-//! and `A z` is three lane-wise multiply-adds (one accumulator per column, so that the
-//! sweep does not wait on one long chain) with the broadcast components of `z`, read from
-//! an f32 copy of the iterate that each sweep keeps current. Scalar f64 products of f32
-//! blocks spent most of their instructions converting the nine entries to f64 (callgrind,
-//! 12,288-tet soft beam, 2026-11-27: see docs/RESULTS.md). Summing in f32 makes the
+//! The products are lane-wise single-precision sums: a block is its three columns, each
+//! padded to four lanes, and `A z` is three lane-wise multiply-adds (one accumulator per
+//! column, so that the sweep does not wait on one long chain) with the broadcast
+//! components of `z`, read from an f32 copy of the iterate that each sweep keeps current.
+//! Scalar f64 products of f32 blocks spent most of their instructions converting the nine
+//! entries to f64 (callgrind, 12,288-tet soft beam, 2026-11-27: see docs/RESULTS.md).
+//! Summing in f32 makes the
 //! V-cycle symmetric to single precision (about 1e-7 relative) rather than to f64; CG to
 //! the step's 1e-6 takes the same iterations as with f64 sums, and MG-PCG still matches
 //! the dense Cholesky solve at 1e-9 (the V-cycle symmetry test allows 1e-6 on this path).

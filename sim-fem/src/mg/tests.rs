@@ -624,6 +624,19 @@ fn hybrid_l1_diagonal_matches_a_dense_computation() {
     }
 }
 
+/// The 8 × 2 × 2-cell beam with the 1000× rod and the contact spring at dt 10 ms, a
+/// right-hand side zero on fixed nodes, and the finest level's full rows filled with its
+/// blocks and diagonal inverses.
+fn beam_full_rows() -> (Assembled, Vec<V3>, super::full_rows::FullRows) {
+    let (_, a) = beam_matrix([8, 2, 2], 1000.0, 0.01);
+    let r = rhs(a.fixed.len(), &a.fixed);
+    let rows = super::smoother::SymRows::of_pattern(&a.pattern);
+    let dinv = rows.diagonal_inverses(&a.blocks, &a.fixed);
+    let mut full = super::full_rows::FullRows::of(&rows);
+    full.fill(&rows, &a.blocks, &dinv);
+    (a, r, full)
+}
+
 /// The f32 full-row sweeps of the finest level (`full_rows.rs`) against dense block
 /// substitutions in f64: a forward sweep from zero solves `(D + L) z = r`, the residual
 /// after it is `−U z`, a backward sweep from `z` solves `(D + U) z' = r − L z`. Fixed
@@ -631,15 +644,8 @@ fn hybrid_l1_diagonal_matches_a_dense_computation() {
 /// relative, with the 1000× rod and the contact spring).
 #[test]
 fn full_row_sweeps_match_dense_block_substitutions() {
-    use super::full_rows::FullRows;
-    use super::smoother::SymRows;
-    let (_, a) = beam_matrix([8, 2, 2], 1000.0, 0.01);
+    let (a, r, mut full) = beam_full_rows();
     let n = a.fixed.len();
-    let r = rhs(n, &a.fixed);
-    let rows = SymRows::of_pattern(&a.pattern);
-    let dinv = rows.diagonal_inverses(&a.blocks, &a.fixed);
-    let mut full = FullRows::of(&rows);
-    full.fill(&rows, &a.blocks, &dinv);
     // Dense parts: D + L and D + U (block triangles), fixed rows and columns replaced by
     // the identity's, and L, U alone.
     let m = dense_matrix(&a);
@@ -707,16 +713,13 @@ fn full_row_sweeps_match_dense_block_substitutions() {
 /// zero, the residual after it, and a backward sweep, on the beam with the 1000× rod.
 #[test]
 fn avx_and_portable_paired_sweeps_are_bit_identical() {
-    use super::full_rows::FullRows;
-    use super::smoother::SymRows;
-    let (_, a) = beam_matrix([8, 2, 2], 1000.0, 0.01);
-    let n = a.fixed.len();
-    let r = rhs(n, &a.fixed);
-    let rows = SymRows::of_pattern(&a.pattern);
-    let dinv = rows.diagonal_inverses(&a.blocks, &a.fixed);
+    #[cfg(target_arch = "x86_64")]
+    if !std::arch::is_x86_feature_detected!("avx") {
+        eprintln!("no AVX on this CPU: both runs take the portable path");
+    }
     let run = |portable: bool| {
-        let mut full = FullRows::of(&rows);
-        full.fill(&rows, &a.blocks, &dinv);
+        let (a, r, mut full) = beam_full_rows();
+        let n = a.fixed.len();
         full.set_portable(portable);
         let mut z = vec![V3::zeros(); n];
         full.forward_from_zero(&r, &mut z);

@@ -57,7 +57,7 @@ fn cross<L: Lanes>(a: &[L], b: &[L]) -> [L; 3] {
     ]
 }
 
-/// `(cof M, det M)`: columns `m1×m2, m2×m0, m0×m1` (as [`super::cofactor`]).
+/// `(cof M, det M)` with `cof M = det(M) M⁻ᵀ`: columns `m1×m2, m2×m0, m0×m1`.
 #[inline(always)]
 fn cofactor<L: Lanes>(m: &M3<L>) -> (M3<L>, L) {
     let (c0, c1, c2) = (&m[0..3], &m[3..6], &m[6..9]);

@@ -58,19 +58,6 @@ pub trait RotationExtractor {
     fn name(&self) -> &'static str;
 }
 
-/// Cofactor matrix `cof(M) = det(M) M⁻ᵀ` and `det M` (columns: `m1×m2, m2×m0, m0×m1`).
-#[inline]
-pub fn cofactor(m: &Matrix3<f64>) -> (Matrix3<f64>, f64) {
-    let c0 = m.column(0).into_owned();
-    let c1 = m.column(1).into_owned();
-    let c2 = m.column(2).into_owned();
-    let k0 = c1.cross(&c2);
-    let k1 = c2.cross(&c0);
-    let k2 = c0.cross(&c1);
-    let det = c0.dot(&k0);
-    (Matrix3::from_columns(&[k0, k1, k2]), det)
-}
-
 /// Closest proper rotation by SVD (the reference rule of the module docs).
 pub fn svd_rotation(f: &Matrix3<f64>) -> Matrix3<f64> {
     let svd = f.svd_unordered(true, true);
