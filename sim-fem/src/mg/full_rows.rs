@@ -39,6 +39,15 @@
 //! `avx_and_portable_paired_sweeps_are_bit_identical`). A row's lower and upper parts
 //! are each padded to whole pairs with a zero block whose column is a zero entry past the
 //! last node.
+//!
+//! **The chained neighbour** (2026-11-28, second session): a sweep's row `i` waits on the
+//! row written just before it (`i − 1` forward, `i + 1` backward), which on the lattice
+//! is nearly always a neighbour. That block is kept out of the pairs and applied last,
+//! premultiplied by `D_i⁻¹` ([`FullRows::chain`]), so the wait per row is one 3×3
+//! product. On the 12,288-tet beam's finest level (2,673 nodes) a forward sweep from
+//! zero went from 32.9 to 22.4 µs and a backward sweep from 39.6 to 34.8 µs, and the
+//! MG-PCG step from 4.93 to 4.68 ms (soft) and 4.82 to 4.57 ms (stiff), the medians of
+//! five interleaved runs, with the same iterations (docs/RESULTS.md).
 
 use nalgebra::{Matrix3, Vector3};
 
@@ -49,6 +58,9 @@ type V3 = Vector3<f64>;
 /// Two 3×3 blocks in single precision: for each column `k`, `[a_0k, a_1k, a_2k, 0]` of
 /// the first block then of the second.
 type Pair32 = [[f32; 8]; 3];
+
+/// One 3×3 block in single precision by columns `[a_0k, a_1k, a_2k, 0]`.
+type Block32 = [[f32; 4]; 3];
 
 /// Bit of [`FullRows::src`] marking a block taken transposed.
 const TRANSPOSED: u32 = 1 << 31;
@@ -85,6 +97,20 @@ pub(super) struct FullRows {
     src: Vec<[u32; 2]>,
     /// The pairs' blocks, refreshed by [`FullRows::fill`].
     blocks: Vec<Pair32>,
+    /// Row `i`'s blocks with its neighbours `i − 1` (first half) and `i + 1` (second
+    /// half), zero where those are not neighbours; they are not among the pairs (see
+    /// [`FullRows::chain`]).
+    near: Vec<Pair32>,
+    /// Slots of the two near blocks (as [`FullRows::src`]).
+    near_src: Vec<[u32; 2]>,
+    /// `D_i⁻¹ A_{i,i−1}` and `D_i⁻¹ A_{i,i+1}` in f32. A forward sweep's row `i` waits on
+    /// row `i − 1`, the row just written (a backward sweep's on `i + 1`), and nothing
+    /// else recent: it computes `w = D_i⁻¹ (r_i − Σ_{j≠i−1} A_ij z_j)` from older rows
+    /// while the previous row finishes, then `z_i = w − (D_i⁻¹ A_{i,i−1}) z_{i−1}` with
+    /// `z_{i−1}` still in a register. The wait per row is one 3×3 product instead of the
+    /// whole row's tail (its reduction and the product by `D_i⁻¹`): see
+    /// docs/RESULTS.md for the measurement.
+    chain: Vec<[Block32; 2]>,
     /// Diagonal blocks (f64: the residual of several sweeps multiplies by them).
     diag: Vec<Matrix3<f64>>,
     /// The diagonal blocks' inverses in f32, by columns `[d_0k, d_1k, d_2k, 0]` (zero for
@@ -120,18 +146,27 @@ impl FullRows {
                 src.push([two[0].0, second.0]);
             }
         };
+        let mut near_src = vec![[PAD; 2]; n];
         row_ptr.push(0);
-        for i in 0..n {
-            let lower = rows
-                .lower_entries(i)
-                .map(|(slot, j)| (slot as u32 | TRANSPOSED, j as u32))
-                .collect();
+        for (i, near) in near_src.iter_mut().enumerate() {
+            let mut lower = Vec::new();
+            for (slot, j) in rows.lower_entries(i) {
+                if j + 1 == i {
+                    near[0] = slot as u32 | TRANSPOSED;
+                } else {
+                    lower.push((slot as u32 | TRANSPOSED, j as u32));
+                }
+            }
             pairs(lower, &mut cols, &mut src);
             upper_start.push(cols.len() as u32);
-            let upper = rows
-                .upper_entries(i)
-                .map(|(slot, j)| (slot as u32, j as u32))
-                .collect();
+            let mut upper = Vec::new();
+            for (slot, j) in rows.upper_entries(i) {
+                if j == i + 1 {
+                    near[1] = slot as u32;
+                } else {
+                    upper.push((slot as u32, j as u32));
+                }
+            }
             pairs(upper, &mut cols, &mut src);
             row_ptr.push(cols.len() as u32);
         }
@@ -142,6 +177,9 @@ impl FullRows {
             cols,
             src,
             blocks: vec![[[0.0; 8]; 3]; len],
+            near: vec![[[0.0; 8]; 3]; n],
+            near_src,
+            chain: vec![[[[0.0; 4]; 3]; 2]; n],
             diag: vec![Matrix3::zeros(); n],
             dinv: vec![[[0.0; 4]; 3]; n],
             z32: vec![[0.0; 4]; n + 1],
@@ -157,21 +195,36 @@ impl FullRows {
                 [d[(0, k)] as f32, d[(1, k)] as f32, d[(2, k)] as f32, 0.0]
             });
         }
+        let block = |s: u32| {
+            if s == PAD {
+                Matrix3::zeros()
+            } else if s & TRANSPOSED != 0 {
+                fine[(s & !TRANSPOSED) as usize].transpose()
+            } else {
+                fine[s as usize]
+            }
+        };
+        let set_half = |out: &mut Pair32, half: usize, b: &Matrix3<f64>| {
+            for (k, col) in out.iter_mut().enumerate() {
+                for row in 0..3 {
+                    col[4 * half + row] = b[(row, k)] as f32;
+                }
+                col[4 * half + 3] = 0.0;
+            }
+        };
         for (out, two) in self.blocks.iter_mut().zip(&self.src) {
             for (half, &s) in two.iter().enumerate() {
-                let b = if s == PAD {
-                    Matrix3::zeros()
-                } else if s & TRANSPOSED != 0 {
-                    fine[(s & !TRANSPOSED) as usize].transpose()
-                } else {
-                    fine[s as usize]
-                };
-                for (k, col) in out.iter_mut().enumerate() {
-                    for row in 0..3 {
-                        col[4 * half + row] = b[(row, k)] as f32;
-                    }
-                    col[4 * half + 3] = 0.0;
-                }
+                set_half(out, half, &block(s));
+            }
+        }
+        for (i, two) in self.near_src.iter().enumerate() {
+            for (half, &s) in two.iter().enumerate() {
+                let b = block(s);
+                set_half(&mut self.near[i], half, &b);
+                let c = dinv[i] * b;
+                self.chain[i][half] = std::array::from_fn(|k| {
+                    [c[(0, k)] as f32, c[(1, k)] as f32, c[(2, k)] as f32, 0.0]
+                });
             }
         }
         for (i, d) in self.diag.iter_mut().enumerate() {
@@ -190,15 +243,49 @@ impl FullRows {
         }
     }
 
-    /// `Σ A_ij z_j` over pairs `from..to`, from the f32 iterate: the reference order of
-    /// operations. Per column `k` an 8-lane sum of `block_k · z_j[k]` (first block of
-    /// each pair in lanes 0–3, second in 4–7), the halves added at the end, then the
-    /// columns: `(s_0 + s_1) + s_2` (lane 3 is zero).
+    /// The pairs `pass` sums in row `i`: the lower ones, the upper ones or all.
     #[inline(always)]
-    fn sum_portable(&self, from: usize, to: usize) -> [f32; 4] {
+    fn pair_range(&self, pass: Pass, i: usize) -> (usize, usize) {
+        let (lower, upper, end) = (
+            self.row_ptr[i] as usize,
+            self.upper_start[i] as usize,
+            self.row_ptr[i + 1] as usize,
+        );
+        match pass {
+            Pass::ForwardFromZero => (lower, upper),
+            Pass::MinusUpper => (upper, end),
+            Pass::Forward | Pass::Backward | Pass::Residual => (lower, end),
+        }
+    }
+
+    /// The columns by which `pass` multiplies row `i`'s near pair: the zero entry `n`
+    /// for a half it leaves out (the neighbour it chains on, or a part it does not sum).
+    #[inline(always)]
+    fn near_cols(&self, pass: Pass, i: usize) -> Option<[u32; 2]> {
+        let n = self.num_rows();
+        let zero = n as u32;
+        let below = if i == 0 { zero } else { (i - 1) as u32 };
+        let above = if i + 1 < n { (i + 1) as u32 } else { zero };
+        match pass {
+            Pass::ForwardFromZero => None,
+            Pass::Forward | Pass::MinusUpper => Some([zero, above]),
+            Pass::Backward => Some([below, zero]),
+            Pass::Residual => Some([below, above]),
+        }
+    }
+
+    /// `Σ A_ij z_j` over the blocks `pass` reads in row `i` (its pairs, then its near
+    /// pair), from the f32 iterate: the reference order of operations. Per column `k` an
+    /// 8-lane sum of `block_k · z_j[k]` (first block of each pair in lanes 0–3, second in
+    /// 4–7), the halves added at the end, then the columns: `(s_0 + s_1) + s_2` (lane 3
+    /// is zero).
+    #[inline(always)]
+    fn sum_portable(&self, pass: Pass, i: usize) -> [f32; 4] {
+        let (from, to) = self.pair_range(pass, i);
         let mut acc = [[0.0f32; 8]; 3];
-        for (b, cols) in self.blocks[from..to].iter().zip(&self.cols[from..to]) {
-            let (z0, z1) = (&self.z32[cols[0] as usize], &self.z32[cols[1] as usize]);
+        let z32 = &self.z32;
+        let mut add = |b: &Pair32, cols: &[u32; 2]| {
+            let (z0, z1) = (&z32[cols[0] as usize], &z32[cols[1] as usize]);
             for (k, (a, bk)) in acc.iter_mut().zip(b).enumerate() {
                 for l in 0..4 {
                     // Multiply, then add: `mul_add` would fuse in builds with FMA
@@ -207,10 +294,54 @@ impl FullRows {
                     a[4 + l] += bk[4 + l] * z1[k];
                 }
             }
+        };
+        for (b, cols) in self.blocks[from..to].iter().zip(&self.cols[from..to]) {
+            add(b, cols);
+        }
+        if let Some(cols) = self.near_cols(pass, i) {
+            add(&self.near[i], &cols);
         }
         let s: [[f32; 4]; 3] =
             std::array::from_fn(|k| std::array::from_fn(|l| acc[k][l] + acc[k][4 + l]));
         std::array::from_fn(|l| (s[0][l] + s[1][l]) + s[2][l])
+    }
+
+    /// One pair's multiply-adds of [`FullRows::sum_avx`].
+    ///
+    /// # Safety
+    /// The CPU must support AVX; only called from functions compiled for it, into which
+    /// it is inlined.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn add_pair_avx(
+        &self,
+        acc: &mut [std::arch::x86_64::__m256; 3],
+        b: &Pair32,
+        cols: &[u32; 2],
+    ) {
+        use std::arch::x86_64::{
+            _mm256_add_ps, _mm256_loadu_ps, _mm256_loadu2_m128, _mm256_mul_ps, _mm256_permute_ps,
+        };
+        // SAFETY: AVX (this function's contract); every pointer read is within its
+        // array: a pair holds 3 × 8 f32, a `z32` entry 4.
+        unsafe {
+            let z = _mm256_loadu2_m128(
+                self.z32[cols[1] as usize].as_ptr(),
+                self.z32[cols[0] as usize].as_ptr(),
+            );
+            acc[0] = _mm256_add_ps(
+                acc[0],
+                _mm256_mul_ps(_mm256_loadu_ps(b[0].as_ptr()), _mm256_permute_ps(z, 0x00)),
+            );
+            acc[1] = _mm256_add_ps(
+                acc[1],
+                _mm256_mul_ps(_mm256_loadu_ps(b[1].as_ptr()), _mm256_permute_ps(z, 0x55)),
+            );
+            acc[2] = _mm256_add_ps(
+                acc[2],
+                _mm256_mul_ps(_mm256_loadu_ps(b[2].as_ptr()), _mm256_permute_ps(z, 0xAA)),
+            );
+        }
     }
 
     /// [`FullRows::sum_portable`] on 8-lane AVX registers (same operations, same order).
@@ -220,129 +351,115 @@ impl FullRows {
     /// it is inlined.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    unsafe fn sum_avx(&self, from: usize, to: usize) -> std::arch::x86_64::__m128 {
+    unsafe fn sum_avx(&self, pass: Pass, i: usize) -> std::arch::x86_64::__m128 {
         use std::arch::x86_64::{
-            _mm_add_ps, _mm256_add_ps, _mm256_castps256_ps128, _mm256_extractf128_ps,
-            _mm256_loadu_ps, _mm256_loadu2_m128, _mm256_mul_ps, _mm256_permute_ps,
-            _mm256_setzero_ps,
+            _mm_add_ps, _mm256_castps256_ps128, _mm256_extractf128_ps, _mm256_setzero_ps,
         };
-        // SAFETY: AVX (this function's contract); every pointer read is within its
-        // array: a pair holds 3 × 8 f32, a `z32` entry 4.
+        // SAFETY: AVX (this function's contract).
         unsafe {
-            let (mut a0, mut a1, mut a2) = (
-                _mm256_setzero_ps(),
-                _mm256_setzero_ps(),
-                _mm256_setzero_ps(),
-            );
+            let (from, to) = self.pair_range(pass, i);
+            let mut acc = [_mm256_setzero_ps(); 3];
             for (b, cols) in self.blocks[from..to].iter().zip(&self.cols[from..to]) {
-                let z = _mm256_loadu2_m128(
-                    self.z32[cols[1] as usize].as_ptr(),
-                    self.z32[cols[0] as usize].as_ptr(),
-                );
-                a0 = _mm256_add_ps(
-                    a0,
-                    _mm256_mul_ps(_mm256_loadu_ps(b[0].as_ptr()), _mm256_permute_ps(z, 0x00)),
-                );
-                a1 = _mm256_add_ps(
-                    a1,
-                    _mm256_mul_ps(_mm256_loadu_ps(b[1].as_ptr()), _mm256_permute_ps(z, 0x55)),
-                );
-                a2 = _mm256_add_ps(
-                    a2,
-                    _mm256_mul_ps(_mm256_loadu_ps(b[2].as_ptr()), _mm256_permute_ps(z, 0xAA)),
-                );
+                self.add_pair_avx(&mut acc, b, cols);
+            }
+            if let Some(cols) = self.near_cols(pass, i) {
+                self.add_pair_avx(&mut acc, &self.near[i], &cols);
             }
             let half = |a| _mm_add_ps(_mm256_castps256_ps128(a), _mm256_extractf128_ps(a, 1));
-            _mm_add_ps(_mm_add_ps(half(a0), half(a1)), half(a2))
+            _mm_add_ps(_mm_add_ps(half(acc[0]), half(acc[1])), half(acc[2]))
         }
     }
 
     /// The sum of [`FullRows::sum_portable`] as f64.
     #[inline(always)]
-    fn product<const AVX: bool>(&self, from: usize, to: usize) -> V3 {
+    fn product<const AVX: bool>(&self, pass: Pass, i: usize) -> V3 {
         #[cfg(target_arch = "x86_64")]
         if AVX {
             use std::arch::x86_64::_mm_storeu_ps;
             let mut s = [0.0f32; 4];
             // SAFETY: `AVX` is true only in `run_avx`, compiled for AVX and called
             // after the CPU was found to have it; `s` holds four f32.
-            unsafe { _mm_storeu_ps(s.as_mut_ptr(), self.sum_avx(from, to)) };
+            unsafe { _mm_storeu_ps(s.as_mut_ptr(), self.sum_avx(pass, i)) };
             return V3::new(f64::from(s[0]), f64::from(s[1]), f64::from(s[2]));
         }
-        let s = self.sum_portable(from, to);
+        let s = self.sum_portable(pass, i);
         V3::new(f64::from(s[0]), f64::from(s[1]), f64::from(s[2]))
     }
 
-    #[inline(always)]
-    fn upper<const AVX: bool>(&self, i: usize) -> V3 {
-        self.product::<AVX>(self.upper_start[i] as usize, self.row_ptr[i + 1] as usize)
-    }
-
-    #[inline(always)]
-    fn off_diagonal<const AVX: bool>(&self, i: usize) -> V3 {
-        self.product::<AVX>(self.row_ptr[i] as usize, self.row_ptr[i + 1] as usize)
-    }
-
     /// Row `i` of a sweep: `z_i = D_i⁻¹ (r_i − Σ_{j≠i} A_ij z_j)` (only the lower part
-    /// from zero), in both copies of the iterate, all in single precision: `d = r_i − s`,
-    /// `z_i = (D⁻¹_0 d_x + D⁻¹_1 d_y) + D⁻¹_2 d_z` by columns.
+    /// from zero), in both copies of the iterate, all in single precision and in two
+    /// parts (see [`FullRows::chain`]): `d = r_i − s` over every block but the chained
+    /// neighbour's, `w = (D⁻¹_0 d_x + D⁻¹_1 d_y) + D⁻¹_2 d_z` by columns, then
+    /// `z_i = w − ((C_0 p_x + C_1 p_y) + C_2 p_z)` with `C` the chain block and `p` the
+    /// row this pass wrote last (`prev`). Returns `z_i` in f32.
     ///
     /// Why single precision here too: a forward or backward sweep waits, row after row,
-    /// on the previous row's `z` (the lattice's order makes it a neighbour), so its time
-    /// is the chain from one row's product to the next row's read of `z`; an update in
-    /// f64 added conversions and a longer product to that chain.
+    /// on the previous row's `z`, so its time is the chain from one row's `z` to the
+    /// next; an update in f64 added conversions to that chain.
     #[inline(always)]
-    fn relax<const AVX: bool>(&mut self, r: &[V3], z: &mut [V3], i: usize, lower: bool) {
-        let (from, to) = (
-            self.row_ptr[i] as usize,
-            if lower {
-                self.upper_start[i] as usize
-            } else {
-                self.row_ptr[i + 1] as usize
-            },
-        );
+    fn relax<const AVX: bool>(
+        &mut self,
+        pass: Pass,
+        r: &[V3],
+        z: &mut [V3],
+        i: usize,
+        prev: [f32; 4],
+    ) -> [f32; 4] {
         let ri = [r[i].x as f32, r[i].y as f32, r[i].z as f32, 0.0];
-        #[cfg(target_arch = "x86_64")]
-        if AVX {
-            // SAFETY: `AVX` is true only in `run_avx`, compiled for AVX and called after
-            // the CPU was found to have it.
-            let zi = unsafe { self.relax_avx(from, to, i, &ri) };
-            self.z32[i] = zi;
-            z[i] = V3::new(f64::from(zi[0]), f64::from(zi[1]), f64::from(zi[2]));
-            return;
-        }
-        let s = self.sum_portable(from, to);
-        let d: [f32; 4] = std::array::from_fn(|l| ri[l] - s[l]);
-        let c = &self.dinv[i];
-        let zi: [f32; 4] =
-            std::array::from_fn(|l| (c[0][l] * d[0] + c[1][l] * d[1]) + c[2][l] * d[2]);
+        let zi = 'zi: {
+            #[cfg(target_arch = "x86_64")]
+            if AVX {
+                // SAFETY: `AVX` is true only in `run_avx`, compiled for AVX and called
+                // after the CPU was found to have it.
+                break 'zi unsafe { self.relax_avx(pass, i, &ri, &prev) };
+            }
+            let s = self.sum_portable(pass, i);
+            let d: [f32; 4] = std::array::from_fn(|l| ri[l] - s[l]);
+            let c = &self.dinv[i];
+            let w: [f32; 4] =
+                std::array::from_fn(|l| (c[0][l] * d[0] + c[1][l] * d[1]) + c[2][l] * d[2]);
+            let ch = &self.chain[i][usize::from(pass == Pass::Backward)];
+            std::array::from_fn(|l| {
+                w[l] - ((ch[0][l] * prev[0] + ch[1][l] * prev[1]) + ch[2][l] * prev[2])
+            })
+        };
         self.z32[i] = zi;
         z[i] = V3::new(f64::from(zi[0]), f64::from(zi[1]), f64::from(zi[2]));
+        zi
     }
 
     /// [`FullRows::relax`]'s arithmetic on SSE/AVX registers (same operations, same
-    /// order): the row's sum, `d = r_i − s`, `z_i` by the inverse's columns.
+    /// order).
     ///
     /// # Safety
     /// The CPU must support AVX; only called from functions compiled for it.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    unsafe fn relax_avx(&self, from: usize, to: usize, i: usize, ri: &[f32; 4]) -> [f32; 4] {
+    unsafe fn relax_avx(&self, pass: Pass, i: usize, ri: &[f32; 4], prev: &[f32; 4]) -> [f32; 4] {
         use std::arch::x86_64::{
-            _mm_add_ps, _mm_loadu_ps, _mm_mul_ps, _mm_permute_ps, _mm_storeu_ps, _mm_sub_ps,
+            __m128, _mm_add_ps, _mm_loadu_ps, _mm_mul_ps, _mm_permute_ps, _mm_storeu_ps, _mm_sub_ps,
         };
+        // `(c_0 v_x + c_1 v_y) + c_2 v_z` for a block `c` by columns.
+        #[inline(always)]
+        unsafe fn apply(c: &Block32, v: __m128) -> __m128 {
+            // SAFETY: AVX (the caller's contract); the loads read 4 f32 each.
+            unsafe {
+                _mm_add_ps(
+                    _mm_add_ps(
+                        _mm_mul_ps(_mm_loadu_ps(c[0].as_ptr()), _mm_permute_ps(v, 0x00)),
+                        _mm_mul_ps(_mm_loadu_ps(c[1].as_ptr()), _mm_permute_ps(v, 0x55)),
+                    ),
+                    _mm_mul_ps(_mm_loadu_ps(c[2].as_ptr()), _mm_permute_ps(v, 0xAA)),
+                )
+            }
+        }
         // SAFETY: AVX (this function's contract); the loads read 4 f32 each.
         unsafe {
-            let s = self.sum_avx(from, to);
+            let s = self.sum_avx(pass, i);
             let d = _mm_sub_ps(_mm_loadu_ps(ri.as_ptr()), s);
-            let c = &self.dinv[i];
-            let z = _mm_add_ps(
-                _mm_add_ps(
-                    _mm_mul_ps(_mm_loadu_ps(c[0].as_ptr()), _mm_permute_ps(d, 0x00)),
-                    _mm_mul_ps(_mm_loadu_ps(c[1].as_ptr()), _mm_permute_ps(d, 0x55)),
-                ),
-                _mm_mul_ps(_mm_loadu_ps(c[2].as_ptr()), _mm_permute_ps(d, 0xAA)),
-            );
+            let w = apply(&self.dinv[i], d);
+            let ch = &self.chain[i][usize::from(pass == Pass::Backward)];
+            let z = _mm_sub_ps(w, apply(ch, _mm_loadu_ps(prev.as_ptr())));
             let mut out = [0.0f32; 4];
             _mm_storeu_ps(out.as_mut_ptr(), z);
             out
@@ -353,18 +470,26 @@ impl FullRows {
     #[inline(always)]
     fn pass<const AVX: bool>(&mut self, pass: Pass, r: &[V3], z: &mut [V3], out: &mut [V3]) {
         let n = self.num_rows();
+        let mut prev = [0.0f32; 4];
         match pass {
-            Pass::ForwardFromZero => (0..n).for_each(|i| self.relax::<AVX>(r, z, i, true)),
-            Pass::Forward => (0..n).for_each(|i| self.relax::<AVX>(r, z, i, false)),
-            Pass::Backward => (0..n).rev().for_each(|i| self.relax::<AVX>(r, z, i, false)),
+            Pass::ForwardFromZero | Pass::Forward => {
+                for i in 0..n {
+                    prev = self.relax::<AVX>(pass, r, z, i, prev);
+                }
+            }
+            Pass::Backward => {
+                for i in (0..n).rev() {
+                    prev = self.relax::<AVX>(pass, r, z, i, prev);
+                }
+            }
             Pass::MinusUpper => {
                 for (i, o) in out.iter_mut().enumerate() {
-                    *o = -self.upper::<AVX>(i);
+                    *o = -self.product::<AVX>(pass, i);
                 }
             }
             Pass::Residual => {
                 for (i, o) in out.iter_mut().enumerate() {
-                    *o = r[i] - self.diag[i] * z[i] - self.off_diagonal::<AVX>(i);
+                    *o = r[i] - self.diag[i] * z[i] - self.product::<AVX>(pass, i);
                 }
             }
         }
