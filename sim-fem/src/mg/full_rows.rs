@@ -1,7 +1,8 @@
 //! A level's matrix as the sequential Gauss–Seidel sweeps read it: every row's
 //! off-diagonal blocks in one contiguous run (its lower part, transposed from the upper
-//! storage, then its upper part), in single precision; the finest level's rebuilt from the
-//! step's assembled blocks every solve, a coarse level's with its Galerkin operator.
+//! storage, then its upper part), in half precision and summed in single precision; the
+//! finest level's rebuilt from the step's assembled blocks every solve, a coarse level's
+//! with its Galerkin operator.
 //!
 //! The coarse levels' sweeps moved here from [`SymRows`] on 2026-11-28: on the 12,288-tet
 //! beam (levels of 400 and 81 nodes) their gathered lower parts were 4–5 % of an MG-PCG
@@ -48,16 +49,30 @@
 //! zero went from 32.9 to 22.4 µs and a backward sweep from 39.6 to 34.8 µs, and the
 //! MG-PCG step from 4.93 to 4.68 ms (soft) and 4.82 to 4.57 ms (stiff), the medians of
 //! five interleaved runs, with the same iterations (docs/RESULTS.md).
+//!
+//! **Half precision** (same session): the sweeps stream their blocks from the level-3
+//! cache (1.8 MB of pairs at 2,673 nodes; 1 MiB of level-2 cache per core), so the pairs
+//! are now stored in f16, 48 bytes per pair instead of 96, each row scaled by a power of
+//! two ([`FullRows::scale`]) so that any scene's matrix fits f16's range exactly (test
+//! `full_row_sweeps_are_exact_under_power_of_two_scaling`). The chain blocks, the
+//! diagonal inverses and every sum stay in f32. On the 12,288-tet beam's finest level a
+//! forward sweep from zero went from 22.4 to about 17.5 µs, `−U z` from 21.1 to 16.2 µs
+//! and a backward sweep from 34.8 to 27 µs, while the fill went from 97 to 155 µs; the
+//! MG-PCG step went from 5.14 to 4.61 ms (soft) and 4.60 to 4.21 ms (stiff), the medians
+//! of six interleaved runs, with the same iterations (17.2 and 17.8), and the 98,304-tet
+//! step from 72 to 61 ms. The rounding (2⁻¹¹ relative) changes the smoother, not what CG
+//! converges to: CG's products stay in f64.
 
+use half::{f16, slice::HalfFloatSliceExt};
 use nalgebra::{Matrix3, Vector3};
 
 use super::smoother::SymRows;
 
 type V3 = Vector3<f64>;
 
-/// Two 3×3 blocks in single precision: for each column `k`, `[a_0k, a_1k, a_2k, 0]` of
-/// the first block then of the second.
-type Pair32 = [[f32; 8]; 3];
+/// Two 3×3 blocks in half precision, scaled (see [`FullRows::scale`]): for each column
+/// `k`, `[b_0k, b_1k, b_2k, 0]` of the first block then of the second.
+type Pair16 = [[f16; 8]; 3];
 
 /// One 3×3 block in single precision by columns `[a_0k, a_1k, a_2k, 0]`.
 type Block32 = [[f32; 4]; 3];
@@ -96,11 +111,11 @@ pub(super) struct FullRows {
     /// [`PAD`]: a zero block).
     src: Vec<[u32; 2]>,
     /// The pairs' blocks, refreshed by [`FullRows::fill`].
-    blocks: Vec<Pair32>,
+    blocks: Vec<Pair16>,
     /// Row `i`'s blocks with its neighbours `i − 1` (first half) and `i + 1` (second
     /// half), zero where those are not neighbours; they are not among the pairs (see
     /// [`FullRows::chain`]).
-    near: Vec<Pair32>,
+    near: Vec<Pair16>,
     /// Slots of the two near blocks (as [`FullRows::src`]).
     near_src: Vec<[u32; 2]>,
     /// `D_i⁻¹ A_{i,i−1}` and `D_i⁻¹ A_{i,i+1}` in f32. A forward sweep's row `i` waits on
@@ -111,6 +126,15 @@ pub(super) struct FullRows {
     /// whole row's tail (its reduction and the product by `D_i⁻¹`): see
     /// docs/RESULTS.md for the measurement.
     chain: Vec<[Block32; 2]>,
+    /// Row `i`'s scale `s_i`, a power of two near `1 / √max_k A_ii[k][k]`: the pairs
+    /// hold `B_ij = s_i s_j A_ij`, whose entries are less than 4 in magnitude (`|a_pq| ≤
+    /// √(a_pp a_qq)` in a positive-definite matrix), so that half precision holds any
+    /// scene's matrix, and `z32` holds `y_i = z_i / s_i`. Powers of two make both scalings
+    /// exact: the sweeps act on `A' = S⁻¹ B' S⁻¹` with `B'` the rounded blocks, a
+    /// symmetric matrix (a lower block is the rounded upper one, transposed).
+    scale: Vec<f32>,
+    /// `1 / s_i`: `Σ_j A'_ij z_j = (Σ_j B'_ij y_j) / s_i`.
+    unscale: Vec<f32>,
     /// Diagonal blocks (f64: the residual of several sweeps multiplies by them).
     diag: Vec<Matrix3<f64>>,
     /// The diagonal blocks' inverses in f32, by columns `[d_0k, d_1k, d_2k, 0]` (zero for
@@ -123,6 +147,95 @@ pub(super) struct FullRows {
     z32: Vec<[f32; 4]>,
     /// Never use AVX (tests).
     portable: bool,
+}
+
+/// Whether this CPU converts to half precision in hardware (F16C, with AVX).
+fn has_f16c() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return std::arch::is_x86_feature_detected!("avx")
+        && std::arch::is_x86_feature_detected!("f16c");
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
+/// `v[j]` in f64, zero past the end (the padding column `n`, whose blocks are zero).
+#[inline(always)]
+fn scale_of(v: &[f32], j: u32) -> f64 {
+    v.get(j as usize).map_or(0.0, |&s| f64::from(s))
+}
+
+/// A pair's blocks (slots `srcs`, columns `cols`, as [`FullRows::src`]) scaled by
+/// `s_i s_j` (`si`, `scale`) in f32 lanes: the values [`round_to_f16`] rounds.
+#[inline(always)]
+fn scaled_pair(
+    fine: &[Matrix3<f64>],
+    srcs: &[u32; 2],
+    cols: &[u32; 2],
+    si: f64,
+    scale: &[f32],
+) -> [f32; 24] {
+    let mut t = [0.0f32; 24];
+    for (half, (&s, &j)) in srcs.iter().zip(cols).enumerate() {
+        if s == PAD {
+            continue;
+        }
+        let f = si * scale_of(scale, j);
+        // Column-major: entry (row, k) at 3k + row; a transposed block's at 3row + k.
+        let b = fine[(s & !TRANSPOSED) as usize].as_slice();
+        if s & TRANSPOSED != 0 {
+            for k in 0..3 {
+                for row in 0..3 {
+                    t[8 * k + 4 * half + row] = (b[3 * row + k] * f) as f32;
+                }
+            }
+        } else {
+            for k in 0..3 {
+                for row in 0..3 {
+                    t[8 * k + 4 * half + row] = (b[3 * k + row] * f) as f32;
+                }
+            }
+        }
+    }
+    t
+}
+
+/// A pair's 24 lanes rounded to half precision, to nearest even (the same bits on every
+/// CPU). `F16C`: only where the CPU has AVX and F16C, inlined into code compiled for them.
+#[inline(always)]
+fn round_to_f16<const F16C: bool>(src: &[f32; 24], dst: &mut Pair16) {
+    #[cfg(target_arch = "x86_64")]
+    if F16C {
+        use std::arch::x86_64::{
+            __m128i, _MM_FROUND_TO_NEAREST_INT, _mm_storeu_si128, _mm256_cvtps_ph, _mm256_loadu_ps,
+        };
+        for (s, d) in src.chunks_exact(8).zip(dst.iter_mut()) {
+            // SAFETY: AVX and F16C (this function's contract); `s` holds 8 f32 and `d` 8
+            // f16 (16 bytes).
+            unsafe {
+                let h = _mm256_cvtps_ph::<_MM_FROUND_TO_NEAREST_INT>(_mm256_loadu_ps(s.as_ptr()));
+                _mm_storeu_si128(d.as_mut_ptr().cast::<__m128i>(), h);
+            }
+        }
+        return;
+    }
+    dst.as_flattened_mut().convert_from_f32_slice(src);
+}
+
+/// Eight half-precision lanes in f32 (exact). `F16C`: as [`round_to_f16`].
+#[inline(always)]
+fn widen<const F16C: bool>(h: &[f16; 8]) -> [f32; 8] {
+    #[cfg(target_arch = "x86_64")]
+    if F16C {
+        use std::arch::x86_64::{__m128i, _mm_loadu_si128, _mm256_cvtph_ps, _mm256_storeu_ps};
+        let mut out = [0.0f32; 8];
+        // SAFETY: AVX and F16C (the contract of `F16C`); `h` holds 8 f16, `out` 8 f32.
+        unsafe {
+            let w = _mm256_cvtph_ps(_mm_loadu_si128(h.as_ptr().cast::<__m128i>()));
+            _mm256_storeu_ps(out.as_mut_ptr(), w);
+        }
+        return out;
+    }
+    h.map(f16::to_f32_const)
 }
 
 #[inline]
@@ -176,10 +289,12 @@ impl FullRows {
             upper_start,
             cols,
             src,
-            blocks: vec![[[0.0; 8]; 3]; len],
-            near: vec![[[0.0; 8]; 3]; n],
+            blocks: vec![[[f16::ZERO; 8]; 3]; len],
+            near: vec![[[f16::ZERO; 8]; 3]; n],
             near_src,
             chain: vec![[[[0.0; 4]; 3]; 2]; n],
+            scale: vec![1.0; n],
+            unscale: vec![1.0; n],
             diag: vec![Matrix3::zeros(); n],
             dinv: vec![[[0.0; 4]; 3]; n],
             z32: vec![[0.0; 4]; n + 1],
@@ -195,40 +310,72 @@ impl FullRows {
                 [d[(0, k)] as f32, d[(1, k)] as f32, d[(2, k)] as f32, 0.0]
             });
         }
-        let block = |s: u32| {
-            if s == PAD {
-                Matrix3::zeros()
-            } else if s & TRANSPOSED != 0 {
-                fine[(s & !TRANSPOSED) as usize].transpose()
+        for (i, d) in self.diag.iter_mut().enumerate() {
+            *d = fine[rows.diagonal_slot(i)];
+            let top = d[(0, 0)].max(d[(1, 1)]).max(d[(2, 2)]);
+            // top = m 2^e with 1 ≤ m < 2: s = 2^−⌊e/2⌋ puts s² top in [1, 4).
+            let s = if top > 0.0 && top.is_normal() {
+                let e = ((top.to_bits() >> 52) & 0x7ff) as i64 - 1023;
+                f64::from_bits(((1023 - e.div_euclid(2)) as u64) << 52)
             } else {
-                fine[s as usize]
-            }
-        };
-        let set_half = |out: &mut Pair32, half: usize, b: &Matrix3<f64>| {
-            for (k, col) in out.iter_mut().enumerate() {
-                for row in 0..3 {
-                    col[4 * half + row] = b[(row, k)] as f32;
-                }
-                col[4 * half + 3] = 0.0;
-            }
-        };
-        for (out, two) in self.blocks.iter_mut().zip(&self.src) {
-            for (half, &s) in two.iter().enumerate() {
-                set_half(out, half, &block(s));
-            }
+                1.0
+            };
+            self.scale[i] = s as f32;
+            self.unscale[i] = (1.0 / s) as f32;
         }
-        for (i, two) in self.near_src.iter().enumerate() {
-            for (half, &s) in two.iter().enumerate() {
-                let b = block(s);
-                set_half(&mut self.near[i], half, &b);
+        #[cfg(target_arch = "x86_64")]
+        if !self.portable && has_f16c() {
+            // SAFETY: the CPU has AVX and F16C (checked just above).
+            unsafe { self.fill_pairs_f16c(fine, dinv) };
+            return;
+        }
+        self.fill_pairs::<false>(fine, dinv);
+    }
+
+    /// [`FullRows::fill_pairs`] compiled for AVX and F16C.
+    ///
+    /// # Safety
+    /// The CPU must support AVX and F16C.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx,f16c")]
+    unsafe fn fill_pairs_f16c(&mut self, fine: &[Matrix3<f64>], dinv: &[Matrix3<f64>]) {
+        self.fill_pairs::<true>(fine, dinv);
+    }
+
+    /// The pairs, near pairs and chain blocks of [`FullRows::fill`], the scales set: each
+    /// pair's scaled blocks in f32, then rounded to f16 (to nearest even, the same bits
+    /// on every CPU: by F16C where `F16C`, else by `half`).
+    #[inline(always)]
+    fn fill_pairs<const F16C: bool>(&mut self, fine: &[Matrix3<f64>], dinv: &[Matrix3<f64>]) {
+        let n = self.num_rows();
+        let (scale, unscale) = (&self.scale, &self.unscale);
+        for i in 0..n {
+            let si = f64::from(scale[i]);
+            let (from, to) = (self.row_ptr[i] as usize, self.row_ptr[i + 1] as usize);
+            for p in from..to {
+                let (srcs, cols) = (&self.src[p], &self.cols[p]);
+                round_to_f16::<F16C>(
+                    &scaled_pair(fine, srcs, cols, si, scale),
+                    &mut self.blocks[p],
+                );
+            }
+            let near_cols = [
+                if i == 0 { n as u32 } else { (i - 1) as u32 },
+                (i + 1) as u32,
+            ];
+            let t = scaled_pair(fine, &self.near_src[i], &near_cols, si, scale);
+            round_to_f16::<F16C>(&t, &mut self.near[i]);
+            // The chain blocks from the rounded near blocks, so that every pass sweeps
+            // the same matrix `A'`.
+            let near: [[f32; 8]; 3] = std::array::from_fn(|k| widen::<F16C>(&self.near[i][k]));
+            for (half, &j) in near_cols.iter().enumerate() {
+                let u = f64::from(unscale[i]) * scale_of(unscale, j);
+                let b = Matrix3::from_fn(|row, k| f64::from(near[k][4 * half + row]) * u);
                 let c = dinv[i] * b;
                 self.chain[i][half] = std::array::from_fn(|k| {
                     [c[(0, k)] as f32, c[(1, k)] as f32, c[(2, k)] as f32, 0.0]
                 });
             }
-        }
-        for (i, d) in self.diag.iter_mut().enumerate() {
-            *d = fine[rows.diagonal_slot(i)];
         }
     }
 
@@ -238,8 +385,8 @@ impl FullRows {
 
     /// The f32 copy of the iterate set from `z` (the padding entry stays zero).
     fn load(&mut self, z: &[V3]) {
-        for (a, v) in self.z32.iter_mut().zip(z) {
-            *a = to_f32(v);
+        for ((a, v), &u) in self.z32.iter_mut().zip(z).zip(&self.unscale) {
+            *a = to_f32(v).map(|c| c * u);
         }
     }
 
@@ -284,14 +431,14 @@ impl FullRows {
         let (from, to) = self.pair_range(pass, i);
         let mut acc = [[0.0f32; 8]; 3];
         let z32 = &self.z32;
-        let mut add = |b: &Pair32, cols: &[u32; 2]| {
+        let mut add = |b: &Pair16, cols: &[u32; 2]| {
             let (z0, z1) = (&z32[cols[0] as usize], &z32[cols[1] as usize]);
             for (k, (a, bk)) in acc.iter_mut().zip(b).enumerate() {
                 for l in 0..4 {
                     // Multiply, then add: `mul_add` would fuse in builds with FMA
                     // enabled and change the bits between sites built differently.
-                    a[l] += bk[l] * z0[k];
-                    a[4 + l] += bk[4 + l] * z1[k];
+                    a[l] += bk[l].to_f32() * z0[k];
+                    a[4 + l] += bk[4 + l].to_f32() * z1[k];
                 }
             }
         };
@@ -303,59 +450,55 @@ impl FullRows {
         }
         let s: [[f32; 4]; 3] =
             std::array::from_fn(|k| std::array::from_fn(|l| acc[k][l] + acc[k][4 + l]));
-        std::array::from_fn(|l| (s[0][l] + s[1][l]) + s[2][l])
+        let u = self.unscale[i];
+        std::array::from_fn(|l| ((s[0][l] + s[1][l]) + s[2][l]) * u)
     }
 
     /// One pair's multiply-adds of [`FullRows::sum_avx`].
     ///
     /// # Safety
-    /// The CPU must support AVX; only called from functions compiled for it, into which
+    /// The CPU must support AVX and F16C; only called from functions compiled for them, into which
     /// it is inlined.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
     unsafe fn add_pair_avx(
         &self,
         acc: &mut [std::arch::x86_64::__m256; 3],
-        b: &Pair32,
+        b: &Pair16,
         cols: &[u32; 2],
     ) {
         use std::arch::x86_64::{
-            _mm256_add_ps, _mm256_loadu_ps, _mm256_loadu2_m128, _mm256_mul_ps, _mm256_permute_ps,
+            __m128i, _mm_loadu_si128, _mm256_add_ps, _mm256_cvtph_ps, _mm256_loadu2_m128,
+            _mm256_mul_ps, _mm256_permute_ps,
         };
-        // SAFETY: AVX (this function's contract); every pointer read is within its
-        // array: a pair holds 3 × 8 f32, a `z32` entry 4.
+        // SAFETY: AVX and F16C (this function's contract); every pointer read is within
+        // its array: a pair's column holds 8 f16 (16 bytes), a `z32` entry 4 f32.
         unsafe {
+            let column =
+                |k: usize| _mm256_cvtph_ps(_mm_loadu_si128(b[k].as_ptr().cast::<__m128i>()));
             let z = _mm256_loadu2_m128(
                 self.z32[cols[1] as usize].as_ptr(),
                 self.z32[cols[0] as usize].as_ptr(),
             );
-            acc[0] = _mm256_add_ps(
-                acc[0],
-                _mm256_mul_ps(_mm256_loadu_ps(b[0].as_ptr()), _mm256_permute_ps(z, 0x00)),
-            );
-            acc[1] = _mm256_add_ps(
-                acc[1],
-                _mm256_mul_ps(_mm256_loadu_ps(b[1].as_ptr()), _mm256_permute_ps(z, 0x55)),
-            );
-            acc[2] = _mm256_add_ps(
-                acc[2],
-                _mm256_mul_ps(_mm256_loadu_ps(b[2].as_ptr()), _mm256_permute_ps(z, 0xAA)),
-            );
+            acc[0] = _mm256_add_ps(acc[0], _mm256_mul_ps(column(0), _mm256_permute_ps(z, 0x00)));
+            acc[1] = _mm256_add_ps(acc[1], _mm256_mul_ps(column(1), _mm256_permute_ps(z, 0x55)));
+            acc[2] = _mm256_add_ps(acc[2], _mm256_mul_ps(column(2), _mm256_permute_ps(z, 0xAA)));
         }
     }
 
     /// [`FullRows::sum_portable`] on 8-lane AVX registers (same operations, same order).
     ///
     /// # Safety
-    /// The CPU must support AVX; only called from functions compiled for it, into which
+    /// The CPU must support AVX and F16C; only called from functions compiled for them, into which
     /// it is inlined.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
     unsafe fn sum_avx(&self, pass: Pass, i: usize) -> std::arch::x86_64::__m128 {
         use std::arch::x86_64::{
-            _mm_add_ps, _mm256_castps256_ps128, _mm256_extractf128_ps, _mm256_setzero_ps,
+            _mm_add_ps, _mm_mul_ps, _mm_set1_ps, _mm256_castps256_ps128, _mm256_extractf128_ps,
+            _mm256_setzero_ps,
         };
-        // SAFETY: AVX (this function's contract).
+        // SAFETY: AVX and F16C (this function's contract).
         unsafe {
             let (from, to) = self.pair_range(pass, i);
             let mut acc = [_mm256_setzero_ps(); 3];
@@ -366,7 +509,10 @@ impl FullRows {
                 self.add_pair_avx(&mut acc, &self.near[i], &cols);
             }
             let half = |a| _mm_add_ps(_mm256_castps256_ps128(a), _mm256_extractf128_ps(a, 1));
-            _mm_add_ps(_mm_add_ps(half(acc[0]), half(acc[1])), half(acc[2]))
+            _mm_mul_ps(
+                _mm_add_ps(_mm_add_ps(half(acc[0]), half(acc[1])), half(acc[2])),
+                _mm_set1_ps(self.unscale[i]),
+            )
         }
     }
 
@@ -377,8 +523,8 @@ impl FullRows {
         if AVX {
             use std::arch::x86_64::_mm_storeu_ps;
             let mut s = [0.0f32; 4];
-            // SAFETY: `AVX` is true only in `run_avx`, compiled for AVX and called
-            // after the CPU was found to have it; `s` holds four f32.
+            // SAFETY: `AVX` is true only in `run_avx`, compiled for AVX and F16C and
+            // called after the CPU was found to have them; `s` holds four f32.
             unsafe { _mm_storeu_ps(s.as_mut_ptr(), self.sum_avx(pass, i)) };
             return V3::new(f64::from(s[0]), f64::from(s[1]), f64::from(s[2]));
         }
@@ -409,8 +555,8 @@ impl FullRows {
         let zi = 'zi: {
             #[cfg(target_arch = "x86_64")]
             if AVX {
-                // SAFETY: `AVX` is true only in `run_avx`, compiled for AVX and called
-                // after the CPU was found to have it.
+                // SAFETY: `AVX` is true only in `run_avx`, compiled for AVX and F16C
+                // and called after the CPU was found to have them.
                 break 'zi unsafe { self.relax_avx(pass, i, &ri, &prev) };
             }
             let s = self.sum_portable(pass, i);
@@ -423,7 +569,8 @@ impl FullRows {
                 w[l] - ((ch[0][l] * prev[0] + ch[1][l] * prev[1]) + ch[2][l] * prev[2])
             })
         };
-        self.z32[i] = zi;
+        let u = self.unscale[i];
+        self.z32[i] = zi.map(|c| c * u);
         z[i] = V3::new(f64::from(zi[0]), f64::from(zi[1]), f64::from(zi[2]));
         zi
     }
@@ -432,7 +579,7 @@ impl FullRows {
     /// order).
     ///
     /// # Safety
-    /// The CPU must support AVX; only called from functions compiled for it.
+    /// The CPU must support AVX and F16C; only called from functions compiled for them.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
     unsafe fn relax_avx(&self, pass: Pass, i: usize, ri: &[f32; 4], prev: &[f32; 4]) -> [f32; 4] {
@@ -495,12 +642,12 @@ impl FullRows {
         }
     }
 
-    /// [`FullRows::pass`] compiled for AVX.
+    /// [`FullRows::pass`] compiled for AVX and F16C.
     ///
     /// # Safety
-    /// The CPU must support AVX.
+    /// The CPU must support AVX and F16C.
     #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx")]
+    #[target_feature(enable = "avx,f16c")]
     unsafe fn run_avx(&mut self, pass: Pass, r: &[V3], z: &mut [V3], out: &mut [V3]) {
         self.pass::<true>(pass, r, z, out);
     }
@@ -508,8 +655,11 @@ impl FullRows {
     /// [`FullRows::pass`] on AVX where the CPU has it (`portable`: never).
     fn run(&mut self, pass: Pass, r: &[V3], z: &mut [V3], out: &mut [V3], portable: bool) {
         #[cfg(target_arch = "x86_64")]
-        if !portable && std::arch::is_x86_feature_detected!("avx") {
-            // SAFETY: the CPU has AVX (checked just above).
+        if !portable
+            && std::arch::is_x86_feature_detected!("avx")
+            && std::arch::is_x86_feature_detected!("f16c")
+        {
+            // SAFETY: the CPU has AVX and F16C (checked just above).
             unsafe { self.run_avx(pass, r, z, out) };
             return;
         }
