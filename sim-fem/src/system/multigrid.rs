@@ -15,8 +15,12 @@ use crate::system::{LinearSolver, StepParams};
 /// 12,288 tets and the default organ at dt 2 and 10 ms, every solve to 1e-6
 /// (docs/RESULTS.md, "Choosing the solver"): MG-PCG was the faster in every row where
 /// Jacobi-PCG needed 75 iterations or more, Jacobi-PCG in every row where it needed 48
-/// or fewer.
-pub const AUTO_MG_ABOVE_JACOBI_ITERATIONS: usize = 64;
+/// or fewer. Re-measured on 2026-11-28 after the sweeps' half-precision blocks
+/// (`cosurg bench scale --organ-cells 0.02,0.013333333`, docs/RESULTS.md): MG-PCG was
+/// the faster from 61 iterations up (the 1.33 cm organ at dt 1 ms: 1.6 against 2.0 ms),
+/// Jacobi-PCG up to 39 (at 28, the default organ at dt 1 ms, the two were within 5 %),
+/// so the threshold moved from 64 to 48.
+pub const AUTO_MG_ABOVE_JACOBI_ITERATIONS: usize = 48;
 
 /// [`LinearSolver::Auto`] considers MG-PCG only for systems with more free nodes than
 /// this. The crossover above was measured when the V-cycle stopped descending at 200
