@@ -55,7 +55,7 @@ struct Level {
     plan: GalerkinPlan,
     rows: SymRows,
     blocks: Vec<Matrix3<f64>>,
-    /// The blocks by full rows in f32 for the sweeps (as the finest level's; refreshed
+    /// The blocks by full rows in f16 (summed in f32) for the sweeps (as the finest level's; refreshed
     /// with the blocks).
     full: FullRows,
     dinv: Vec<Matrix3<f64>>,
@@ -73,7 +73,7 @@ pub struct Multigrid {
     fine_dinv: Vec<Matrix3<f64>>,
     /// The finest level's rows split over threads ([`Multigrid::set_fine_parts`]).
     fine_hybrid: Option<HybridSweeps>,
-    /// The finest level's blocks by full rows in f32, for the sequential sweeps of a
+    /// The finest level's blocks by full rows in f16 (summed in f32), for the sequential sweeps of a
     /// V-cycle with coarse levels (`full_rows.rs`; built with the first refresh).
     fine_full: Option<FullRows>,
     levels: Vec<Level>,
@@ -301,7 +301,7 @@ impl Multigrid {
 
     /// One V-cycle: `z ≈ A⁻¹ r` with `fine` the finest operator's upper blocks, those of
     /// the last [`Multigrid::refresh`] or [`Multigrid::update_fine_diagonal`] (one thread
-    /// sweeps their f32 copy, `full_rows.rs`). `r` must be zero on fixed nodes; `z` is.
+    /// sweeps their f16 copy, `full_rows.rs`). `r` must be zero on fixed nodes; `z` is.
     pub fn vcycle(&mut self, fine: &[Matrix3<f64>], r: &[V3], z: &mut [V3]) {
         let nu = self.params.smoothing_steps.max(1);
         let (rows, dinv) = (&self.fine_rows, &self.fine_dinv);
