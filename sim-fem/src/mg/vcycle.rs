@@ -55,8 +55,8 @@ struct Level {
     plan: GalerkinPlan,
     rows: SymRows,
     blocks: Vec<Matrix3<f64>>,
-    /// The blocks by full rows in f16 (summed in f32) for the sweeps (as the finest level's; refreshed
-    /// with the blocks).
+    /// The blocks by full rows in f16 (summed in f32) for the sweeps (as the finest
+    /// level's; refreshed with the blocks).
     full: FullRows,
     dinv: Vec<Matrix3<f64>>,
     r: Vec<V3>,
@@ -73,8 +73,9 @@ pub struct Multigrid {
     fine_dinv: Vec<Matrix3<f64>>,
     /// The finest level's rows split over threads ([`Multigrid::set_fine_parts`]).
     fine_hybrid: Option<HybridSweeps>,
-    /// The finest level's blocks by full rows in f16 (summed in f32), for the sequential sweeps of a
-    /// V-cycle with coarse levels (`full_rows.rs`; built with the first refresh).
+    /// The finest level's blocks by full rows in f16 (summed in f32), for the sequential
+    /// sweeps of a V-cycle with coarse levels (`full_rows.rs`; built with the first
+    /// refresh).
     fine_full: Option<FullRows>,
     levels: Vec<Level>,
     coarsest: Option<DenseCholesky>,
