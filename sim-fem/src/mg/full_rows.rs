@@ -13,10 +13,11 @@
 //! thread, 2026-11-27) put 20 % of the step in the lower-part products of [`SymRows`],
 //! which gather every block from the row that stores it, against 10 % for the upper part
 //! that reads its own row in order. Here both parts are read in order, once per sweep,
-//! and each block takes 48 bytes instead of 72. A preconditioner needs no more precision:
-//! CG's own products stay in f64; the smoothed matrix's blocks are rounded to f32 (a lower
-//! block is the rounded upper one, transposed), and the sweeps read the iterate in f32 too,
-//! so the V-cycle is symmetric and linear only to single precision (below).
+//! and each block took 48 bytes instead of 72 (24 since the blocks are in half precision,
+//! below). A preconditioner needs no more precision: CG's own products stay in f64; the
+//! smoothed matrix's blocks are rounded (a lower block is the rounded upper one,
+//! transposed), and the sweeps read the iterate in f32, so the V-cycle is symmetric and
+//! linear only to single precision (below).
 //!
 //! The products are lane-wise single-precision sums: a block is its three columns, each
 //! padded to four lanes, and `A z` is three lane-wise multiply-adds (one accumulator per
