@@ -34,6 +34,9 @@ pub(super) struct Caches {
     /// Per-element rotated blocks of earlier assemblies (`element_blocks.rs`), kept while
     /// most rotations stay as they were.
     pub(super) element_blocks: Vec<super::element_blocks::CachedBlocks>,
+    /// Per rotation source, its elements' stiffness in the rest frame for the one-thread
+    /// co-rotational forces (`source_stiffness.rs`), where the source is large enough.
+    pub(super) source_stiffness: Vec<Option<super::source_stiffness::SourceStiffness>>,
     /// Multigrid hierarchy given by the caller, and the preconditioner built on it.
     pub(super) mg_hierarchy: Option<crate::mg::Hierarchy>,
     pub(super) mg: Option<super::multigrid::MgCache>,

@@ -86,9 +86,16 @@ impl FemSystem {
                     .sum();
                 inner + edge
             }
-            _ => (0..self.mesh.elements.len())
-                .map(|ei| scatter(out, 0, ei))
-                .sum(),
+            _ => {
+                if model == Model::Corotational
+                    && let Some(energy) = self.elastic_by_source(x, mode, rotations, out)
+                {
+                    return energy;
+                }
+                (0..self.mesh.elements.len())
+                    .map(|ei| scatter(out, 0, ei))
+                    .sum()
+            }
         }
     }
 

@@ -109,6 +109,9 @@ impl FemSystem {
             // The parallel force loop needs the partition.
             self.refresh_order();
         }
+        if self.exec.threads == 1 && p.model == Model::Corotational {
+            self.refresh_source_stiffness(p.stiffness);
+        }
         let mut fint = vec![V3::zeros(); n];
         let elastic_n = self.elastic(x, p.model, p.stiffness, None, Some(&mut fint));
         let guard = self.energy_guard_start(x, v, elastic_n, p);

@@ -40,6 +40,7 @@ mod multigrid;
 mod newton;
 mod operator;
 mod rotations;
+mod source_stiffness;
 mod statics;
 mod step;
 mod step_params;
