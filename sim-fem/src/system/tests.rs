@@ -277,7 +277,7 @@ fn source_assembly_matches_the_per_element_assembly() {
         if mode == StiffnessMode::Dense {
             sys.ensure_dense();
         }
-        let mut assemble = |sys: &mut crate::FemSystem| {
+        let assemble = |sys: &mut crate::FemSystem| {
             let elem = ElemMats::Rotated {
                 coef: coef.clone(),
                 rotated: true,
