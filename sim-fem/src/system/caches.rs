@@ -37,6 +37,8 @@ pub(super) struct Caches {
     /// Per rotation source, its elements' stiffness in the rest frame for the one-thread
     /// co-rotational forces (`source_stiffness.rs`), where the source is large enough.
     pub(super) source_stiffness: Vec<Option<super::source_stiffness::SourceStiffness>>,
+    /// Per rotation source not summed, the elements it held at the last refresh.
+    pub(super) source_seen: Vec<Vec<u32>>,
     /// Multigrid hierarchy given by the caller, and the preconditioner built on it.
     pub(super) mg_hierarchy: Option<crate::mg::Hierarchy>,
     pub(super) mg: Option<super::multigrid::MgCache>,

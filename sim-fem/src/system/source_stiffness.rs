@@ -220,12 +220,21 @@ impl FemSystem {
 
     /// Brings the per-source stiffness up to date with the current assignment (one
     /// thread, co-rotational): built for each source of at least [`MIN_ELEMENTS`]
-    /// elements whose elements changed, dropped for the others.
+    /// elements that holds the same elements as at the previous refresh, dropped for the
+    /// others.
+    ///
+    /// Why not at once: while a motion starts, sharing reassigns many sources from one
+    /// step to the next, and a sum built for one step only costs more than it saves
+    /// (the 98,304-tet beam's first 20 steps were slower with every new assignment
+    /// summed at once).
     pub(super) fn refresh_source_stiffness(&mut self, mode: StiffnessMode) {
         self.refresh_order();
         let mut kept = std::mem::take(&mut self.caches.source_stiffness);
         kept.resize(self.rotations.sources.len(), None);
         kept.truncate(self.rotations.sources.len());
+        let mut seen = std::mem::take(&mut self.caches.source_seen);
+        seen.resize(self.rotations.sources.len(), Vec::new());
+        seen.truncate(self.rotations.sources.len());
         let by_source = &self.caches.by_source;
         let mut start = 0;
         while start < by_source.len() {
@@ -235,15 +244,24 @@ impl FemSystem {
                 end += 1;
             }
             let elements = &by_source[start..end];
-            let slot = &mut kept[s];
+            let (slot, seen) = (&mut kept[s], &mut seen[s]);
             if elements.len() < MIN_ELEMENTS {
                 *slot = None;
-            } else if !slot.as_ref().is_some_and(|k| k.is_for(elements, mode)) {
+                seen.clear();
+            } else if slot.as_ref().is_some_and(|k| k.is_for(elements, mode)) {
+            } else if seen.as_slice() == elements {
+                // The same elements two refreshes running: worth summing.
                 *slot = Some(SourceStiffness::build(self, elements, mode));
+                seen.clear();
+            } else {
+                *slot = None;
+                seen.clear();
+                seen.extend_from_slice(elements);
             }
             start = end;
         }
         self.caches.source_stiffness = kept;
+        self.caches.source_seen = seen;
     }
 
     /// Co-rotational energy (J) and forces added into `out` (N) source by source
