@@ -22,6 +22,8 @@
 //! `source_assembly_matches_the_per_element_assembly`). One thread only: the
 //! multi-threaded loops split elements by node ranges, not by source.
 
+use std::collections::HashMap;
+
 use nalgebra::Matrix3;
 
 use super::{FemSystem, StiffnessMode, V3};
@@ -59,25 +61,16 @@ pub(super) struct SourceStiffness {
 impl SourceStiffness {
     /// `K_s` of `elements` (all of one source).
     fn build(sys: &FemSystem, elements: &[u32], mode: StiffnessMode) -> Self {
-        // A source spans a few dozen nodes: linear searches beat hashing here (a source is
-        // rebuilt whenever sharing reassigns it, up to a few per step).
-        let mut nodes: Vec<u32> = Vec::new();
-        let local =
-            |n: usize, nodes: &mut Vec<u32>| match nodes.iter().position(|&m| m as usize == n) {
-                Some(i) => i as u32,
-                None => {
-                    nodes.push(n as u32);
-                    (nodes.len() - 1) as u32
-                }
-            };
+        let mut index = LocalIndex::default();
         let locals: Vec<[u32; 4]> = elements
             .iter()
             .map(|&ei| {
                 sys.mesh.elements[ei as usize]
                     .nodes
-                    .map(|n| local(n, &mut nodes))
+                    .map(|n| index.of(n as u32))
             })
             .collect();
+        let nodes = index.nodes;
         let x0 = sys.mesh.rest[nodes[0] as usize];
         let rest = nodes
             .iter()
@@ -178,6 +171,46 @@ impl SourceStiffness {
             out[n as usize] -= r * ya;
         }
         energy
+    }
+}
+
+/// Local indices of a source's nodes, in order of first appearance.
+#[derive(Default)]
+struct LocalIndex {
+    nodes: Vec<u32>,
+    /// Global → local, once the source has more than [`LocalIndex::LINEAR`] nodes.
+    map: Option<HashMap<u32, u32>>,
+}
+
+impl LocalIndex {
+    /// Most sources span a few dozen nodes, where a linear search beats hashing (a
+    /// source is rebuilt whenever sharing reassigns it); a source of the whole stiff beam
+    /// spans thousands.
+    const LINEAR: usize = 64;
+
+    fn of(&mut self, n: u32) -> u32 {
+        if let Some(map) = &mut self.map {
+            let next = self.nodes.len() as u32;
+            let i = *map.entry(n).or_insert(next);
+            if i == next {
+                self.nodes.push(n);
+            }
+            return i;
+        }
+        if let Some(i) = self.nodes.iter().position(|&m| m == n) {
+            return i as u32;
+        }
+        self.nodes.push(n);
+        if self.nodes.len() > Self::LINEAR {
+            let map = self
+                .nodes
+                .iter()
+                .enumerate()
+                .map(|(i, &m)| (m, i as u32))
+                .collect();
+            self.map = Some(map);
+        }
+        (self.nodes.len() - 1) as u32
     }
 }
 
@@ -317,5 +350,32 @@ impl FemSystem {
             start = end;
         }
         Some(energy)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::LocalIndex;
+
+    /// Local indices in order of first appearance, before and after the switch from
+    /// linear search to hashing.
+    #[test]
+    fn local_indices_follow_first_appearance_across_the_switch_to_hashing() {
+        let mut index = LocalIndex::default();
+        let mut want: Vec<u32> = Vec::new();
+        for k in 0..1000u32 {
+            let n = (k * 7919) % 150;
+            let i = index.of(n);
+            let expect = match want.iter().position(|&m| m == n) {
+                Some(i) => i,
+                None => {
+                    want.push(n);
+                    want.len() - 1
+                }
+            };
+            assert_eq!(i as usize, expect, "node {n}");
+        }
+        assert_eq!(index.nodes, want);
+        assert!(index.map.is_some());
     }
 }
