@@ -39,6 +39,8 @@ pub(super) struct Caches {
     pub(super) source_stiffness: Vec<Option<super::source_stiffness::SourceStiffness>>,
     /// Per rotation source not summed, the elements it held at the last refresh.
     pub(super) source_seen: Vec<Vec<u32>>,
+    /// Elements in summed sources at the last refresh.
+    pub(super) source_summed: usize,
     /// Multigrid hierarchy given by the caller, and the preconditioner built on it.
     pub(super) mg_hierarchy: Option<crate::mg::Hierarchy>,
     pub(super) mg: Option<super::multigrid::MgCache>,

@@ -66,6 +66,13 @@ impl FemSystem {
             }
             energy
         };
+        if model == Model::Corotational
+            && self.active_partition().is_some()
+            && self.sums_most_sources()
+            && let Some(energy) = self.elastic_by_source(x, mode, rotations, out)
+        {
+            return energy;
+        }
         match self.active_partition() {
             Some(part) => {
                 use rayon::prelude::*;

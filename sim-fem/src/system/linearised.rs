@@ -109,7 +109,7 @@ impl FemSystem {
             // The parallel force loop needs the partition.
             self.refresh_order();
         }
-        if self.exec.threads == 1 && p.model == Model::Corotational {
+        if p.model == Model::Corotational {
             self.refresh_source_stiffness(p.stiffness);
         }
         let mut fint = vec![V3::zeros(); n];

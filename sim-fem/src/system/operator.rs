@@ -263,57 +263,61 @@ impl SysOp<'_> {
                     }
                 }
             }
-            ElemMats::Rotated { coef, rotated } => match sys.active_partition() {
-                Some(part) => {
-                    use rayon::prelude::*;
-                    // A part's elements only touch its nodes' rows: a contiguous block range.
-                    let bounds: Vec<usize> = part
-                        .node_start
-                        .iter()
-                        .map(|&s| pat.row_block_range(s, s).0)
-                        .collect();
-                    split_ranges(&mut blocks, &bounds)
-                        .into_par_iter()
-                        .zip(part.elements.par_iter())
-                        .zip(bounds.par_iter())
-                        .for_each(|((b, els), &offset)| {
-                            self.add_rotated(els, b, offset, coef, *rotated, None)
-                        });
-                    self.add_rotated(&part.interface, &mut blocks, 0, coef, *rotated, None);
-                }
-                _ => {
-                    // One thread: a source whose stiffness is kept (`source_stiffness.rs`) as
-                    // one, the others through the per-element cache, if this step keeps
-                    // one.
-                    let mut kept = std::mem::take(&mut self.element_blocks);
-                    let mut k = (!kept.is_empty()).then_some(kept.as_mut_slice());
-                    let by_source = &sys.caches.by_source;
-                    let mut start = 0;
-                    while start < by_source.len() {
-                        let first = by_source[start] as usize;
-                        let s = sys.mesh.elements[first].source;
-                        let mut end = start + 1;
-                        while end < by_source.len()
-                            && sys.mesh.elements[by_source[end] as usize].source == s
-                        {
-                            end += 1;
-                        }
-                        let elements = &by_source[start..end];
-                        match sys.source_stiffness_for(s, elements, self.mode) {
-                            Some(ks) if *rotated && ks.assembles_as_one() => {
-                                let r = &sys.rotations.sources[s].rotation;
-                                ks.add_blocks(r, coef[first], &mut blocks);
-                            }
-                            _ => {
-                                let k = k.as_deref_mut();
-                                self.add_rotated(elements, &mut blocks, 0, coef, *rotated, k);
-                            }
-                        }
-                        start = end;
+            // Split over threads, unless most elements are in summed sources (their loop
+            // is faster on one thread, `source_stiffness.rs`).
+            ElemMats::Rotated { coef, rotated } => {
+                match sys.active_partition().filter(|_| !sys.sums_most_sources()) {
+                    Some(part) => {
+                        use rayon::prelude::*;
+                        // A part's elements only touch its nodes' rows: a contiguous block range.
+                        let bounds: Vec<usize> = part
+                            .node_start
+                            .iter()
+                            .map(|&s| pat.row_block_range(s, s).0)
+                            .collect();
+                        split_ranges(&mut blocks, &bounds)
+                            .into_par_iter()
+                            .zip(part.elements.par_iter())
+                            .zip(bounds.par_iter())
+                            .for_each(|((b, els), &offset)| {
+                                self.add_rotated(els, b, offset, coef, *rotated, None)
+                            });
+                        self.add_rotated(&part.interface, &mut blocks, 0, coef, *rotated, None);
                     }
-                    self.element_blocks = kept;
+                    _ => {
+                        // One thread: a source whose stiffness is kept (`source_stiffness.rs`) as
+                        // one, the others through the per-element cache, if this step keeps
+                        // one.
+                        let mut kept = std::mem::take(&mut self.element_blocks);
+                        let mut k = (!kept.is_empty()).then_some(kept.as_mut_slice());
+                        let by_source = &sys.caches.by_source;
+                        let mut start = 0;
+                        while start < by_source.len() {
+                            let first = by_source[start] as usize;
+                            let s = sys.mesh.elements[first].source;
+                            let mut end = start + 1;
+                            while end < by_source.len()
+                                && sys.mesh.elements[by_source[end] as usize].source == s
+                            {
+                                end += 1;
+                            }
+                            let elements = &by_source[start..end];
+                            match sys.source_stiffness_for(s, elements, self.mode) {
+                                Some(ks) if *rotated && ks.assembles_as_one() => {
+                                    let r = &sys.rotations.sources[s].rotation;
+                                    ks.add_blocks(r, coef[first], &mut blocks);
+                                }
+                                _ => {
+                                    let k = k.as_deref_mut();
+                                    self.add_rotated(elements, &mut blocks, 0, coef, *rotated, k);
+                                }
+                            }
+                            start = end;
+                        }
+                        self.element_blocks = kept;
+                    }
                 }
-            },
+            }
         }
         for (i, d) in pat.diagonal_slots().iter().enumerate() {
             blocks[*d] += Matrix3::identity() * self.mass_coef[i];

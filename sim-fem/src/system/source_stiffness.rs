@@ -269,6 +269,7 @@ impl FemSystem {
         seen.resize(self.rotations.sources.len(), Vec::new());
         seen.truncate(self.rotations.sources.len());
         let by_source = &self.caches.by_source;
+        let mut summed = 0;
         let mut start = 0;
         while start < by_source.len() {
             let s = self.mesh.elements[by_source[start] as usize].source;
@@ -282,10 +283,12 @@ impl FemSystem {
                 *slot = None;
                 seen.clear();
             } else if slot.as_ref().is_some_and(|k| k.is_for(elements, mode)) {
+                summed += elements.len();
             } else if seen.as_slice() == elements {
                 // The same elements two refreshes running: worth summing.
                 *slot = Some(SourceStiffness::build(self, elements, mode));
                 seen.clear();
+                summed += elements.len();
             } else {
                 *slot = None;
                 seen.clear();
@@ -295,6 +298,14 @@ impl FemSystem {
         }
         self.caches.source_stiffness = kept;
         self.caches.source_seen = seen;
+        self.caches.source_summed = summed;
+    }
+
+    /// Whether most elements are in summed sources, so that a step on several threads
+    /// is faster with its element loops on one, source by source, than split by node
+    /// ranges element by element (its products and sweeps stay split).
+    pub(super) fn sums_most_sources(&self) -> bool {
+        !self.caches.by_source_stale && 2 * self.caches.source_summed >= self.mesh.elements.len()
     }
 
     /// Co-rotational energy (J) and forces added into `out` (N) source by source
