@@ -19,8 +19,11 @@
 //! (sharing reassigns sources rarely once a motion settles); it sums the same element
 //! matrices the per-element loops apply, so forces and blocks differ from theirs by
 //! rounding only (tests `source_forces_match_the_per_element_loop`,
-//! `source_assembly_matches_the_per_element_assembly`). One thread only: the
-//! multi-threaded loops split elements by node ranges, not by source.
+//! `source_assembly_matches_the_per_element_assembly`). The loops by source run on one
+//! thread; a step on several threads uses them too when most elements are in summed
+//! sources ([`FemSystem::sums_most_sources`]), and splits only its products and sweeps
+//! (its element loops split by node ranges were slower: 0.968 against 0.891 ms on two
+//! threads for the 5,184-tet beam at dt 1 ms).
 
 use std::collections::HashMap;
 
