@@ -132,7 +132,8 @@ pub(super) struct FullRows {
     /// √(a_pp a_qq)` in a positive-definite matrix), so that half precision holds any
     /// scene's matrix, and `z32` holds `y_i = z_i / s_i`. Powers of two make both scalings
     /// exact: the sweeps act on `A' = S⁻¹ B' S⁻¹` with `B'` the rounded blocks, a
-    /// symmetric matrix (a lower block is the rounded upper one, transposed).
+    /// symmetric matrix (a lower block is the rounded upper one, transposed). (`s_i` is
+    /// kept in f32, which holds it for diagonals between about 2⁻²⁵⁰ and 2²⁵⁰.)
     scale: Vec<f32>,
     /// `1 / s_i`: `Σ_j A'_ij z_j = (Σ_j B'_ij y_j) / s_i`.
     unscale: Vec<f32>,
@@ -360,10 +361,7 @@ impl FullRows {
                     &mut self.blocks[p],
                 );
             }
-            let near_cols = [
-                if i == 0 { n as u32 } else { (i - 1) as u32 },
-                (i + 1) as u32,
-            ];
+            let near_cols = self.near_cols(Pass::Residual, i).expect("both neighbours");
             let t = scaled_pair(fine, &self.near_src[i], &near_cols, si, scale);
             round_to_f16::<F16C>(&t, &mut self.near[i]);
             // The chain blocks from the rounded near blocks, so that every pass sweeps

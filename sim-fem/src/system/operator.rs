@@ -290,29 +290,17 @@ impl SysOp<'_> {
                         // one.
                         let mut kept = std::mem::take(&mut self.element_blocks);
                         let mut k = (!kept.is_empty()).then_some(kept.as_mut_slice());
-                        let by_source = &sys.caches.by_source;
-                        let mut start = 0;
-                        while start < by_source.len() {
-                            let first = by_source[start] as usize;
-                            let s = sys.mesh.elements[first].source;
-                            let mut end = start + 1;
-                            while end < by_source.len()
-                                && sys.mesh.elements[by_source[end] as usize].source == s
-                            {
-                                end += 1;
-                            }
-                            let elements = &by_source[start..end];
+                        for (s, elements) in sys.source_runs() {
                             match sys.source_stiffness_for(s, elements, self.mode) {
                                 Some(ks) if *rotated && ks.assembles_as_one() => {
                                     let r = &sys.rotations.sources[s].rotation;
-                                    ks.add_blocks(r, coef[first], &mut blocks);
+                                    ks.add_blocks(r, coef[elements[0] as usize], &mut blocks);
                                 }
                                 _ => {
                                     let k = k.as_deref_mut();
                                     self.add_rotated(elements, &mut blocks, 0, coef, *rotated, k);
                                 }
                             }
-                            start = end;
                         }
                         self.element_blocks = kept;
                     }

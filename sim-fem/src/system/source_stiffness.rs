@@ -240,6 +240,15 @@ impl SourceStiffness {
 }
 
 impl FemSystem {
+    /// The assembly order's runs of elements with one source, as `(source, elements)`.
+    pub(super) fn source_runs(&self) -> impl Iterator<Item = (usize, &[u32])> + '_ {
+        let elements = &self.mesh.elements;
+        self.caches
+            .by_source
+            .chunk_by(|&a, &b| elements[a as usize].source == elements[b as usize].source)
+            .map(|run| (elements[run[0] as usize].source, run))
+    }
+
     /// The kept stiffness of source `s` if it is for exactly `elements` in `mode`.
     pub(super) fn source_stiffness_for(
         &self,
@@ -254,8 +263,8 @@ impl FemSystem {
             .filter(|k| k.is_for(elements, mode))
     }
 
-    /// Brings the per-source stiffness up to date with the current assignment (one
-    /// thread, co-rotational): built for each source of at least [`MIN_ELEMENTS`]
+    /// Brings the per-source stiffness up to date with the current assignment
+    /// (co-rotational steps): built for each source of at least [`MIN_ELEMENTS`]
     /// elements that holds the same elements as at the previous refresh, dropped for the
     /// others.
     ///
@@ -271,16 +280,8 @@ impl FemSystem {
         let mut seen = std::mem::take(&mut self.caches.source_seen);
         seen.resize(self.rotations.sources.len(), Vec::new());
         seen.truncate(self.rotations.sources.len());
-        let by_source = &self.caches.by_source;
         let mut summed = 0;
-        let mut start = 0;
-        while start < by_source.len() {
-            let s = self.mesh.elements[by_source[start] as usize].source;
-            let mut end = start + 1;
-            while end < by_source.len() && self.mesh.elements[by_source[end] as usize].source == s {
-                end += 1;
-            }
-            let elements = &by_source[start..end];
+        for (s, elements) in self.source_runs() {
             let (slot, seen) = (&mut kept[s], &mut seen[s]);
             if elements.len() < MIN_ELEMENTS {
                 *slot = None;
@@ -297,7 +298,6 @@ impl FemSystem {
                 seen.clear();
                 seen.extend_from_slice(elements);
             }
-            start = end;
         }
         self.caches.source_stiffness = kept;
         self.caches.source_seen = seen;
@@ -322,27 +322,18 @@ impl FemSystem {
         rotations: Option<&[Matrix3<f64>]>,
         out: &mut [V3],
     ) -> Option<f64> {
-        let by_source = &self.caches.by_source;
         if self.caches.by_source_stale
             || self.caches.source_stiffness.is_empty()
-            || by_source.len() != self.mesh.elements.len()
+            || self.caches.by_source.len() != self.mesh.elements.len()
         {
             return None;
         }
         let (mut u, mut y) = (Vec::new(), Vec::new());
         let mut energy = 0.0;
-        let mut start = 0;
-        while start < by_source.len() {
-            let first = by_source[start] as usize;
-            let s = self.mesh.elements[first].source;
-            let mut end = start + 1;
-            while end < by_source.len() && self.mesh.elements[by_source[end] as usize].source == s {
-                end += 1;
-            }
-            let elements = &by_source[start..end];
+        for (s, elements) in self.source_runs() {
             match self.source_stiffness_for(s, elements, mode) {
                 Some(k) => {
-                    let r = self.element_rotation_of(first, rotations);
+                    let r = self.element_rotation_of(elements[0] as usize, rotations);
                     energy += k.add_forces(x, &r, out, &mut u, &mut y);
                 }
                 _ => {
@@ -361,7 +352,6 @@ impl FemSystem {
                     }
                 }
             }
-            start = end;
         }
         Some(energy)
     }
