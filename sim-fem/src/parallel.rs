@@ -9,10 +9,13 @@
 //!
 //! Results equal the sequential ones up to the order of floating-point sums.
 
-use nalgebra::{Matrix3, Vector3};
-use rayon::prelude::*;
+use nalgebra::Vector3;
 
-use crate::solver::BlockPattern;
+use crate::solver::{BlockPattern, RowBlock};
+
+mod spin;
+
+pub(crate) use spin::{run_parts, with_helper};
 
 type V3 = Vector3<f64>;
 
@@ -27,9 +30,6 @@ pub(crate) struct Partition {
     pub elements: Vec<Vec<u32>>,
     /// Elements with nodes in more than one part.
     pub interface: Vec<u32>,
-    /// Per part, one past the largest column its rows reach (its spill range in
-    /// [`multiply_upper_parts`] ends there); set by [`Partition::set_spill_ends`].
-    pub spill_end: Vec<usize>,
 }
 
 impl Partition {
@@ -70,25 +70,11 @@ impl Partition {
                 interface.push(e);
             }
         }
-        let spill_end = node_start[1..].to_vec();
         Partition {
             threads,
             node_start,
             elements,
             interface,
-            spill_end,
-        }
-    }
-
-    /// Records how far each part's rows reach to the right in `pat` (with the lattice's
-    /// node order, a thin band past the part's end).
-    pub fn set_spill_ends(&mut self, pat: &BlockPattern) {
-        for (t, w) in self.node_start.windows(2).enumerate() {
-            let reach = (w[0]..w[1])
-                .filter_map(|i| pat.row(i).last().map(|(_, c)| c + 1))
-                .max()
-                .unwrap_or(w[1]);
-            self.spill_end[t] = reach.max(w[1]);
         }
     }
 }
@@ -105,35 +91,23 @@ pub(crate) fn split_ranges<'a, T>(mut data: &'a mut [T], bounds: &[usize]) -> Ve
     out
 }
 
-/// `out = A p` for a symmetric `A` stored as its upper blocks (as
-/// [`BlockPattern::multiply_upper`]), rows split by `node_start` over the current rayon
-/// pool. A part owns its rows of `out`; the transposed products it makes for rows of later
-/// parts go to its own spill buffer, added in afterwards.
-pub(crate) fn multiply_upper_parts(
+/// `out = A p` by the full rows of [`BlockPattern::full_rows`], the rows split at
+/// `node_start` (first 0, last the row count) over the current threads ([`run_parts`]): each part
+/// computes its own rows, with the same bits as [`BlockPattern::multiply_full`].
+///
+/// (Until 2026-11-28 the parts multiplied the upper storage, each adding its transposed
+/// products for later parts' rows from a spill buffer; with the full rows every part
+/// reads only its own rows, and the product vectorises as on one thread.)
+pub(crate) fn multiply_full_parts(
     pat: &BlockPattern,
-    blocks: &[Matrix3<f64>],
+    full: &[RowBlock],
     p: &[V3],
     out: &mut [V3],
-    part: &Partition,
+    node_start: &[usize],
 ) {
-    let node_start = &part.node_start;
-    let parts = node_start.len() - 1;
-    let mut spills: Vec<Vec<V3>> = (0..parts)
-        .map(|t| vec![V3::zeros(); part.spill_end[t] - node_start[t + 1]])
-        .collect();
-    split_ranges(out, node_start)
-        .into_par_iter()
-        .zip(spills.par_iter_mut())
-        .enumerate()
-        .for_each(|(t, (rows, spill))| {
-            let (start, end) = (node_start[t], node_start[t + 1]);
-            pat.multiply_upper_rows(blocks, p, start, end, rows, spill);
-        });
-    for (t, spill) in spills.iter().enumerate() {
-        for (o, s) in out[node_start[t + 1]..].iter_mut().zip(spill) {
-            *o += s;
-        }
-    }
+    run_parts(split_ranges(out, node_start), |k, rows| {
+        pat.multiply_full_rows(full, p, node_start[k], rows)
+    });
 }
 
 #[cfg(test)]
@@ -178,6 +152,7 @@ mod tests {
 #[cfg(test)]
 mod product_tests {
     use super::*;
+    use nalgebra::Matrix3;
 
     /// A symmetric block matrix on the pattern of a small tet strip, with distinct entries:
     /// all its blocks, and only those on and above the diagonal (the rest zero).
@@ -218,7 +193,7 @@ mod product_tests {
     }
 
     #[test]
-    fn upper_storage_and_split_products_equal_the_full_product() {
+    fn upper_full_row_and_split_products_equal_the_plain_product() {
         let (pat, full, upper, p) = strip();
         let n = p.len();
         let mut reference = vec![V3::zeros(); n];
@@ -229,24 +204,19 @@ mod product_tests {
             .num_threads(3)
             .build()
             .unwrap();
+        let rows = pat.full_rows(&upper);
+        let mut whole = vec![V3::zeros(); n];
+        pat.multiply_full(&rows, &p, &mut whole);
         let mut split = vec![V3::zeros(); n];
-        let mut part = Partition {
-            threads: 3,
-            node_start: vec![0, 10, 21, n],
-            elements: vec![Vec::new(); 3],
-            interface: Vec::new(),
-            spill_end: vec![10, 21, n],
-        };
-        part.set_spill_ends(&pat);
-        // The strip's rows reach 3 nodes ahead: the spills are that thin.
-        assert_eq!(part.spill_end, vec![13, 24, n]);
-        pool.install(|| multiply_upper_parts(&pat, &upper, &p, &mut split, &part));
+        pool.install(|| multiply_full_parts(&pat, &rows, &p, &mut split, &[0, 10, 21, n]));
         for i in 0..n {
             assert!(
                 (upper_only[i] - reference[i]).norm() < 1e-9,
                 "row {i} upper"
             );
-            assert!((split[i] - reference[i]).norm() < 1e-9, "row {i} split");
+            assert!((whole[i] - reference[i]).norm() < 1e-9, "row {i} full rows");
+            // Each row is computed the same way whichever part holds it.
+            assert_eq!(split[i], whole[i], "row {i} split");
         }
     }
 }

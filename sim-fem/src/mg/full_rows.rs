@@ -147,6 +147,10 @@ pub(super) struct FullRows {
     /// set from `z` when a sweep starts and updated row by row as the sweep writes `z`.
     /// One more entry, always zero, for padding blocks.
     z32: Vec<[f32; 4]>,
+    /// The row of the level's matrix that is this one's row 0: a part of the rows
+    /// ([`FullRows::of_range`]) indexes the level's blocks, diagonal slots and diagonal
+    /// inverses from there.
+    first: usize,
     /// Never use AVX (tests).
     portable: bool,
 }
@@ -201,6 +205,27 @@ fn scaled_pair(
     t
 }
 
+/// Block `slot` of `fine` (transposed if `transposed`) as the sweeps of rows with scales
+/// `si` and `sj` hold it ([`FullRows::scale`]): `s_i s_j A` rounded to f32, then to f16
+/// (to nearest even, as the pairs), scaled back (exactly: powers of two). The hybrid
+/// sweeps' blocks between parts (`hybrid_rows.rs`), so that they act on the same matrix
+/// `A'` as the parts' own sweeps.
+pub(super) fn rounded_block(
+    fine: &[Matrix3<f64>],
+    slot: usize,
+    transposed: bool,
+    si: f32,
+    sj: f32,
+) -> Matrix3<f64> {
+    let f = f64::from(si) * f64::from(sj);
+    let b = if transposed {
+        fine[slot].transpose()
+    } else {
+        fine[slot]
+    };
+    b.map(|a| f64::from(f16::from_f32((a * f) as f32).to_f32()) / f)
+}
+
 /// A pair's 24 lanes rounded to half precision, to nearest even (the same bits on every
 /// CPU). `F16C`: only where the CPU has AVX and F16C, inlined into code compiled for them.
 #[inline(always)]
@@ -248,7 +273,14 @@ fn to_f32(v: &V3) -> [f32; 4] {
 impl FullRows {
     /// The layout of `rows` (blocks zero until [`FullRows::fill`]).
     pub fn of(rows: &SymRows) -> Self {
-        let n = rows.num_rows();
+        Self::of_range(rows, 0, rows.num_rows())
+    }
+
+    /// The layout of rows `first..end` of `rows` with only their blocks in columns
+    /// `first..end`, numbered from `first` (a part of the hybrid sweeps, `hybrid_rows.rs`:
+    /// the blocks with other parts' columns are left out).
+    pub fn of_range(rows: &SymRows, first: usize, end: usize) -> Self {
+        let n = end - first;
         let mut row_ptr = Vec::with_capacity(n + 1);
         let mut upper_start = Vec::with_capacity(n);
         let mut cols = Vec::new();
@@ -263,9 +295,11 @@ impl FullRows {
         };
         let mut near_src = vec![[PAD; 2]; n];
         row_ptr.push(0);
+        let inside = |j: usize| (first..end).contains(&j).then(|| j - first);
         for (i, near) in near_src.iter_mut().enumerate() {
             let mut lower = Vec::new();
-            for (slot, j) in rows.lower_entries(i) {
+            for (slot, j) in rows.lower_entries(first + i) {
+                let Some(j) = inside(j) else { continue };
                 if j + 1 == i {
                     near[0] = slot as u32 | TRANSPOSED;
                 } else {
@@ -275,7 +309,8 @@ impl FullRows {
             pairs(lower, &mut cols, &mut src);
             upper_start.push(cols.len() as u32);
             let mut upper = Vec::new();
-            for (slot, j) in rows.upper_entries(i) {
+            for (slot, j) in rows.upper_entries(first + i) {
+                let Some(j) = inside(j) else { continue };
                 if j == i + 1 {
                     near[1] = slot as u32;
                 } else {
@@ -300,20 +335,23 @@ impl FullRows {
             diag: vec![Matrix3::zeros(); n],
             dinv: vec![[[0.0; 4]; 3]; n],
             z32: vec![[0.0; 4]; n + 1],
+            first,
             portable: false,
         }
     }
 
     /// Copies the step's blocks (`fine`: the upper storage `rows` indexes) and the
-    /// diagonal blocks' inverses the sweeps divide by (zero: the row stays zero) in.
+    /// diagonal blocks' inverses the sweeps divide by (zero: the row stays zero; indexed
+    /// as the level's rows, not from [`FullRows::first`]) in.
     pub fn fill(&mut self, rows: &SymRows, fine: &[Matrix3<f64>], dinv: &[Matrix3<f64>]) {
+        let dinv = &dinv[self.first..self.first + self.num_rows()];
         for (out, d) in self.dinv.iter_mut().zip(dinv) {
             *out = std::array::from_fn(|k| {
                 [d[(0, k)] as f32, d[(1, k)] as f32, d[(2, k)] as f32, 0.0]
             });
         }
         for (i, d) in self.diag.iter_mut().enumerate() {
-            *d = fine[rows.diagonal_slot(i)];
+            *d = fine[rows.diagonal_slot(self.first + i)];
             let top = d[(0, 0)].max(d[(1, 1)]).max(d[(2, 2)]);
             // top = m 2^e with 1 ≤ m < 2: s = 2^−⌊e/2⌋ puts s² top in [1, 4).
             let s = if top > 0.0 && top.is_normal() {
@@ -380,6 +418,12 @@ impl FullRows {
 
     fn num_rows(&self) -> usize {
         self.upper_start.len()
+    }
+
+    /// Row `i`'s scale `s_i` (see [`FullRows::scale`]; `i` counted from
+    /// [`FullRows::first`]).
+    pub fn row_scale(&self, i: usize) -> f32 {
+        self.scale[i]
     }
 
     /// The f32 copy of the iterate set from `z` (the padding entry stays zero).
@@ -668,7 +712,6 @@ impl FullRows {
 
     /// One forward sweep from `z = 0` ([`SymRows::forward_from_zero`]): the lower part
     /// reads only rows this sweep has already written.
-    #[cfg(test)]
     pub fn forward_from_zero(&mut self, r: &[V3], z: &mut [V3]) {
         self.run(Pass::ForwardFromZero, r, z, &mut [], self.portable);
     }
@@ -682,10 +725,27 @@ impl FullRows {
     }
 
     /// One backward sweep from `z`.
-    #[cfg(test)]
     pub fn backward(&mut self, r: &[V3], z: &mut [V3]) {
         self.load(z);
         self.run(Pass::Backward, r, z, &mut [], self.portable);
+    }
+
+    /// One forward sweep from `z`.
+    pub fn forward(&mut self, r: &[V3], z: &mut [V3]) {
+        self.load(z);
+        self.run(Pass::Forward, r, z, &mut [], self.portable);
+    }
+
+    /// `out = −U z` right after [`FullRows::forward_from_zero`] wrote `z` (the f32 copy
+    /// it keeps is `z`), the residual of that sweep; `z` is not written.
+    pub fn minus_upper_after_forward(&mut self, z: &mut [V3], out: &mut [V3]) {
+        self.run(Pass::MinusUpper, &[], z, out, self.portable);
+    }
+
+    /// `out = r − A z`; `z` is not written.
+    pub fn residual(&mut self, r: &[V3], z: &mut [V3], out: &mut [V3]) {
+        self.load(z);
+        self.run(Pass::Residual, r, z, out, self.portable);
     }
 
     /// Sweeps and products without AVX from now on (tests compare both paths).

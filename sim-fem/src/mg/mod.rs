@@ -15,6 +15,7 @@
 mod dense;
 mod full_rows;
 mod galerkin;
+mod hybrid_rows;
 mod smoother;
 #[cfg(test)]
 mod tests;

@@ -599,7 +599,7 @@ fn hybrid_l1_diagonal_matches_a_dense_computation() {
     let m = dense_matrix(&a);
     let rows = super::smoother::SymRows::of_pattern(&a.pattern);
     for bounds in splits(n) {
-        let h = super::smoother::HybridSweeps::new(&bounds).unwrap();
+        let h = super::hybrid_rows::HybridRows::new(&rows, &bounds).unwrap();
         let dinv = h.diagonal_inverses(&rows, &a.blocks, &a.fixed);
         for i in 0..n {
             if a.fixed[i] {

@@ -6,7 +6,8 @@ use super::dense::DenseCholesky;
 
 use super::full_rows::FullRows;
 use super::galerkin::{GalerkinPlan, mask_prolongation};
-use super::smoother::{HybridSweeps, SymRows, post_smooth, pre_smooth, symmetric_smooth};
+use super::hybrid_rows::HybridRows;
+use super::smoother::{SymRows, post_smooth, pre_smooth, symmetric_smooth};
 use super::{Hierarchy, Prolongation};
 use crate::FemError;
 use crate::solver::BlockPattern;
@@ -72,7 +73,7 @@ pub struct Multigrid {
     fine_rows: SymRows,
     fine_dinv: Vec<Matrix3<f64>>,
     /// The finest level's rows split over threads ([`Multigrid::set_fine_parts`]).
-    fine_hybrid: Option<HybridSweeps>,
+    fine_hybrid: Option<HybridRows>,
     /// The finest level's blocks by full rows in f16 (summed in f32), for the sequential
     /// sweeps of a V-cycle with coarse levels (`full_rows.rs`; built with the first
     /// refresh).
@@ -269,8 +270,14 @@ impl Multigrid {
             }
             _ => self.fine_rows.diagonal_inverses(fine, &self.fixed),
         };
-        // The sequential sweeps of a V-cycle with coarse levels read full rows.
-        if self.fine_hybrid.is_none() && !self.levels.is_empty() {
+        // The sweeps of a V-cycle with coarse levels read full rows: one set, or one per
+        // part.
+        if let Some(h) = &mut self.fine_hybrid
+            && !self.levels.is_empty()
+        {
+            h.fill(&self.fine_rows, fine, &self.fine_dinv);
+            self.fine_full = None;
+        } else if !self.levels.is_empty() {
             let rows = &self.fine_rows;
             self.fine_full
                 .get_or_insert_with(|| FullRows::of(rows))
@@ -282,7 +289,7 @@ impl Multigrid {
 
     /// Splits the finest level's smoothing into the contiguous row ranges `bounds` (first
     /// 0, last the row count), swept at once on the current rayon pool with ℓ1 hybrid
-    /// Gauss–Seidel (`smoother.rs`); fewer than two parts: one sequential sweep. The
+    /// Gauss–Seidel (`hybrid_rows.rs`); fewer than two parts: one sequential sweep. The
     /// coarse levels stay sequential (each is about an eighth of the one above). Takes
     /// effect at the next [`Multigrid::refresh`] or [`Multigrid::update_fine_diagonal`],
     /// which every solve calls first.
@@ -296,7 +303,7 @@ impl Multigrid {
             None => bounds.len() < 3,
         };
         if !same {
-            self.fine_hybrid = HybridSweeps::new(bounds);
+            self.fine_hybrid = HybridRows::new(&self.fine_rows, bounds);
         }
     }
 
@@ -312,7 +319,7 @@ impl Multigrid {
         }
         let res = &mut self.fine_res;
         match (&mut self.fine_hybrid, &mut self.fine_full) {
-            (Some(h), _) => h.pre_smooth(rows, fine, dinv, r, z, res, nu),
+            (Some(h), _) => h.pre_smooth(r, z, res, nu),
             (None, Some(full)) => full.pre_smooth(r, z, res, nu),
             (None, None) => pre_smooth(rows, fine, dinv, r, z, res, nu),
         }
@@ -351,7 +358,7 @@ impl Multigrid {
         }
         prolong_add(&self.levels[0].p, &self.levels[0].z, z);
         match (&mut self.fine_hybrid, &mut self.fine_full) {
-            (Some(h), _) => h.post_smooth(rows, fine, dinv, r, z, nu),
+            (Some(h), _) => h.post_smooth(r, z, nu),
             (None, Some(full)) => full.post_smooth(r, z, nu),
             (None, None) => post_smooth(rows, fine, dinv, r, z, nu),
         }

@@ -65,24 +65,43 @@ impl BlockPattern {
     /// `out = A p` from [`BlockPattern::full_rows`]: vectorised where the CPU has AVX,
     /// with the same result bit for bit elsewhere.
     pub fn multiply_full(&self, full: &[RowBlock], p: &[V3], out: &mut [V3]) {
+        assert!(
+            out.len() + 1 == self.row_ptr.len(),
+            "vectors of the pattern's {} nodes",
+            self.row_ptr.len() - 1
+        );
+        self.multiply_full_rows(full, p, 0, out);
+    }
+
+    /// Rows `start..start + out.len()` of [`BlockPattern::multiply_full`] into `out` (a
+    /// thread's share of the product).
+    pub fn multiply_full_rows(&self, full: &[RowBlock], p: &[V3], start: usize, out: &mut [V3]) {
         assert_eq!(full.len(), self.cols.len(), "full rows of this pattern");
         assert!(
-            p.len() == out.len() && out.len() + 1 == self.row_ptr.len(),
-            "vectors of the pattern's {} nodes",
+            p.len() + 1 == self.row_ptr.len() && start + out.len() <= p.len(),
+            "rows {start}.. ({}) of the pattern's {} nodes",
+            out.len(),
             self.row_ptr.len() - 1
         );
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx") {
             // SAFETY: the CPU has AVX (checked just above).
-            unsafe { self.multiply_full_avx(full, p, out) };
+            unsafe { self.multiply_full_avx(full, p, start, out) };
             return;
         }
-        self.multiply_full_portable(full, p, out);
+        self.multiply_full_portable(full, p, start, out);
     }
 
-    /// [`BlockPattern::multiply_full`] in plain Rust (the reference order of operations).
-    pub(crate) fn multiply_full_portable(&self, full: &[RowBlock], p: &[V3], out: &mut [V3]) {
-        for (i, o) in out.iter_mut().enumerate() {
+    /// [`BlockPattern::multiply_full_rows`] in plain Rust (the reference order of
+    /// operations).
+    pub(crate) fn multiply_full_portable(
+        &self,
+        full: &[RowBlock],
+        p: &[V3],
+        start: usize,
+        out: &mut [V3],
+    ) {
+        for (i, o) in (start..).zip(out.iter_mut()) {
             let (mut a0, mut a1, mut a2) = ([0.0; 3], [0.0; 3], [0.0; 3]);
             let (from, to) = (self.row_ptr[i], self.row_ptr[i + 1]);
             for (b, &j) in full[from..to].iter().zip(&self.cols[from..to]) {
@@ -101,7 +120,7 @@ impl BlockPattern {
         }
     }
 
-    /// [`BlockPattern::multiply_full`] on 4-lane AVX vectors.
+    /// [`BlockPattern::multiply_full_rows`] on 4-lane AVX vectors.
     ///
     /// (A second set of accumulators, for a row's odd blocks, did not make it faster on
     /// this machine: the loop is bound by its loads, three of the block and three
@@ -111,14 +130,20 @@ impl BlockPattern {
     /// The CPU must support AVX.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx")]
-    pub(crate) unsafe fn multiply_full_avx(&self, full: &[RowBlock], p: &[V3], out: &mut [V3]) {
+    pub(crate) unsafe fn multiply_full_avx(
+        &self,
+        full: &[RowBlock],
+        p: &[V3],
+        start: usize,
+        out: &mut [V3],
+    ) {
         use std::arch::x86_64::{
             _mm256_add_pd, _mm256_broadcast_sd, _mm256_loadu_pd, _mm256_maskload_pd, _mm256_mul_pd,
             _mm256_set_epi64x, _mm256_setzero_pd, _mm256_storeu_pd,
         };
         // Lanes 0–2 of the last column; lane 3 would read past the block.
         let last = _mm256_set_epi64x(0, -1, -1, -1);
-        for (i, o) in out.iter_mut().enumerate() {
+        for (i, o) in (start..).zip(out.iter_mut()) {
             let (mut a0, mut a1, mut a2) = (
                 _mm256_setzero_pd(),
                 _mm256_setzero_pd(),
@@ -220,7 +245,7 @@ mod tests {
             let full = pat.full_rows(&upper);
             let n = p.len();
             let mut portable = vec![V3::zeros(); n];
-            pat.multiply_full_portable(&full, &p, &mut portable);
+            pat.multiply_full_portable(&full, &p, 0, &mut portable);
             #[cfg(target_arch = "x86_64")]
             if !std::arch::is_x86_feature_detected!("avx") {
                 eprintln!("no AVX on this CPU: only the portable path was run");
@@ -229,7 +254,7 @@ mod tests {
             if std::arch::is_x86_feature_detected!("avx") {
                 let mut avx = vec![V3::zeros(); n];
                 // SAFETY: AVX detected.
-                unsafe { pat.multiply_full_avx(&full, &p, &mut avx) };
+                unsafe { pat.multiply_full_avx(&full, &p, 0, &mut avx) };
                 for (a, b) in avx.iter().zip(&portable) {
                     for k in 0..3 {
                         assert_eq!(a[k].to_bits(), b[k].to_bits(), "seed {seed}");

@@ -118,13 +118,12 @@ impl FemSystem {
             && let Some(pat) = &self.caches.pattern
         {
             let elements = &self.mesh.elements;
-            let mut part = Partition::new(
+            let part = Partition::new(
                 self.exec.threads,
                 &pat.upper_row_work(),
                 &self.caches.by_source,
                 |e| elements[e].nodes,
             );
-            part.set_spill_ends(pat);
             self.exec.partition = Some(part);
         }
     }

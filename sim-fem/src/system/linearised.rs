@@ -9,6 +9,7 @@ use super::operator::ElemMats;
 use super::{FemSystem, V3};
 use crate::FemError;
 use crate::model::Model;
+use crate::parallel::with_helper;
 use crate::solver::{CgResult, pcg};
 use crate::system::{LinearSolver, OperatorMode, StepParams, StepStats};
 
@@ -119,6 +120,9 @@ impl FemSystem {
         let warm = std::mem::take(&mut self.caches.warm_dv);
         let (mass, mass_damping) = (self.mesh.mass.clone(), self.mesh.mass_damping.clone());
         let fixed = self.mesh.fixed.clone();
+        // On several threads the solve's many short parallel regions share a helper kept
+        // awake for its length (`parallel/spin.rs`).
+        let threaded = self.active_partition().is_some();
         let mut mg = None;
         let mut operator = p.operator;
         if self.uses_multigrid(p) {
@@ -162,7 +166,7 @@ impl FemSystem {
         } else {
             vec![V3::zeros(); n]
         };
-        let (res, solver): (CgResult, _) = match (mg.as_mut(), &direct) {
+        let mut solve = || match (mg.as_mut(), &direct) {
             (Some(c), _) => (
                 solve_with_multigrid(c, &op, &fixed, &rhs, &mut dv, dt, p),
                 LinearSolver::MgPcg,
@@ -175,6 +179,11 @@ impl FemSystem {
                 pcg(&op, &fixed, &rhs, &mut dv, &p.solver),
                 LinearSolver::JacobiPcg,
             ),
+        };
+        let (res, solver): (CgResult, _) = if threaded {
+            with_helper(solve)
+        } else {
+            solve()
         };
         let buffers = op.into_buffers();
         self.caches.recycle(buffers);

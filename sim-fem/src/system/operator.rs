@@ -11,7 +11,7 @@ use super::element_blocks::{
 };
 use super::{FemSystem, V3, gather};
 use crate::element::{Mat12, apply_dense};
-use crate::parallel::{multiply_upper_parts, split_ranges};
+use crate::parallel::{multiply_full_parts, split_ranges};
 use crate::solver::{LinearOperator, RowBlock};
 use crate::system::{OperatorMode, StiffnessMode};
 
@@ -97,7 +97,7 @@ pub(super) struct SysOp<'a> {
     ext_coef: f64,
     mode: StiffnessMode,
     pub(super) assembled: Option<Vec<Matrix3<f64>>>,
-    /// The assembled blocks by full rows for the one-thread product
+    /// The assembled blocks by full rows for the product, on one thread or split by rows
     /// ([`crate::solver::BlockPattern::full_rows_into`]), made at the first product in the
     /// storage of `full_spare` (the previous step's). `assembled` must not change after
     /// that product (only [`SysOp::assemble`], in `build_operator`, writes it).
@@ -116,8 +116,9 @@ const PARALLEL_PRODUCT_MIN_NODES: usize = 1000;
 
 impl SysOp<'_> {
     /// `out = A p` for a product made once, such as the step's right-hand side: where
-    /// [`LinearOperator::apply`] would copy the blocks into full rows for its one-thread
-    /// product, the symmetric upper product instead (a direct solve makes no other).
+    /// [`LinearOperator::apply`] would copy the blocks into full rows for a product on one
+    /// thread, the symmetric upper product instead (a direct solve makes no other). Split
+    /// over threads, the copy is made (CG's products reuse it).
     pub(super) fn apply_once(&self, p: &[V3], out: &mut [V3]) {
         if let (Some(blocks), ElemMats::Rotated { .. }) = (&self.assembled, &self.elem)
             && self.product_partition(out.len()).is_none()
@@ -322,10 +323,7 @@ impl LinearOperator for SysOp<'_> {
         if let Some(blocks) = &self.assembled {
             let pat = self.sys.caches.pattern.as_ref().expect("pattern");
             match (&self.elem, self.product_partition(out.len())) {
-                (ElemMats::Rotated { .. }, Some(part)) => {
-                    multiply_upper_parts(pat, blocks, p, out, part)
-                }
-                (ElemMats::Rotated { .. }, _) => {
+                (ElemMats::Rotated { .. }, part) => {
                     let full = self.full.get_or_init(|| {
                         let mut full = std::mem::take(
                             &mut *self.full_spare.lock().unwrap_or_else(|e| e.into_inner()),
@@ -333,7 +331,10 @@ impl LinearOperator for SysOp<'_> {
                         pat.full_rows_into(blocks, &mut full);
                         full
                     });
-                    pat.multiply_full(full, p, out)
+                    match part {
+                        Some(part) => multiply_full_parts(pat, full, p, out, &part.node_start),
+                        None => pat.multiply_full(full, p, out),
+                    }
                 }
                 (ElemMats::Dense(_), _) => pat.multiply(blocks, p, out),
             }
