@@ -205,6 +205,9 @@ mod product_tests {
             .build()
             .unwrap();
         let rows = pat.full_rows(&upper);
+        let mut split_rows = Vec::new();
+        pool.install(|| pat.full_rows_into_parts(&upper, &mut split_rows, &[0, 10, 21, n]));
+        assert_eq!(split_rows, rows, "full rows copied in parts");
         let mut whole = vec![V3::zeros(); n];
         pat.multiply_full(&rows, &p, &mut whole);
         let mut split = vec![V3::zeros(); n];

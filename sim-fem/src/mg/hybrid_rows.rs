@@ -30,7 +30,6 @@
 //! own rows, and the coupling is applied on one thread in row order.
 
 use nalgebra::{Matrix3, Vector3};
-use rayon::prelude::*;
 
 use super::full_rows::{FullRows, rounded_block};
 use super::smoother::SymRows;
@@ -141,32 +140,39 @@ impl HybridRows {
     }
 
     /// ℓ1 diagonal inverses: `(A_ii + diag(Σ_{j in other parts} Σ_c |(A_ij)_rc|))⁻¹` per
-    /// row `r` of the block (zero for `skip` rows and singular blocks).
+    /// row `r` of the block (zero for `skip` rows and singular blocks), every part at
+    /// once.
     pub fn diagonal_inverses(
         &self,
         rows: &SymRows,
         blocks: &[Matrix3<f64>],
         skip: &[bool],
     ) -> Vec<Matrix3<f64>> {
-        (0..rows.num_rows())
-            .map(|i| {
+        let mut out = vec![Matrix3::zeros(); rows.num_rows()];
+        let bounds = &self.bounds;
+        run_parts(split_ranges(&mut out, bounds), |p, part| {
+            let (s, e) = (bounds[p], bounds[p + 1]);
+            for (i, d) in (s..e).zip(part) {
                 if skip.get(i).copied().unwrap_or(false) {
-                    return Matrix3::zeros();
+                    continue;
                 }
-                let l1 = l1_outside(rows, blocks, i, self.part_of(i));
-                (blocks[rows.diagonal_slot(i)] + Matrix3::from_diagonal(&l1))
-                    .try_inverse()
-                    .unwrap_or_else(Matrix3::zeros)
-            })
-            .collect()
+                let l1 = l1_outside(rows, blocks, i, (s, e));
+                if let Some(inv) =
+                    (blocks[rows.diagonal_slot(i)] + Matrix3::from_diagonal(&l1)).try_inverse()
+                {
+                    *d = inv;
+                }
+            }
+        });
+        out
     }
 
     /// Copies the step's blocks (`fine`, indexed by `rows`) and the ℓ1 diagonal inverses
     /// of [`HybridRows::diagonal_inverses`] in, every part at once.
     pub fn fill(&mut self, rows: &SymRows, fine: &[Matrix3<f64>], dinv: &[Matrix3<f64>]) {
-        self.parts
-            .par_iter_mut()
-            .for_each(|part| part.fill(rows, fine, dinv));
+        run_parts(self.parts.iter_mut().collect(), |_, part| {
+            part.fill(rows, fine, dinv)
+        });
         let scale = |j: usize| {
             let p = self.bounds.partition_point(|&b| b <= j) - 1;
             self.parts[p].row_scale(j - self.bounds[p])

@@ -40,8 +40,19 @@ impl BlockPattern {
     /// taken from their mirror, transposed.
     pub fn full_rows_into(&self, upper: &[Matrix3<f64>], out: &mut Vec<RowBlock>) {
         out.clear();
-        out.reserve(self.cols.len());
-        for i in 0..self.row_ptr.len() - 1 {
+        out.resize(self.cols.len(), [0.0; 9]);
+        self.copy_full_rows(upper, 0..self.row_ptr.len() - 1, out);
+    }
+
+    /// The full rows `rows` of [`BlockPattern::full_rows_into`] into `out` (their slots).
+    fn copy_full_rows(
+        &self,
+        upper: &[Matrix3<f64>],
+        rows: std::ops::Range<usize>,
+        out: &mut [RowBlock],
+    ) {
+        let mut blocks = out.iter_mut();
+        for i in rows {
             for s in self.row_ptr[i]..self.row_ptr[i + 1] {
                 let b = if self.cols[s] >= i {
                     upper[s]
@@ -49,10 +60,26 @@ impl BlockPattern {
                     upper[self.mirror[s]].transpose()
                 };
                 // nalgebra is column-major: columns at 0..3, 3..6, 6..9.
-                let c = b.as_slice();
-                out.push(std::array::from_fn(|k| c[k]));
+                let out = blocks.next().expect("one block per slot");
+                out.copy_from_slice(b.as_slice());
             }
         }
+    }
+
+    /// [`BlockPattern::full_rows_into`] with the rows split at `node_start` (first 0, last
+    /// the row count), each part copied on its own thread ([`crate::parallel::run_parts`]).
+    pub fn full_rows_into_parts(
+        &self,
+        upper: &[Matrix3<f64>],
+        out: &mut Vec<RowBlock>,
+        node_start: &[usize],
+    ) {
+        out.clear();
+        out.resize(self.cols.len(), [0.0; 9]);
+        let starts: Vec<usize> = node_start.iter().map(|&i| self.row_ptr[i]).collect();
+        crate::parallel::run_parts(crate::parallel::split_ranges(out, &starts), |k, part| {
+            self.copy_full_rows(upper, node_start[k]..node_start[k + 1], part)
+        });
     }
 
     /// [`BlockPattern::full_rows_into`] a new vector.

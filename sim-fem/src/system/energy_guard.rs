@@ -70,7 +70,7 @@ impl FemSystem {
         p: &StepParams,
         attempt: &StepStats,
     ) -> bool {
-        if !(attempt.inverted > 0 || self.any_inverted(&start.x) || self.any_inverted(x)) {
+        if !(attempt.inverted > 0 || self.any_inverted(&start.x, x)) {
             return false;
         }
         // Energy at x_{n+1} with its own rotations (stored state untouched).
@@ -101,9 +101,16 @@ impl FemSystem {
         elastic + self.kinetic_energy(v) + self.gravity_energy(x, gravity)
     }
 
-    /// Whether some element has `det F ≤ 0` at `x`.
-    pub fn any_inverted(&self, x: &[V3]) -> bool {
-        (0..self.mesh.elements.len()).any(|ei| self.element_inverted(ei, x))
+    /// Whether some element has `det F ≤ 0` at `x` or at `y` (one pass over the elements'
+    /// nodes for both; on the step's threads when it has several).
+    pub fn any_inverted(&self, x: &[V3], y: &[V3]) -> bool {
+        let n = self.mesh.elements.len();
+        let inverted = |ei: usize| self.element_inverted(ei, x) || self.element_inverted(ei, y);
+        if self.active_partition().is_some() {
+            use rayon::prelude::*;
+            return (0..n).into_par_iter().with_min_len(4096).any(inverted);
+        }
+        (0..n).any(inverted)
     }
 
     /// Whether element `ei` has `det F ≤ 0` at `x`: rest elements are positively oriented,

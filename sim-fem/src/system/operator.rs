@@ -328,7 +328,12 @@ impl LinearOperator for SysOp<'_> {
                         let mut full = std::mem::take(
                             &mut *self.full_spare.lock().unwrap_or_else(|e| e.into_inner()),
                         );
-                        pat.full_rows_into(blocks, &mut full);
+                        match part {
+                            Some(part) => {
+                                pat.full_rows_into_parts(blocks, &mut full, &part.node_start)
+                            }
+                            None => pat.full_rows_into(blocks, &mut full),
+                        }
                         full
                     });
                     match part {
