@@ -50,6 +50,10 @@ pub struct ScaleArgs {
     /// the product's configuration (`cosurg bench cantilever`'s all-on).
     #[arg(long)]
     pub sharing_angle: Option<f64>,
+    /// Threads of every row's FEM step (`StepParams::threads`); 1, the default, is what a
+    /// site runs (its second core runs the haptic loop and the network).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=64))]
+    pub threads: u16,
 }
 
 /// How p50 time grows with the mesh for one (beam, dt, solver): `t ∝ tets^exponent`
@@ -131,6 +135,8 @@ pub struct ScaleRow {
     pub sharing_angle_deg: Option<f64>,
     /// Rotation extractions per timed step (mean).
     pub rotations_per_step: f64,
+    /// Threads of the FEM step.
+    pub threads: usize,
     /// Most heap the row held (MiB): scene, lattice, FEM system and solver while it was
     /// built and stepped, over every thread ([`crate::memory`]); `None` when the binary
     /// does not count its heap.
@@ -160,6 +166,7 @@ fn run_one(
     solver: LinearSolver,
     steps: usize,
     sharing_angle: Option<f64>,
+    threads: usize,
 ) -> Result<ScaleRow> {
     let heap = crate::memory::HeapScope::open();
     let scene = match subject {
@@ -175,6 +182,7 @@ fn run_one(
     o.step.linear_solver = solver;
     o.step.solver.tol = TOLERANCE;
     o.step.solver.max_iters = 20_000;
+    o.step.threads = threads;
     if let Some(a) = sharing_angle {
         o.sharing_angle_deg = (a > 0.0).then_some(a);
     }
@@ -216,6 +224,7 @@ fn run_one(
         warm_start,
         sharing_angle_deg,
         rotations_per_step: rotations as f64 / steps.max(1) as f64,
+        threads,
         heap_peak_mib: heap.map(|h| h.peak_bytes() as f64 / (1024.0 * 1024.0)),
     })
 }
@@ -254,7 +263,14 @@ pub fn run(args: ScaleArgs) -> Result<()> {
     for &(material, subject) in &subjects {
         for &dt in &dts {
             for &solver in &solvers {
-                let mut row = run_one(subject, dt, solver, args.steps, args.sharing_angle)?;
+                let mut row = run_one(
+                    subject,
+                    dt,
+                    solver,
+                    args.steps,
+                    args.sharing_angle,
+                    usize::from(args.threads),
+                )?;
                 row.material = material;
                 if !args.json {
                     println!(
