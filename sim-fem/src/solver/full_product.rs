@@ -39,7 +39,8 @@ impl BlockPattern {
     /// (its storage reused): one block per slot of the pattern, below-diagonal slots
     /// taken from their mirror, transposed.
     pub fn full_rows_into(&self, upper: &[Matrix3<f64>], out: &mut Vec<RowBlock>) {
-        out.clear();
+        // Every slot is overwritten: storage of the right length (the previous step's)
+        // is not cleared first.
         out.resize(self.cols.len(), [0.0; 9]);
         self.copy_full_rows(upper, 0..self.row_ptr.len() - 1, out);
     }
@@ -74,7 +75,6 @@ impl BlockPattern {
         out: &mut Vec<RowBlock>,
         node_start: &[usize],
     ) {
-        out.clear();
         out.resize(self.cols.len(), [0.0; 9]);
         let starts: Vec<usize> = node_start.iter().map(|&i| self.row_ptr[i]).collect();
         crate::parallel::run_parts(crate::parallel::split_ranges(out, &starts), |k, part| {

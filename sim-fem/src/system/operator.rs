@@ -82,6 +82,38 @@ impl FemSystem {
     }
 }
 
+/// Templates `R C Rᵀ` kept per rotation group by [`SysOp::add_rotated`].
+const TEMPLATE_CACHE: usize = 8;
+
+/// [`SysOp::add_rotated`]'s working storage, made once per assembly (per part on several
+/// threads) and passed to each of its calls: a step of the soft 12,288-tet beam makes
+/// hundreds of calls, one per run of elements by rotation source, and zeroing these 6 KB
+/// in each was 2 % of the step (`perf`, 2026-11-28).
+pub(super) struct RotatedScratch {
+    /// Per group (rotation source, or all when unrotated): the combos seen and
+    /// `R C Rᵀ` of each (C = template stiffness at unit size: the element's own blocks
+    /// over its size h). Few per group. A group's entries stay valid in a later call:
+    /// they depend only on the group's rotation and the combo.
+    combo: [usize; TEMPLATE_CACHE],
+    blocks: [UpperBlocks; TEMPLATE_CACHE],
+    cached: usize,
+    group: usize,
+    /// One element's blocks.
+    local: UpperBlocks,
+}
+
+impl Default for RotatedScratch {
+    fn default() -> Self {
+        Self {
+            combo: [usize::MAX; TEMPLATE_CACHE],
+            blocks: [[Matrix3::zeros(); 10]; TEMPLATE_CACHE],
+            cached: 0,
+            group: usize::MAX,
+            local: [Matrix3::zeros(); 10],
+        }
+    }
+}
+
 /// The storage an operator hands back for the next one ([`SysOp::into_buffers`]).
 pub(super) struct OperatorBuffers {
     pub(super) blocks: Vec<Matrix3<f64>>,
@@ -158,6 +190,7 @@ impl SysOp<'_> {
     /// combination) and shared by every element of the group, scaled by its size `h`: with
     /// rotation sharing most elements then cost a scaled scatter only (the point of
     /// combining sharing with templates).
+    #[allow(clippy::too_many_arguments)]
     pub(super) fn add_rotated(
         &self,
         elements: &[u32],
@@ -166,6 +199,7 @@ impl SysOp<'_> {
         coef: &[f64],
         rotated: bool,
         mut kept: Option<&mut [CachedBlocks]>,
+        scratch: &mut RotatedScratch,
     ) {
         let sys = self.sys;
         let pat = sys.caches.pattern.as_ref().expect("pattern built");
@@ -173,14 +207,13 @@ impl SysOp<'_> {
             self.mode,
             StiffnessMode::Template | StiffnessMode::TemplateSparse
         );
-        // Per group: the combos seen and `R C Rᵀ` of each (C = template stiffness at unit
-        // size: the element's own blocks over its size h). Few per group.
-        const CACHE: usize = 8;
-        let mut cache_combo = [usize::MAX; CACHE];
-        let mut cache: [UpperBlocks; CACHE] = [[Matrix3::zeros(); 10]; CACHE];
-        let mut cached = 0;
-        let mut group = usize::MAX;
-        let mut local: UpperBlocks = [Matrix3::zeros(); 10];
+        let RotatedScratch {
+            combo: cache_combo,
+            blocks: cache,
+            cached,
+            group,
+            local,
+        } = scratch;
         let mut slots = [0u32; 16];
         // An element's blocks at volume `v`: from the per-element cache when there is one
         // and the element is rotated, else computed into `out`.
@@ -213,17 +246,17 @@ impl SysOp<'_> {
                 (true, Some((_, h)), _) => {
                     // Unrotated: one group for all elements.
                     let key = if rotated { e.source } else { 0 };
-                    if key != group {
-                        cached = 0;
-                        group = key;
+                    if key != *group {
+                        *cached = 0;
+                        *group = key;
                     }
-                    let hit = cache_combo[..cached].iter().position(|c| *c == e.combo);
+                    let hit = cache_combo[..*cached].iter().position(|c| *c == e.combo);
                     let i = match hit {
                         Some(i) => i,
                         None => {
                             // A full cache (rare) recycles its last entry.
-                            let i = cached.min(CACHE - 1);
-                            cached = (cached + 1).min(CACHE);
+                            let i = (*cached).min(TEMPLATE_CACHE - 1);
+                            *cached = (*cached + 1).min(TEMPLATE_CACHE);
                             cache_combo[i] = e.combo;
                             iso(ei, e.volume / h, &mut cache[i]);
                             i
@@ -238,8 +271,8 @@ impl SysOp<'_> {
                     scatter_blocks(blocks, slots, upper, &k, coef[ei]);
                 }
                 _ => {
-                    iso(ei, e.volume, &mut local);
-                    scatter_blocks(blocks, slots, upper, &local, coef[ei]);
+                    iso(ei, e.volume, local);
+                    scatter_blocks(blocks, slots, upper, local, coef[ei]);
                 }
             }
         }
@@ -281,9 +314,12 @@ impl SysOp<'_> {
                             .zip(part.elements.par_iter())
                             .zip(bounds.par_iter())
                             .for_each(|((b, els), &offset)| {
-                                self.add_rotated(els, b, offset, coef, *rotated, None)
+                                let scratch = &mut RotatedScratch::default();
+                                self.add_rotated(els, b, offset, coef, *rotated, None, scratch)
                             });
-                        self.add_rotated(&part.interface, &mut blocks, 0, coef, *rotated, None);
+                        let scratch = &mut RotatedScratch::default();
+                        let interface = &part.interface;
+                        self.add_rotated(interface, &mut blocks, 0, coef, *rotated, None, scratch);
                     }
                     _ => {
                         // One thread: a source whose stiffness is kept (`source_stiffness.rs`) as
@@ -291,6 +327,7 @@ impl SysOp<'_> {
                         // one.
                         let mut kept = std::mem::take(&mut self.element_blocks);
                         let mut k = (!kept.is_empty()).then_some(kept.as_mut_slice());
+                        let scratch = &mut RotatedScratch::default();
                         for (s, elements) in sys.source_runs() {
                             match sys.source_stiffness_for(s, elements, self.mode) {
                                 Some(ks) if *rotated && ks.assembles_as_one() => {
@@ -299,7 +336,15 @@ impl SysOp<'_> {
                                 }
                                 _ => {
                                     let k = k.as_deref_mut();
-                                    self.add_rotated(elements, &mut blocks, 0, coef, *rotated, k);
+                                    self.add_rotated(
+                                        elements,
+                                        &mut blocks,
+                                        0,
+                                        coef,
+                                        *rotated,
+                                        k,
+                                        scratch,
+                                    );
                                 }
                             }
                         }
