@@ -274,11 +274,12 @@ pub fn run(args: ScaleArgs) -> Result<()> {
                 row.material = material;
                 if !args.json {
                     println!(
-                        "{:<5} {:>6} tets  dt {:>4.1} ms  {:<10}  iters {:>6.1} (max {:>4})  ms/step p50 {:>7.2} p99 {:>7.2}  rot/step {:>6.0}  heap {:>7} MiB",
+                        "{:<5} {:>6} tets  dt {:>4.1} ms  {:<10} {} thr  iters {:>6.1} (max {:>4})  ms/step p50 {:>7.2} p99 {:>7.2}  rot/step {:>6.0}  heap {:>7} MiB",
                         row.material,
                         row.tets,
                         row.dt_s * 1e3,
                         row.solver,
+                        row.threads,
                         row.iterations_mean,
                         row.iterations_max,
                         row.ms_p50,

@@ -1,4 +1,5 @@
-//! A level's matrix as the sequential Gauss–Seidel sweeps read it: every row's
+//! A level's matrix (or one part's rows of the finest, `hybrid_rows.rs`) as the
+//! Gauss–Seidel sweeps of one thread read it: every row's
 //! off-diagonal blocks in one contiguous run (its lower part, transposed from the upper
 //! storage, then its upper part), in half precision and summed in single precision; the
 //! finest level's rebuilt from the step's assembled blocks every solve, a coarse level's

@@ -53,8 +53,12 @@ pub(super) struct HybridRows {
     coupling_src: Vec<(u32, bool, u32)>,
     /// Per entry, the block as the sweeps see it (refreshed by [`HybridRows::fill`]).
     coupling_blocks: Vec<Matrix3<f64>>,
+    /// Per part, the index of its first row in `coupling_rows`, then their count.
+    coupling_start: Vec<usize>,
     /// Per coupling row, the ℓ1 enlargement of its diagonal, `D̃_i − D_i`.
     l1: Vec<V3>,
+    /// Per coupling row, `b'_i − r_i` of the sweep being prepared.
+    delta: Vec<V3>,
     /// The right-hand side of a sweep (`b'` of the module documentation).
     rhs: Vec<V3>,
 }
@@ -81,7 +85,7 @@ fn l1_outside(rows: &SymRows, blocks: &[Matrix3<f64>], i: usize, (s, e): (usize,
 
 impl HybridRows {
     /// A split of `rows` at `bounds` (ascending, first 0, last the row count), or `None`
-    /// when it has fewer than two parts.
+    /// when it has fewer than two parts or is not such a split.
     pub fn new(rows: &SymRows, bounds: &[usize]) -> Option<Self> {
         let n = rows.num_rows();
         let ok = bounds.len() >= 3
@@ -96,6 +100,7 @@ impl HybridRows {
             .map(|w| FullRows::of_range(rows, w[0], w[1]))
             .collect();
         let (mut coupling_rows, mut coupling_ptr, mut coupling_src) = (vec![], vec![0], vec![]);
+        let mut coupling_start = vec![0];
         for w in bounds.windows(2) {
             for i in w[0]..w[1] {
                 let outside = |j: &usize| !(w[0]..w[1]).contains(j);
@@ -115,6 +120,7 @@ impl HybridRows {
                     coupling_ptr.push(coupling_src.len() as u32);
                 }
             }
+            coupling_start.push(coupling_rows.len());
         }
         let coupled = coupling_rows.len();
         Some(Self {
@@ -124,7 +130,9 @@ impl HybridRows {
             coupling_rows,
             coupling_ptr,
             coupling_src,
+            coupling_start,
             l1: vec![V3::zeros(); coupled],
+            delta: vec![V3::zeros(); coupled],
             rhs: vec![V3::zeros(); n],
         })
     }
@@ -212,71 +220,88 @@ impl HybridRows {
             .sum()
     }
 
-    /// The right-hand side of a sweep from `z`: `r`, and on coupling rows
-    /// `r_i − Σ_{j∉part} A'_ij z_j + ℓ1_i ∘ z_i`.
-    fn sweep_rhs(&mut self, r: &[V3], z: &[V3]) {
-        self.rhs.copy_from_slice(r);
+    /// The sweep's right-hand side's differences from `r` on the coupling rows, from `z`
+    /// (one thread): `b'_i − r_i = ℓ1_i ∘ z_i − Σ_{j∉part} A'_ij z_j` into `delta`.
+    fn sweep_deltas(&mut self, z: &[V3]) {
         for k in 0..self.coupling_rows.len() {
             let i = self.coupling_rows[k] as usize;
-            let d = self.l1[k].component_mul(&z[i]) - self.coupling_product(k, z);
-            self.rhs[i] += d;
+            self.delta[k] = self.l1[k].component_mul(&z[i]) - self.coupling_product(k, z);
         }
     }
 
-    /// Runs `f` on every part at once with its rows of the right-hand side, of `z` and of
-    /// `out`.
-    fn each_part(
-        &mut self,
-        rhs: &[V3],
-        z: &mut [V3],
-        out: &mut [V3],
-        f: impl Fn(&mut FullRows, &[V3], &mut [V3], &mut [V3]) + Sync,
-    ) {
+    /// One sweep (`backward`, else forward) from `z` in every part at once, each part
+    /// first writing its rows of the right-hand side `r + delta` (see
+    /// [`HybridRows::sweep_deltas`]).
+    fn sweep_from(&mut self, r: &[V3], z: &mut [V3], backward: bool) {
+        self.sweep_deltas(z);
+        let (rows, starts, delta) = (&self.coupling_rows, &self.coupling_start, &self.delta);
         let bounds = &self.bounds;
-        let outs = if out.is_empty() {
-            (0..self.parts.len()).map(|_| &mut [][..]).collect()
-        } else {
-            split_ranges(out, bounds)
-        };
-        let items: Vec<_> = self
-            .parts
-            .iter_mut()
-            .zip(split_ranges(z, bounds))
-            .zip(outs)
-            .collect();
-        run_parts(items, |p, ((part, zp), op)| {
-            f(part, &rhs[bounds[p]..bounds[p + 1]], zp, op)
-        });
+        each_part(
+            &mut self.parts,
+            bounds,
+            r,
+            z,
+            &mut self.rhs,
+            |p, part, rp, zp, rhs| {
+                rhs.copy_from_slice(rp);
+                for k in starts[p]..starts[p + 1] {
+                    rhs[rows[k] as usize - bounds[p]] += delta[k];
+                }
+                if backward {
+                    part.backward(rhs, zp);
+                } else {
+                    part.forward(rhs, zp);
+                }
+            },
+        );
     }
 
     /// Pre-smoothing as [`FullRows::pre_smooth`], every part at once: `sweeps` forward
     /// sweeps from zero, then the residual `r − A' z` into `res`.
     pub fn pre_smooth(&mut self, r: &[V3], z: &mut [V3], res: &mut [V3], sweeps: usize) {
+        let bounds = &self.bounds;
         if sweeps <= 1 {
             // From zero the right-hand side is `r`; right after the sweep, on a part's
-            // rows, `r − D z − L z = ℓ1 ∘ z` (the sweep solved `(D̃ + L) z = r`).
-            self.each_part(r, z, res, |part, rp, zp, resp| {
-                part.forward_from_zero(rp, zp);
-                part.minus_upper_after_forward(zp, resp);
-            });
+            // rows, `r − D z − L z = ℓ1 ∘ z` (the sweep solved `(D̃ + L) z = r`). On a
+            // row the sweeps leave at zero (a fixed node) this is not its residual; the
+            // prolongation leaves those rows out.
+            each_part(
+                &mut self.parts,
+                bounds,
+                r,
+                z,
+                res,
+                |_, part, rp, zp, resp| {
+                    part.forward_from_zero(rp, zp);
+                    part.minus_upper_after_forward(zp, resp);
+                },
+            );
             for k in 0..self.coupling_rows.len() {
                 let i = self.coupling_rows[k] as usize;
                 res[i] += self.l1[k].component_mul(&z[i]) - self.coupling_product(k, z);
             }
             return;
         }
-        self.each_part(r, z, &mut [], |part, rp, zp, _| {
-            part.forward_from_zero(rp, zp)
-        });
-        let mut rhs = std::mem::take(&mut self.rhs);
+        each_part(
+            &mut self.parts,
+            bounds,
+            r,
+            z,
+            &mut [],
+            |_, part, rp, zp, _| part.forward_from_zero(rp, zp),
+        );
         for _ in 1..sweeps {
-            self.rhs = rhs;
-            self.sweep_rhs(r, z);
-            rhs = std::mem::take(&mut self.rhs);
-            self.each_part(&rhs, z, &mut [], |part, rp, zp, _| part.forward(rp, zp));
+            self.sweep_from(r, z, false);
         }
-        self.rhs = rhs;
-        self.each_part(r, z, res, |part, rp, zp, resp| part.residual(rp, zp, resp));
+        let bounds = &self.bounds;
+        each_part(
+            &mut self.parts,
+            bounds,
+            r,
+            z,
+            res,
+            |_, part, rp, zp, resp| part.residual(rp, zp, resp),
+        );
         for k in 0..self.coupling_rows.len() {
             let i = self.coupling_rows[k] as usize;
             res[i] -= self.coupling_product(k, z);
@@ -287,10 +312,32 @@ impl HybridRows {
     /// sweeps from `z`.
     pub fn post_smooth(&mut self, r: &[V3], z: &mut [V3], sweeps: usize) {
         for _ in 0..sweeps {
-            self.sweep_rhs(r, z);
-            let rhs = std::mem::take(&mut self.rhs);
-            self.each_part(&rhs, z, &mut [], |part, rp, zp, _| part.backward(rp, zp));
-            self.rhs = rhs;
+            self.sweep_from(r, z, true);
         }
     }
+}
+
+/// Runs `f(p, part, r_p, z_p, out_p)` on every part `p` at once, with its rows of `r`, of
+/// `z` and of `out` (empty: none).
+fn each_part(
+    parts: &mut [FullRows],
+    bounds: &[usize],
+    r: &[V3],
+    z: &mut [V3],
+    out: &mut [V3],
+    f: impl Fn(usize, &mut FullRows, &[V3], &mut [V3], &mut [V3]) + Sync,
+) {
+    let outs = if out.is_empty() {
+        (0..parts.len()).map(|_| &mut [][..]).collect()
+    } else {
+        split_ranges(out, bounds)
+    };
+    let items: Vec<_> = parts
+        .iter_mut()
+        .zip(split_ranges(z, bounds))
+        .zip(outs)
+        .collect();
+    run_parts(items, |p, ((part, zp), op)| {
+        f(p, part, &r[bounds[p]..bounds[p + 1]], zp, op)
+    });
 }

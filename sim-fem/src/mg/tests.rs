@@ -501,7 +501,8 @@ fn splits(n: usize) -> [Vec<usize>; 2] {
 fn hybrid_smoothing_over_parts_matches_dense_cholesky_with_1000x_stiffness_contrast() {
     // ℓ1 hybrid Gauss–Seidel on the finest level (parts swept at once): the solve still
     // reaches the dense Cholesky solution, in at most 1.4× the iterations of sequential
-    // sweeps (measured 1.13–1.31× on this 225-node mesh, whose parts are mostly interface;
+    // sweeps (measured 1.13–1.29× with one or two sweeps each way, on this 225-node mesh,
+    // whose parts are mostly interface;
     // a Jacobi smoother between all rows would need far more).
     let cells = [8, 4, 4];
     for contrast in [1.0, 1000.0] {
@@ -510,19 +511,23 @@ fn hybrid_smoothing_over_parts_matches_dense_cholesky_with_1000x_stiffness_contr
         let b = rhs(n, &a.fixed);
         let reference = dense_solve(&a, &b);
         let h = box_hierarchy(cells);
-        let (_, sequential, _) = mg_solve(&a, &h, &b, 1e-12, SMALL_COARSEST);
-        for bounds in splits(n) {
-            let (x, iters, _) = mg_solve_split(&a, &h, &b, 1e-12, SMALL_COARSEST, &bounds);
-            eprintln!("contrast {contrast}, {bounds:?}: {iters} against {sequential}");
-            let d = rel_diff(&x, &reference);
-            assert!(
-                d < 1e-8,
-                "contrast {contrast}, {bounds:?}: {d:e} after {iters}"
-            );
-            assert!(
-                10 * iters <= 14 * sequential,
-                "contrast {contrast}, {bounds:?}: {iters} iterations against {sequential}"
-            );
+        for nu in [1, 2] {
+            let params = MgParams {
+                smoothing_steps: nu,
+                ..SMALL_COARSEST
+            };
+            let (_, sequential, _) = mg_solve(&a, &h, &b, 1e-12, params);
+            for bounds in splits(n) {
+                let (x, iters, _) = mg_solve_split(&a, &h, &b, 1e-12, params, &bounds);
+                let case = format!("contrast {contrast}, ν = {nu}, {bounds:?}");
+                eprintln!("{case}: {iters} against {sequential}");
+                let d = rel_diff(&x, &reference);
+                assert!(d < 1e-8, "{case}: {d:e} after {iters}");
+                assert!(
+                    10 * iters <= 14 * sequential,
+                    "{case}: {iters} iterations against {sequential}"
+                );
+            }
         }
     }
 }
@@ -553,25 +558,37 @@ fn hybrid_vcycle_is_symmetric_and_contracts() {
     let dot = |x: &[V3], y: &[V3]| x.iter().zip(y).map(|(p, q)| p.dot(q)).sum::<f64>();
     let mut all = vec![vec![]];
     all.extend(splits(n));
-    for bounds in all {
-        let mut mg = Multigrid::new(&h, &a.fixed, &a.pattern, SMALL_COARSEST).unwrap();
-        mg.set_fine_parts(&bounds);
+    // One sweep each way (the default: the split residual is then `−U z` plus the
+    // coupling and ℓ1 terms, `hybrid_rows.rs`) and two (the residual in full).
+    for (nu, bounds) in [1, 2]
+        .into_iter()
+        .flat_map(|nu| all.iter().map(move |b| (nu, b)))
+    {
+        let params = MgParams {
+            smoothing_steps: nu,
+            ..SMALL_COARSEST
+        };
+        let mut mg = Multigrid::new(&h, &a.fixed, &a.pattern, params).unwrap();
+        mg.set_fine_parts(bounds);
         mg.refresh(&a.blocks);
         let (mut vu, mut vw) = (vec![V3::zeros(); n], vec![V3::zeros(); n]);
         mg.vcycle(&a.blocks, &u, &mut vu);
         mg.vcycle(&a.blocks, &w, &mut vw);
         let (left, right) = (dot(&vu, &w), dot(&u, &vw));
-        // The coarse levels' sweeps, and the finest unsplit, run in single precision
-        // (`full_rows.rs`): symmetric to its rounding (2⁻²⁴ ≈ 6e-8 relative per
-        // operation), which CG to the step's 1e-6 does not notice. (Split, the finest
-        // sweeps are f64; the coarse levels' f32 rounding then sets the bound.)
+        // Every level's sweeps run in single precision on half-precision blocks
+        // (`full_rows.rs`, split: `hybrid_rows.rs`): symmetric to the f32 rounding
+        // (2⁻²⁴ ≈ 6e-8 relative per operation), which CG to the step's 1e-6 does not
+        // notice.
         let tol = 1e-6;
         assert!(
             (left - right).abs() <= tol * left.abs().max(right.abs()),
-            "{bounds:?}: ⟨Vu, w⟩ = {left:e}, ⟨u, Vw⟩ = {right:e}"
+            "ν = {nu}, {bounds:?}: ⟨Vu, w⟩ = {left:e}, ⟨u, Vw⟩ = {right:e}"
         );
         // Positive definite on these two.
-        assert!(dot(&vu, &u) > 0.0 && dot(&vw, &w) > 0.0, "{bounds:?}");
+        assert!(
+            dot(&vu, &u) > 0.0 && dot(&vw, &w) > 0.0,
+            "ν = {nu}, {bounds:?}"
+        );
     }
     let params = MgParams {
         smoothing_steps: 1,

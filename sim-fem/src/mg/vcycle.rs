@@ -288,11 +288,12 @@ impl Multigrid {
     }
 
     /// Splits the finest level's smoothing into the contiguous row ranges `bounds` (first
-    /// 0, last the row count), swept at once on the current rayon pool with ℓ1 hybrid
-    /// Gauss–Seidel (`hybrid_rows.rs`); fewer than two parts: one sequential sweep. The
-    /// coarse levels stay sequential (each is about an eighth of the one above). Takes
-    /// effect at the next [`Multigrid::refresh`] or [`Multigrid::update_fine_diagonal`],
-    /// which every solve calls first.
+    /// 0, last the row count), swept at once with ℓ1 hybrid Gauss–Seidel
+    /// (`hybrid_rows.rs`; on the current rayon pool, or the solve's spinning helper,
+    /// `parallel/spin.rs`); fewer than two parts: one sequential sweep. The coarse levels
+    /// stay sequential (each is about an eighth of the one above). Takes effect at the
+    /// next [`Multigrid::refresh`] or [`Multigrid::update_fine_diagonal`], which every
+    /// solve calls first and which fill the parts' blocks (zero until then).
     /// Bounds that do not start at 0 and end at the row count split nothing.
     pub fn set_fine_parts(&mut self, bounds: &[usize]) {
         let n = self.fine_rows.num_rows();
@@ -308,8 +309,9 @@ impl Multigrid {
     }
 
     /// One V-cycle: `z ≈ A⁻¹ r` with `fine` the finest operator's upper blocks, those of
-    /// the last [`Multigrid::refresh`] or [`Multigrid::update_fine_diagonal`] (one thread
-    /// sweeps their f16 copy, `full_rows.rs`). `r` must be zero on fixed nodes; `z` is.
+    /// the last [`Multigrid::refresh`] or [`Multigrid::update_fine_diagonal`] (the sweeps
+    /// read their f16 copy: `full_rows.rs`, or one per part, `hybrid_rows.rs`). `r` must
+    /// be zero on fixed nodes; `z` is.
     pub fn vcycle(&mut self, fine: &[Matrix3<f64>], r: &[V3], z: &mut [V3]) {
         let nu = self.params.smoothing_steps.max(1);
         let (rows, dinv) = (&self.fine_rows, &self.fine_dinv);

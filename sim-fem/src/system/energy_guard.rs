@@ -70,7 +70,7 @@ impl FemSystem {
         p: &StepParams,
         attempt: &StepStats,
     ) -> bool {
-        if !(attempt.inverted > 0 || self.any_inverted(&start.x, x)) {
+        if !(attempt.inverted > 0 || self.any_inverted_in_either(&start.x, x)) {
             return false;
         }
         // Energy at x_{n+1} with its own rotations (stored state untouched).
@@ -101,16 +101,26 @@ impl FemSystem {
         elastic + self.kinetic_energy(v) + self.gravity_energy(x, gravity)
     }
 
+    /// Whether some element has `det F ≤ 0` at `x`.
+    pub fn any_inverted(&self, x: &[V3]) -> bool {
+        self.any_element(|ei| self.element_inverted(ei, x))
+    }
+
     /// Whether some element has `det F ≤ 0` at `x` or at `y` (one pass over the elements'
-    /// nodes for both; on the step's threads when it has several).
-    pub fn any_inverted(&self, x: &[V3], y: &[V3]) -> bool {
+    /// nodes for both states of a step).
+    fn any_inverted_in_either(&self, x: &[V3], y: &[V3]) -> bool {
+        self.any_element(|ei| self.element_inverted(ei, x) || self.element_inverted(ei, y))
+    }
+
+    /// Whether `pred` holds for some element index; on the step's threads when it has
+    /// several.
+    fn any_element(&self, pred: impl Fn(usize) -> bool + Sync + Send) -> bool {
         let n = self.mesh.elements.len();
-        let inverted = |ei: usize| self.element_inverted(ei, x) || self.element_inverted(ei, y);
         if self.active_partition().is_some() {
             use rayon::prelude::*;
-            return (0..n).into_par_iter().with_min_len(4096).any(inverted);
+            return (0..n).into_par_iter().with_min_len(4096).any(pred);
         }
-        (0..n).any(inverted)
+        (0..n).any(pred)
     }
 
     /// Whether element `ei` has `det F ≤ 0` at `x`: rest elements are positively oriented,

@@ -120,9 +120,12 @@ impl FemSystem {
         let warm = std::mem::take(&mut self.caches.warm_dv);
         let (mass, mass_damping) = (self.mesh.mass.clone(), self.mesh.mass_damping.clone());
         let fixed = self.mesh.fixed.clone();
-        // On several threads the solve's many short parallel regions share a helper kept
-        // awake for its length (`parallel/spin.rs`).
-        let threaded = self.active_partition().is_some();
+        // On two threads an iterative solve's many short parallel regions share a helper
+        // kept awake for its length (`parallel/spin.rs`; it hands out halves only, and a
+        // direct solve has no such regions).
+        let two_parts = self
+            .active_partition()
+            .is_some_and(|q| q.node_start.len() == 3);
         let mut mg = None;
         let mut operator = p.operator;
         if self.uses_multigrid(p) {
@@ -180,7 +183,7 @@ impl FemSystem {
                 LinearSolver::JacobiPcg,
             ),
         };
-        let (res, solver): (CgResult, _) = if threaded {
+        let (res, solver): (CgResult, _) = if two_parts && direct.is_none() {
             with_helper(solve)
         } else {
             solve()

@@ -151,9 +151,10 @@ pub struct StepParams {
     /// Threads for the linearised step (1 = the calling thread only). With more, rotation
     /// extraction, element forces, the assembly and the sparse products of the assembled
     /// co-rotational/linear operator run on a pool of that many threads (see
-    /// `parallel.rs`); Newton steps, the matrix-free operator and the energy guard's extra
-    /// work stay sequential. Results equal the sequential ones up to the order of
-    /// floating-point sums.
+    /// `parallel.rs`), with MG-PCG also its finest level's sweeps, and the energy guard's
+    /// check for inverted elements; Newton steps, the matrix-free operator and the energy
+    /// guard's energies stay sequential. Results equal the sequential ones up to the order
+    /// of floating-point sums (and, with MG-PCG, the iterations of a split smoother).
     pub threads: usize,
     /// Energy guard of the linearised co-rotational step: on steps with inverted elements
     /// before or after them (whose rotations can jump as they pass through degenerate
