@@ -721,8 +721,7 @@ impl FullRows {
     #[cfg(test)]
     pub fn residual_after_forward_from_zero(&mut self, z: &[V3], out: &mut [V3]) {
         self.load(z);
-        let mut z = z.to_vec();
-        self.run(Pass::MinusUpper, &[], &mut z, out, self.portable);
+        self.minus_upper_after_forward(&mut z.to_vec(), out);
     }
 
     /// One backward sweep from `z`.

@@ -23,8 +23,8 @@
 //!
 //! Why (2026-11-28): the hybrid sweeps had been made on [`SymRows`] in f64, reading each
 //! lower block from the row that stores it. With two threads an MG-PCG step of the
-//! 12,288-tet beam took 9.2 ms against 4.2 ms on one thread, which sweeps [`FullRows`]
-//! (see docs/RESULTS.md for the measurements since).
+//! 12,288-tet beams took 5.9–6.8 ms against 3.8–4.9 ms on one thread, which sweeps
+//! [`FullRows`] (interleaved runs, docs/RESULTS.md, with the measurements since).
 //!
 //! Results depend on the split, not on the threads that run it: each part writes only its
 //! own rows, and the coupling is applied on one thread in row order.

@@ -2,10 +2,11 @@
 //! regions (with one sweep each way, two per V-cycle and one per CG product, and a few
 //! per step for the smoother's refresh).
 //!
-//! Why: on a two-thread rayon pool every region of a 12,288-tet MG-PCG solve (tens of
-//! µs each, a few hundred per step) found the other worker asleep, and waking it cost
-//! about as much as the region saved: `perf` put 15 % of the second worker's samples in
-//! the scheduler and its split of the work at 1 : 3 (2026-11-28). Here the helper spins
+//! Why: on a two-thread rayon pool the regions of a 12,288-tet MG-PCG solve (tens of µs
+//! each, a few hundred per step) often found the other worker asleep, and waking it cost
+//! about as much as the region saved: `perf` found the second worker in the scheduler in
+//! 15 % of all the step's samples, and the sweeps split 3 : 1 between the workers
+//! (2026-11-28). Here the helper spins
 //! on one atomic between regions, so handing it half of a region costs a cache-line
 //! transfer.
 //!
