@@ -17,6 +17,7 @@ pub mod mg;
 pub mod model;
 mod parallel;
 pub mod polar;
+mod prefetch;
 pub mod solver;
 pub mod system;
 

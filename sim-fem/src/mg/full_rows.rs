@@ -79,6 +79,12 @@ type Pair16 = [[f16; 8]; 3];
 /// One 3×3 block in single precision by columns `[a_0k, a_1k, a_2k, 0]`.
 type Block32 = [[f32; 4]; 3];
 
+/// Rows ahead whose pairs a sweep prefetches.
+const PREFETCH_ROWS: usize = 16;
+
+/// Pairs ahead whose blocks the fill prefetches from the step's storage.
+const GATHER_AHEAD: usize = 8;
+
 /// Bit of [`FullRows::src`] marking a block taken transposed.
 const TRANSPOSED: u32 = 1 << 31;
 
@@ -154,6 +160,9 @@ pub(super) struct FullRows {
     first: usize,
     /// Never use AVX (tests).
     portable: bool,
+    /// Whether the passes and the fill prefetch ([`crate::prefetch::worth_it`] of the
+    /// step's blocks, set by [`FullRows::fill`]).
+    prefetch: bool,
 }
 
 /// Whether this CPU converts to half precision in hardware (F16C, with AVX).
@@ -338,6 +347,7 @@ impl FullRows {
             z32: vec![[0.0; 4]; n + 1],
             first,
             portable: false,
+            prefetch: false,
         }
     }
 
@@ -345,6 +355,7 @@ impl FullRows {
     /// diagonal blocks' inverses the sweeps divide by (zero: the row stays zero; indexed
     /// as the level's rows, not from [`FullRows::first`]) in.
     pub fn fill(&mut self, rows: &SymRows, fine: &[Matrix3<f64>], dinv: &[Matrix3<f64>]) {
+        self.prefetch = crate::prefetch::worth_it(fine);
         let dinv = &dinv[self.first..self.first + self.num_rows()];
         for (out, d) in self.dinv.iter_mut().zip(dinv) {
             *out = std::array::from_fn(|k| {
@@ -394,6 +405,14 @@ impl FullRows {
             let si = f64::from(scale[i]);
             let (from, to) = (self.row_ptr[i] as usize, self.row_ptr[i + 1] as usize);
             for p in from..to {
+                // The blocks a few pairs ahead, gathered from the step's storage.
+                if let Some(ahead) = self.src.get(p + GATHER_AHEAD)
+                    && self.prefetch
+                {
+                    for &s in ahead {
+                        crate::prefetch::prefetch(fine, (s & !TRANSPOSED) as usize);
+                    }
+                }
                 let (srcs, cols) = (&self.src[p], &self.cols[p]);
                 round_to_f16::<F16C>(
                     &scaled_pair(fine, srcs, cols, si, scale),
@@ -657,6 +676,15 @@ impl FullRows {
         }
     }
 
+    /// Asks for row `i`'s pairs and columns to be brought into cache
+    /// ([`crate::prefetch`]).
+    #[inline(always)]
+    fn prefetch_row(&self, i: usize) {
+        let (from, to) = (self.row_ptr[i] as usize, self.row_ptr[i + 1] as usize);
+        crate::prefetch::prefetch_range(&self.blocks, from..to);
+        crate::prefetch::prefetch_range(&self.cols, from..to);
+    }
+
     /// One pass over the rows (see [`Pass`]); `out` is written by the residual passes.
     #[inline(always)]
     fn pass<const AVX: bool>(&mut self, pass: Pass, r: &[V3], z: &mut [V3], out: &mut [V3]) {
@@ -665,21 +693,33 @@ impl FullRows {
         match pass {
             Pass::ForwardFromZero | Pass::Forward => {
                 for i in 0..n {
+                    if AVX && self.prefetch && i + PREFETCH_ROWS < n {
+                        self.prefetch_row(i + PREFETCH_ROWS);
+                    }
                     prev = self.relax::<AVX>(pass, r, z, i, prev);
                 }
             }
             Pass::Backward => {
                 for i in (0..n).rev() {
+                    if AVX && self.prefetch && i >= PREFETCH_ROWS {
+                        self.prefetch_row(i - PREFETCH_ROWS);
+                    }
                     prev = self.relax::<AVX>(pass, r, z, i, prev);
                 }
             }
             Pass::MinusUpper => {
                 for (i, o) in out.iter_mut().enumerate() {
+                    if AVX && self.prefetch && i + PREFETCH_ROWS < n {
+                        self.prefetch_row(i + PREFETCH_ROWS);
+                    }
                     *o = -self.product::<AVX>(pass, i);
                 }
             }
             Pass::Residual => {
                 for (i, o) in out.iter_mut().enumerate() {
+                    if AVX && self.prefetch && i + PREFETCH_ROWS < n {
+                        self.prefetch_row(i + PREFETCH_ROWS);
+                    }
                     *o = r[i] - self.diag[i] * z[i] - self.product::<AVX>(pass, i);
                 }
             }
@@ -752,6 +792,13 @@ impl FullRows {
     #[cfg(test)]
     pub fn set_portable(&mut self, portable: bool) {
         self.portable = portable;
+    }
+
+    /// Passes prefetch rows ahead (or not) until the next [`FullRows::fill`], whatever
+    /// the matrix's size (tests).
+    #[cfg(test)]
+    pub fn set_prefetch(&mut self, prefetch: bool) {
+        self.prefetch = prefetch;
     }
 
     /// Pre-smoothing: `sweeps` forward sweeps from zero, then the residual into `res`

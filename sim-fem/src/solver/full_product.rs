@@ -30,6 +30,9 @@ use super::BlockPattern;
 
 type V3 = Vector3<f64>;
 
+/// Slots ahead whose mirror block the full-row copy prefetches.
+const GATHER_AHEAD: usize = 8;
+
 /// A 3×3 block as its columns, `[a_00, a_10, a_20, a_01, a_11, a_21, a_02, a_12, a_22]`.
 pub type RowBlock = [f64; 9];
 
@@ -53,8 +56,15 @@ impl BlockPattern {
         out: &mut [RowBlock],
     ) {
         let mut blocks = out.iter_mut();
+        let prefetch = crate::prefetch::worth_it(upper);
         for i in rows {
             for s in self.row_ptr[i]..self.row_ptr[i + 1] {
+                // The mirror blocks a few slots ahead are gathered from other rows.
+                if let Some(&m) = self.mirror.get(s + GATHER_AHEAD)
+                    && prefetch
+                {
+                    crate::prefetch::prefetch(upper, m);
+                }
                 let b = if self.cols[s] >= i {
                     upper[s]
                 } else {

@@ -35,6 +35,9 @@ use super::{FemSystem, StiffnessMode, V3};
 /// most of their nodes with no other element of the source, and gain little).
 pub(super) const MIN_ELEMENTS: usize = 12;
 
+/// Pairs ahead whose operator block [`SourceStiffness::add_blocks`] prefetches.
+const SCATTER_AHEAD: usize = 8;
+
 /// One source's stiffness in its rest frame.
 #[derive(Clone, Debug)]
 pub(super) struct SourceStiffness {
@@ -228,11 +231,18 @@ impl SourceStiffness {
     /// symmetric, as the products that read them whole need.
     pub(super) fn add_blocks(&self, r: &Matrix3<f64>, c: f64, blocks: &mut [Matrix3<f64>]) {
         let rt = r.transpose() * c;
+        let prefetch = crate::prefetch::worth_it(blocks);
         for (d, &slot) in self.diag.iter().zip(&self.diag_slots) {
             let b = r * d * rt;
             blocks[slot as usize] += (b + b.transpose()) * 0.5;
         }
-        for (k, &(slot, transposed)) in self.off.iter().zip(&self.pair_slots) {
+        for (i, (k, &(slot, transposed))) in self.off.iter().zip(&self.pair_slots).enumerate() {
+            // The blocks a few pairs ahead are scattered over the whole operator.
+            if let Some(&(ahead, _)) = self.pair_slots.get(i + SCATTER_AHEAD)
+                && prefetch
+            {
+                crate::prefetch::prefetch(blocks, ahead as usize);
+            }
             let b = r * k * rt;
             blocks[slot as usize] += if transposed { b.transpose() } else { b };
         }
