@@ -83,7 +83,7 @@ type Block32 = [[f32; 4]; 3];
 const PREFETCH_ROWS: usize = 16;
 
 /// Pairs ahead whose blocks the fill prefetches from the step's storage.
-const GATHER_AHEAD: usize = 8;
+const FILL_AHEAD_PAIRS: usize = 8;
 
 /// Bit of [`FullRows::src`] marking a block taken transposed.
 const TRANSPOSED: u32 = 1 << 31;
@@ -160,8 +160,9 @@ pub(super) struct FullRows {
     first: usize,
     /// Never use AVX (tests).
     portable: bool,
-    /// Whether the passes and the fill prefetch ([`crate::prefetch::worth_it`] of the
-    /// step's blocks, set by [`FullRows::fill`]).
+    /// Whether the passes and the fill prefetch: whether the blocks [`FullRows::fill`]
+    /// copies from outgrow the cache ([`crate::prefetch::outgrows_cache`]; the finest
+    /// level's are the step's, a coarse level's its Galerkin operator, which never does).
     prefetch: bool,
 }
 
@@ -355,7 +356,7 @@ impl FullRows {
     /// diagonal blocks' inverses the sweeps divide by (zero: the row stays zero; indexed
     /// as the level's rows, not from [`FullRows::first`]) in.
     pub fn fill(&mut self, rows: &SymRows, fine: &[Matrix3<f64>], dinv: &[Matrix3<f64>]) {
-        self.prefetch = crate::prefetch::worth_it(fine);
+        self.prefetch = crate::prefetch::outgrows_cache(fine);
         let dinv = &dinv[self.first..self.first + self.num_rows()];
         for (out, d) in self.dinv.iter_mut().zip(dinv) {
             *out = std::array::from_fn(|k| {
@@ -406,8 +407,8 @@ impl FullRows {
             let (from, to) = (self.row_ptr[i] as usize, self.row_ptr[i + 1] as usize);
             for p in from..to {
                 // The blocks a few pairs ahead, gathered from the step's storage.
-                if let Some(ahead) = self.src.get(p + GATHER_AHEAD)
-                    && self.prefetch
+                if self.prefetch
+                    && let Some(ahead) = self.src.get(p + FILL_AHEAD_PAIRS)
                 {
                     for &s in ahead {
                         crate::prefetch::prefetch(fine, (s & !TRANSPOSED) as usize);
@@ -693,7 +694,7 @@ impl FullRows {
         match pass {
             Pass::ForwardFromZero | Pass::Forward => {
                 for i in 0..n {
-                    if AVX && self.prefetch && i + PREFETCH_ROWS < n {
+                    if self.prefetch && i + PREFETCH_ROWS < n {
                         self.prefetch_row(i + PREFETCH_ROWS);
                     }
                     prev = self.relax::<AVX>(pass, r, z, i, prev);
@@ -701,7 +702,7 @@ impl FullRows {
             }
             Pass::Backward => {
                 for i in (0..n).rev() {
-                    if AVX && self.prefetch && i >= PREFETCH_ROWS {
+                    if self.prefetch && i >= PREFETCH_ROWS {
                         self.prefetch_row(i - PREFETCH_ROWS);
                     }
                     prev = self.relax::<AVX>(pass, r, z, i, prev);
@@ -709,7 +710,7 @@ impl FullRows {
             }
             Pass::MinusUpper => {
                 for (i, o) in out.iter_mut().enumerate() {
-                    if AVX && self.prefetch && i + PREFETCH_ROWS < n {
+                    if self.prefetch && i + PREFETCH_ROWS < n {
                         self.prefetch_row(i + PREFETCH_ROWS);
                     }
                     *o = -self.product::<AVX>(pass, i);
@@ -717,7 +718,7 @@ impl FullRows {
             }
             Pass::Residual => {
                 for (i, o) in out.iter_mut().enumerate() {
-                    if AVX && self.prefetch && i + PREFETCH_ROWS < n {
+                    if self.prefetch && i + PREFETCH_ROWS < n {
                         self.prefetch_row(i + PREFETCH_ROWS);
                     }
                     *o = r[i] - self.diag[i] * z[i] - self.product::<AVX>(pass, i);

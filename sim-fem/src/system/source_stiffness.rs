@@ -35,8 +35,8 @@ use super::{FemSystem, StiffnessMode, V3};
 /// most of their nodes with no other element of the source, and gain little).
 pub(super) const MIN_ELEMENTS: usize = 12;
 
-/// Pairs ahead whose operator block [`SourceStiffness::add_blocks`] prefetches.
-const SCATTER_AHEAD: usize = 8;
+/// Blocks ahead whose operator slot [`SourceStiffness::add_blocks`] prefetches.
+const SCATTER_AHEAD_BLOCKS: usize = 8;
 
 /// One source's stiffness in its rest frame.
 #[derive(Clone, Debug)]
@@ -231,16 +231,14 @@ impl SourceStiffness {
     /// symmetric, as the products that read them whole need.
     pub(super) fn add_blocks(&self, r: &Matrix3<f64>, c: f64, blocks: &mut [Matrix3<f64>]) {
         let rt = r.transpose() * c;
-        let prefetch = crate::prefetch::worth_it(blocks);
+        let prefetch = crate::prefetch::outgrows_cache(blocks);
         for (d, &slot) in self.diag.iter().zip(&self.diag_slots) {
             let b = r * d * rt;
             blocks[slot as usize] += (b + b.transpose()) * 0.5;
         }
         for (i, (k, &(slot, transposed))) in self.off.iter().zip(&self.pair_slots).enumerate() {
-            // The blocks a few pairs ahead are scattered over the whole operator.
-            if let Some(&(ahead, _)) = self.pair_slots.get(i + SCATTER_AHEAD)
-                && prefetch
-            {
+            // The blocks a few ahead are scattered over the whole operator.
+            if prefetch && let Some(&(ahead, _)) = self.pair_slots.get(i + SCATTER_AHEAD_BLOCKS) {
                 crate::prefetch::prefetch(blocks, ahead as usize);
             }
             let b = r * k * rt;
