@@ -5,7 +5,8 @@
 //! its gallbladder at their lattice's resolution, or at the cells of `--organ-cells`, no
 //! tool touching) the same way: CG
 //! iterations, wall time per step (p50, p99, one thread) and the most heap each row held;
-//! and the exponent of p50 time against tets between the beam sizes run. Each scene
+//! and the exponent of p50 time against tets between the beam sizes run (`--repeat N`:
+//! every row N times in interleaved rounds, medians and each round's exponent). Each scene
 //! runs with its own features (the beams share no rotations) unless `--sharing-angle`
 //! sets the product's rotation sharing for every row.
 
@@ -54,6 +55,13 @@ pub struct ScaleArgs {
     /// site runs (its second core runs the haptic loop and the network).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=64))]
     pub threads: u16,
+    /// Runs of every row, in rounds (each round runs every row once, so that a machine
+    /// whose speed drifts slows the small and the large meshes alike): a row's p50 and
+    /// p99 are the medians of its runs', and each exponent is given from those medians
+    /// and from each round alone (its spread). On a shared machine one run's exponent
+    /// can be off by 0.1 (docs/RESULTS.md).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=100))]
+    pub repeat: u16,
 }
 
 /// How p50 time grows with the mesh for one (beam, dt, solver): `t ∝ tets^exponent`
@@ -65,7 +73,10 @@ pub struct ScaleExponent {
     pub solver: &'static str,
     pub tets_from: usize,
     pub tets_to: usize,
+    /// From the rows' p50s (with `--repeat`, the medians of their runs').
     pub exponent: f64,
+    /// From each round's p50s alone, in round order (one entry without `--repeat`).
+    pub exponent_runs: Vec<f64>,
 }
 
 /// Everything `--json` prints.
@@ -98,15 +109,36 @@ fn exponents(rows: &[ScaleRow]) -> Vec<ScaleExponent> {
                 solver: r.solver,
                 tets_from: small.tets,
                 tets_to: big.tets,
-                exponent: (big.ms_p50 / small.ms_p50).ln()
-                    / (big.tets as f64 / small.tets as f64).ln(),
+                exponent: exponent(small.tets, small.ms_p50, big.tets, big.ms_p50),
+                exponent_runs: small
+                    .ms_p50_runs
+                    .iter()
+                    .zip(&big.ms_p50_runs)
+                    .map(|(&a, &b)| exponent(small.tets, a, big.tets, b))
+                    .collect(),
             });
         }
     }
     out
 }
 
-/// One (beam or organ, dt, solver) run.
+/// `e` in `t ∝ tets^e` through two points.
+fn exponent(tets_a: usize, ms_a: f64, tets_b: usize, ms_b: f64) -> f64 {
+    (ms_b / ms_a).ln() / (tets_b as f64 / tets_a as f64).ln()
+}
+
+/// The median of `v` (the mean of the middle two for an even count).
+fn median(v: &[f64]) -> f64 {
+    let mut v = v.to_vec();
+    v.sort_by(f64::total_cmp);
+    match v.len() {
+        0 => f64::NAN,
+        n if n % 2 == 1 => v[n / 2],
+        n => 0.5 * (v[n / 2 - 1] + v[n / 2]),
+    }
+}
+
+/// One (beam or organ, dt, solver) row: one run, or the medians of `--repeat` runs.
 #[derive(Debug, Serialize)]
 pub struct ScaleRow {
     /// `soft` or `stiff` (the beams), `organ` (the default scene, its own materials).
@@ -126,6 +158,8 @@ pub struct ScaleRow {
     pub iterations_max: usize,
     pub ms_p50: f64,
     pub ms_p99: f64,
+    /// Each run's p50, in round order (one entry without `--repeat`).
+    pub ms_p50_runs: Vec<f64>,
     /// Largest relative residual of a timed step (≤ tolerance unless the budget ran out).
     pub residual_max: f64,
     /// Whether each solve started from the previous converged step's Δv (the scene's
@@ -220,6 +254,7 @@ fn run_one(
         iterations_max: iters.iter().copied().max().unwrap_or(0),
         ms_p50: percentile(&ms, 50.0),
         ms_p99: percentile(&ms, 99.0),
+        ms_p50_runs: vec![percentile(&ms, 50.0)],
         residual_max,
         warm_start,
         sharing_angle_deg,
@@ -227,6 +262,28 @@ fn run_one(
         threads,
         heap_peak_mib: heap.map(|h| h.peak_bytes() as f64 / (1024.0 * 1024.0)),
     })
+}
+
+/// One configuration's runs as one row: the medians of the runs' p50 and p99, the mean
+/// of their mean iterations (the steps are deterministic, so the runs agree), the
+/// largest iteration count, residual and heap.
+fn merge_runs(runs: Vec<ScaleRow>) -> ScaleRow {
+    let n = runs.len() as f64;
+    let p50: Vec<f64> = runs.iter().map(|r| r.ms_p50).collect();
+    let p99: Vec<f64> = runs.iter().map(|r| r.ms_p99).collect();
+    let heap = runs.iter().filter_map(|r| r.heap_peak_mib).reduce(f64::max);
+    let iterations_mean = runs.iter().map(|r| r.iterations_mean).sum::<f64>() / n;
+    let iterations_max = runs.iter().map(|r| r.iterations_max).max().unwrap_or(0);
+    let residual_max = runs.iter().map(|r| r.residual_max).fold(0.0, f64::max);
+    let mut row = runs.into_iter().next().expect("at least one run");
+    row.ms_p50 = median(&p50);
+    row.ms_p99 = median(&p99);
+    row.ms_p50_runs = p50;
+    row.heap_peak_mib = heap;
+    row.iterations_mean = iterations_mean;
+    row.iterations_max = iterations_max;
+    row.residual_max = residual_max;
+    row
 }
 
 pub fn run(args: ScaleArgs) -> Result<()> {
@@ -259,38 +316,65 @@ pub fn run(args: ScaleArgs) -> Result<()> {
             subjects.push(("organ", Subject::Organ { cell: Some(cell) }));
         }
     }
-    let mut rows = Vec::new();
+    let mut configs = Vec::new();
     for &(material, subject) in &subjects {
         for &dt in &dts {
             for &solver in &solvers {
-                let mut row = run_one(
-                    subject,
-                    dt,
-                    solver,
-                    args.steps,
-                    args.sharing_angle,
-                    usize::from(args.threads),
-                )?;
-                row.material = material;
-                if !args.json {
-                    println!(
-                        "{:<5} {:>6} tets  dt {:>4.1} ms  {:<10} {} thr  iters {:>6.1} (max {:>4})  ms/step p50 {:>7.2} p99 {:>7.2}  rot/step {:>6.0}  heap {:>7} MiB",
-                        row.material,
-                        row.tets,
-                        row.dt_s * 1e3,
-                        row.solver,
-                        row.threads,
-                        row.iterations_mean,
-                        row.iterations_max,
-                        row.ms_p50,
-                        row.ms_p99,
-                        row.rotations_per_step,
-                        row.heap_peak_mib
-                            .map_or("-".to_string(), |m| format!("{m:.1}"))
-                    );
-                }
-                rows.push(row);
+                configs.push((material, subject, dt, solver));
             }
+        }
+    }
+    let repeat = usize::from(args.repeat);
+    // Runs by configuration, every configuration once per round.
+    let mut runs: Vec<Vec<ScaleRow>> = (0..configs.len()).map(|_| Vec::new()).collect();
+    for round in 0..repeat {
+        for (&(material, subject, dt, solver), runs) in configs.iter().zip(&mut runs) {
+            let mut row = run_one(
+                subject,
+                dt,
+                solver,
+                args.steps,
+                args.sharing_angle,
+                usize::from(args.threads),
+            )?;
+            row.material = material;
+            if !args.json {
+                let round = if repeat > 1 {
+                    format!("[{}/{repeat}] ", round + 1)
+                } else {
+                    String::new()
+                };
+                println!(
+                    "{round}{:<5} {:>6} tets  dt {:>4.1} ms  {:<10} {} thr  iters {:>6.1} (max {:>4})  ms/step p50 {:>7.2} p99 {:>7.2}  rot/step {:>6.0}  heap {:>7} MiB",
+                    row.material,
+                    row.tets,
+                    row.dt_s * 1e3,
+                    row.solver,
+                    row.threads,
+                    row.iterations_mean,
+                    row.iterations_max,
+                    row.ms_p50,
+                    row.ms_p99,
+                    row.rotations_per_step,
+                    row.heap_peak_mib
+                        .map_or("-".to_string(), |m| format!("{m:.1}"))
+                );
+            }
+            runs.push(row);
+        }
+    }
+    let rows: Vec<ScaleRow> = runs.into_iter().map(merge_runs).collect();
+    if !args.json && repeat > 1 {
+        for row in &rows {
+            println!(
+                "{:<5} {:>6} tets  dt {:>4.1} ms  {:<10} median of {repeat}: p50 {:>7.2} p99 {:>7.2}",
+                row.material,
+                row.tets,
+                row.dt_s * 1e3,
+                row.solver,
+                row.ms_p50,
+                row.ms_p99
+            );
         }
     }
     let exponents = exponents(&rows);
@@ -299,8 +383,23 @@ pub fn run(args: ScaleArgs) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         for e in &exponents {
+            let spread = if e.exponent_runs.len() > 1 {
+                let lo = e
+                    .exponent_runs
+                    .iter()
+                    .copied()
+                    .fold(f64::INFINITY, f64::min);
+                let hi = e
+                    .exponent_runs
+                    .iter()
+                    .copied()
+                    .fold(f64::NEG_INFINITY, f64::max);
+                format!(", rounds {lo:.2}–{hi:.2}")
+            } else {
+                String::new()
+            };
             println!(
-                "{:<5} dt {:>4.1} ms  {:<10}  time ∝ tets^{:.2} ({} → {} tets)",
+                "{:<5} dt {:>4.1} ms  {:<10}  time ∝ tets^{:.2} ({} → {} tets{spread})",
                 e.material,
                 e.dt_s * 1e3,
                 e.solver,

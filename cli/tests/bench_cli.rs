@@ -222,6 +222,71 @@ fn scale_json_every_solver_converges_and_the_exponents_are_reported() {
     }
 }
 
+/// `--repeat 3`: every row three times in rounds; a row's p50 is the median of its
+/// runs' (each kept, in round order), and the exponent comes from those medians, with
+/// each round's own beside it.
+#[test]
+fn scale_json_repeat_reports_medians_and_each_rounds_exponent() {
+    let r = scale_json(&[
+        "--cells",
+        "0.05,0.025",
+        "--dts",
+        "0.01",
+        "--steps",
+        "2",
+        "--solvers",
+        "mg-pcg",
+        "--no-organ",
+        "--repeat",
+        "3",
+    ]);
+    let rows = r["rows"].as_array().expect("rows");
+    assert_eq!(rows.len(), 4, "{r}");
+    let median = |v: &[f64]| {
+        let mut v = v.to_vec();
+        v.sort_by(f64::total_cmp);
+        v[1]
+    };
+    let runs = |row: &Value| -> Vec<f64> {
+        row["ms_p50_runs"]
+            .as_array()
+            .expect("ms_p50_runs")
+            .iter()
+            .map(|x| x.as_f64().expect("number"))
+            .collect()
+    };
+    for row in rows {
+        let p50s = runs(row);
+        assert_eq!(p50s.len(), 3, "{row}");
+        assert!(p50s.iter().all(|&t| t > 0.0), "{row}");
+        assert_eq!(num(row, "ms_p50"), median(&p50s), "{row}");
+        assert!(num(row, "residual_max") <= 1e-6, "{row}");
+    }
+    let exps = r["exponents"].as_array().expect("exponents");
+    assert_eq!(exps.len(), 2, "{r}");
+    for e in exps {
+        let beam: Vec<&Value> = rows
+            .iter()
+            .filter(|w| w["material"] == e["material"])
+            .collect();
+        let (small, big) = (beam[0], beam[1]);
+        let through = |a: f64, b: f64| (b / a).ln() / (num(big, "tets") / num(small, "tets")).ln();
+        let want = through(num(small, "ms_p50"), num(big, "ms_p50"));
+        assert!((num(e, "exponent") - want).abs() < 1e-12, "{e}");
+        let each: Vec<f64> = e["exponent_runs"]
+            .as_array()
+            .expect("exponent_runs")
+            .iter()
+            .map(|x| x.as_f64().expect("number"))
+            .collect();
+        assert_eq!(each.len(), 3, "{e}");
+        for (k, x) in each.iter().enumerate() {
+            let want = through(runs(small)[k], runs(big)[k]);
+            assert!((x - want).abs() < 1e-12, "round {k}: {e}");
+        }
+    }
+}
+
 /// `--organ-cells`: the organ's rows at the default 2 cm and at 1.33 cm (the finer organ
 /// of `cosurg run --cell`), each converged; the finer has about 3.3× the tets.
 #[test]
