@@ -677,13 +677,24 @@ impl FullRows {
         }
     }
 
-    /// Asks for row `i`'s pairs and columns to be brought into cache
-    /// ([`crate::prefetch`]).
+    /// When this matrix prefetches, asks for the pairs and columns of the row
+    /// [`PREFETCH_ROWS`] after row `i` in the pass's direction (`backward`: before it),
+    /// if there is one ([`crate::prefetch`]).
     #[inline(always)]
-    fn prefetch_row(&self, i: usize) {
-        let (from, to) = (self.row_ptr[i] as usize, self.row_ptr[i + 1] as usize);
-        crate::prefetch::prefetch_range(&self.blocks, from..to);
-        crate::prefetch::prefetch_range(&self.cols, from..to);
+    fn prefetch_ahead(&self, i: usize, backward: bool) {
+        if !self.prefetch {
+            return;
+        }
+        let ahead = if backward {
+            i.checked_sub(PREFETCH_ROWS)
+        } else {
+            Some(i + PREFETCH_ROWS).filter(|&j| j < self.num_rows())
+        };
+        if let Some(j) = ahead {
+            let (from, to) = (self.row_ptr[j] as usize, self.row_ptr[j + 1] as usize);
+            crate::prefetch::prefetch_range(&self.blocks, from..to);
+            crate::prefetch::prefetch_range(&self.cols, from..to);
+        }
     }
 
     /// One pass over the rows (see [`Pass`]); `out` is written by the residual passes.
@@ -694,33 +705,25 @@ impl FullRows {
         match pass {
             Pass::ForwardFromZero | Pass::Forward => {
                 for i in 0..n {
-                    if self.prefetch && i + PREFETCH_ROWS < n {
-                        self.prefetch_row(i + PREFETCH_ROWS);
-                    }
+                    self.prefetch_ahead(i, false);
                     prev = self.relax::<AVX>(pass, r, z, i, prev);
                 }
             }
             Pass::Backward => {
                 for i in (0..n).rev() {
-                    if self.prefetch && i >= PREFETCH_ROWS {
-                        self.prefetch_row(i - PREFETCH_ROWS);
-                    }
+                    self.prefetch_ahead(i, true);
                     prev = self.relax::<AVX>(pass, r, z, i, prev);
                 }
             }
             Pass::MinusUpper => {
                 for (i, o) in out.iter_mut().enumerate() {
-                    if self.prefetch && i + PREFETCH_ROWS < n {
-                        self.prefetch_row(i + PREFETCH_ROWS);
-                    }
+                    self.prefetch_ahead(i, false);
                     *o = -self.product::<AVX>(pass, i);
                 }
             }
             Pass::Residual => {
                 for (i, o) in out.iter_mut().enumerate() {
-                    if self.prefetch && i + PREFETCH_ROWS < n {
-                        self.prefetch_row(i + PREFETCH_ROWS);
-                    }
+                    self.prefetch_ahead(i, false);
                     *o = r[i] - self.diag[i] * z[i] - self.product::<AVX>(pass, i);
                 }
             }
