@@ -3,8 +3,11 @@
 
 use nalgebra::{Matrix3, Vector3};
 
+mod cg_vectors;
 mod full_product;
 pub use full_product::RowBlock;
+
+use cg_vectors::{flat, flat_mut};
 
 type V3 = Vector3<f64>;
 
@@ -65,7 +68,7 @@ pub trait LinearOperator {
 }
 
 fn dot(a: &[V3], b: &[V3]) -> f64 {
-    a.iter().zip(b).map(|(p, q)| p.dot(q)).sum()
+    cg_vectors::dot(flat(a), flat(b))
 }
 
 /// The preconditioner of [`pcg_with`]: `z ≈ A⁻¹ r`.
@@ -175,17 +178,19 @@ pub fn pcg_with(
     let mut p = z.clone();
     let mut rz = dot(&r, &z);
     let mut ap = vec![V3::zeros(); n];
+    let fixed_nodes: Vec<usize> = (0..n).filter(|&i| fixed[i]).collect();
+    let inv_diag: Vec<f64> = match &precond {
+        Preconditioner::Jacobi(d) => flat(d).to_vec(),
+        Preconditioner::Custom(_) => Vec::new(),
+    };
     // The vector updates of an iteration are fused into two passes over the unknowns (three
-    // with a custom preconditioner).
+    // with a custom preconditioner), over their components (`cg_vectors.rs`).
     for k in 0..params.max_iters {
         op.apply(&p, &mut ap);
-        let mut pap = 0.0;
-        for ((api, pi), f) in ap.iter_mut().zip(&p).zip(fixed) {
-            if *f {
-                *api = V3::zeros();
-            }
-            pap += pi.dot(api);
+        for &i in &fixed_nodes {
+            ap[i] = V3::zeros();
         }
+        let pap = dot(&p, &ap);
         if pap <= 0.0 || !pap.is_finite() {
             res.negative_curvature = true;
             if k == 0 {
@@ -195,25 +200,13 @@ pub fn pcg_with(
             return res;
         }
         let alpha = rz / pap;
-        let (mut rr, mut rz_new) = (0.0, 0.0);
-        match &mut precond {
-            Preconditioner::Jacobi(inv_diag) => {
-                for i in 0..n {
-                    x[i] += p[i] * alpha;
-                    r[i] -= ap[i] * alpha;
-                    rr += r[i].norm_squared();
-                    z[i] = r[i].component_mul(&inv_diag[i]);
-                    rz_new += r[i].dot(&z[i]);
-                }
+        let (xf, rf, pf, apf) = (flat_mut(x), flat_mut(&mut r), flat(&p), flat(&ap));
+        let (rr, mut rz_new) = match &precond {
+            Preconditioner::Jacobi(_) => {
+                cg_vectors::update_jacobi(xf, rf, flat_mut(&mut z), pf, apf, &inv_diag, alpha)
             }
-            Preconditioner::Custom(_) => {
-                for i in 0..n {
-                    x[i] += p[i] * alpha;
-                    r[i] -= ap[i] * alpha;
-                    rr += r[i].norm_squared();
-                }
-            }
-        }
+            Preconditioner::Custom(_) => (cg_vectors::update(xf, rf, pf, apf, alpha), 0.0),
+        };
         res.iterations = k + 1;
         res.relative_residual = rr.sqrt() / bnorm;
         if res.relative_residual <= params.tol {
@@ -225,9 +218,7 @@ pub fn pcg_with(
         }
         let beta = rz_new / rz;
         rz = rz_new;
-        for i in 0..n {
-            p[i] = z[i] + p[i] * beta;
-        }
+        cg_vectors::next_direction(flat_mut(&mut p), flat(&z), beta);
     }
     res
 }

@@ -161,6 +161,11 @@ fn same_bits(a: &Matrix3<f64>, b: &Matrix3<f64>) -> bool {
 }
 
 impl CachedBlocks {
+    /// The blocks last computed ([`CachedBlocks::rotated_iso`]'s).
+    #[inline]
+    pub(super) fn blocks(&self) -> &UpperBlocks {
+        &self.blocks
+    }
     /// [`rotated_iso_blocks`] of an element with rotation `r`, from the cache when it
     /// holds them for the same rotation and volume (bit for bit), else computed and kept.
     /// An element's gradients and material never change (a topology change builds a new
