@@ -71,6 +71,9 @@ fn dot(a: &[V3], b: &[V3]) -> f64 {
     cg_vectors::dot(flat(a), flat(b))
 }
 
+/// A preconditioner's application `(r, z) ↦ z ≈ A⁻¹ r`.
+type CustomPrecond<'a> = dyn FnMut(&[V3], &mut [V3]) + 'a;
+
 /// The preconditioner of [`pcg_with`]: `z ≈ A⁻¹ r`.
 pub enum Preconditioner<'a> {
     /// Jacobi: `z = diag(A)⁻¹ r` (3-vector diagonal; non-positive entries act as 1). Its
@@ -127,6 +130,12 @@ pub fn pcg_with(
     mut precond: Preconditioner<'_>,
 ) -> CgResult {
     let n = b.len();
+    assert!(
+        fixed.len() == n && x.len() == n,
+        "CG on {n} nodes: {} fixed flags, {} unknowns",
+        fixed.len(),
+        x.len()
+    );
     project(x, fixed);
     let mut bb = b.to_vec();
     project(&mut bb, fixed);
@@ -163,26 +172,29 @@ pub fn pcg_with(
         return res;
     }
     let mut z = vec![V3::zeros(); n];
-    let apply_precond = |precond: &mut Preconditioner<'_>, r: &[V3], z: &mut [V3]| match precond {
-        Preconditioner::Jacobi(inv_diag) => {
-            for ((zi, ri), d) in z.iter_mut().zip(r).zip(inv_diag.iter()) {
-                *zi = ri.component_mul(d);
+    // The Jacobi diagonal as components (fused into the updates below), or the custom
+    // preconditioner (applied between them).
+    let (inv_diag, mut custom): (Option<&[f64]>, Option<&mut CustomPrecond<'_>>) =
+        match &mut precond {
+            Preconditioner::Jacobi(d) => (Some(flat(d)), None),
+            Preconditioner::Custom(f) => (None, Some(&mut **f)),
+        };
+    match (inv_diag, custom.as_deref_mut()) {
+        (Some(d), _) => {
+            for ((zi, ri), di) in flat_mut(&mut z).iter_mut().zip(flat(&r)).zip(d) {
+                *zi = ri * di;
             }
         }
-        Preconditioner::Custom(f) => {
-            f(r, z);
-            project(z, fixed);
+        (None, Some(f)) => {
+            f(&r, &mut z);
+            project(&mut z, fixed);
         }
-    };
-    apply_precond(&mut precond, &r, &mut z);
+        (None, None) => unreachable!("a preconditioner is Jacobi or custom"),
+    }
     let mut p = z.clone();
     let mut rz = dot(&r, &z);
     let mut ap = vec![V3::zeros(); n];
     let fixed_nodes: Vec<usize> = (0..n).filter(|&i| fixed[i]).collect();
-    let inv_diag: Vec<f64> = match &precond {
-        Preconditioner::Jacobi(d) => flat(d).to_vec(),
-        Preconditioner::Custom(_) => Vec::new(),
-    };
     // The vector updates of an iteration are fused into two passes over the unknowns (three
     // with a custom preconditioner), over their components (`cg_vectors.rs`).
     for k in 0..params.max_iters {
@@ -201,19 +213,18 @@ pub fn pcg_with(
         }
         let alpha = rz / pap;
         let (xf, rf, pf, apf) = (flat_mut(x), flat_mut(&mut r), flat(&p), flat(&ap));
-        let (rr, mut rz_new) = match &precond {
-            Preconditioner::Jacobi(_) => {
-                cg_vectors::update_jacobi(xf, rf, flat_mut(&mut z), pf, apf, &inv_diag, alpha)
-            }
-            Preconditioner::Custom(_) => (cg_vectors::update(xf, rf, pf, apf, alpha), 0.0),
+        let (rr, mut rz_new) = match inv_diag {
+            Some(d) => cg_vectors::update_jacobi(xf, rf, flat_mut(&mut z), pf, apf, d, alpha),
+            None => (cg_vectors::update(xf, rf, pf, apf, alpha), 0.0),
         };
         res.iterations = k + 1;
         res.relative_residual = rr.sqrt() / bnorm;
         if res.relative_residual <= params.tol {
             break;
         }
-        if let Preconditioner::Custom(_) = precond {
-            apply_precond(&mut precond, &r, &mut z);
+        if let Some(f) = custom.as_deref_mut() {
+            f(&r, &mut z);
+            project(&mut z, fixed);
             rz_new = dot(&r, &z);
         }
         let beta = rz_new / rz;

@@ -85,9 +85,6 @@ impl FemSystem {
 /// Templates `R C Rᵀ` kept per rotation group by [`SysOp::add_rotated`].
 const TEMPLATE_CACHE: usize = 8;
 
-/// [`RotatedScratch::kept_at`] of an entry held in the scratch itself.
-const IN_SCRATCH: u32 = u32::MAX;
-
 /// [`SysOp::add_rotated`]'s working storage, made once per assembly (per part on several
 /// threads) and passed to each of its calls: a step of the soft 12,288-tet beam makes
 /// hundreds of calls, one per run of elements by rotation source, and zeroing these 6 KB
@@ -99,12 +96,12 @@ pub(super) struct RotatedScratch {
     /// they depend only on the group's rotation and the combo.
     combo: [usize; TEMPLATE_CACHE],
     blocks: [UpperBlocks; TEMPLATE_CACHE],
-    /// Per entry, the element whose per-element cache holds its blocks ([`IN_SCRATCH`]:
-    /// `blocks` does). Reading them there, not copying 720 bytes per entry, saved 3 % of
-    /// a step on the 1.33 cm organ (`perf`, 2026-11-28). An element's cached blocks do
-    /// not change during an assembly: each element is assembled once, with its source's
-    /// rotation.
-    kept_at: [u32; TEMPLATE_CACHE],
+    /// Per entry, the element whose per-element cache holds its blocks (`None`: `blocks`
+    /// does): read there, not copied into `blocks` (see `element_iso_blocks`). An
+    /// element's cached blocks do not change during an assembly, since each element is
+    /// assembled once, with its source's rotation; every call that shares a scratch
+    /// passes the same per-element cache (or none).
+    kept_at: [Option<u32>; TEMPLATE_CACHE],
     cached: usize,
     group: usize,
     /// One element's blocks.
@@ -116,7 +113,7 @@ impl Default for RotatedScratch {
         Self {
             combo: [usize::MAX; TEMPLATE_CACHE],
             blocks: [[Matrix3::zeros(); 10]; TEMPLATE_CACHE],
-            kept_at: [IN_SCRATCH; TEMPLATE_CACHE],
+            kept_at: [None; TEMPLATE_CACHE],
             cached: 0,
             group: usize::MAX,
             local: [Matrix3::zeros(); 10],
@@ -199,7 +196,8 @@ impl SysOp<'_> {
     /// With template stiffness `R C Rᵀ` is formed once per (source, template-material
     /// combination) and shared by every element of the group, scaled by its size `h`: with
     /// rotation sharing most elements then cost a scaled scatter only (the point of
-    /// combining sharing with templates).
+    /// combining sharing with templates). Every call of one assembly that shares
+    /// `scratch` must pass the same `kept` (its entries may point into it).
     #[allow(clippy::too_many_arguments)]
     pub(super) fn add_rotated(
         &self,
@@ -226,8 +224,8 @@ impl SysOp<'_> {
             local,
         } = scratch;
         let mut slots = [0u32; 16];
-        for &ei in elements {
-            let ei = ei as usize;
+        for &element in elements {
+            let ei = element as usize;
             let e = &sys.mesh.elements[ei];
             // One thread assembles the whole matrix (offset 0): the pattern's own slots.
             let slots = if offset == 0 {
@@ -258,11 +256,7 @@ impl SysOp<'_> {
                             cache_combo[i] = e.combo;
                             // The blocks come from the element's own cache when it has
                             // one and is rotated (see `element_iso_blocks`).
-                            kept_at[i] = if rotated && kept.is_some() {
-                                u32::try_from(ei).expect("fewer than 2³² elements")
-                            } else {
-                                IN_SCRATCH
-                            };
+                            kept_at[i] = (rotated && kept.is_some()).then_some(element);
                             element_iso_blocks(
                                 sys,
                                 rotated,
@@ -274,9 +268,13 @@ impl SysOp<'_> {
                             i
                         }
                     };
-                    let entry = match (kept_at[i], kept.as_deref()) {
-                        (IN_SCRATCH, _) | (_, None) => &cache[i],
-                        (at, Some(kept)) => kept[at as usize].blocks(),
+                    let entry = match kept_at[i] {
+                        None => &cache[i],
+                        Some(at) => kept
+                            .as_deref()
+                            .expect("an entry names an element's cache only when there is one")
+                            [at as usize]
+                            .blocks(),
                     };
                     scatter_blocks(blocks, slots, upper, entry, coef[ei] * h);
                 }
