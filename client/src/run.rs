@@ -193,7 +193,17 @@ pub fn run(args: RunArgs) -> Result<()> {
             interaction.before_step(&mut sim, &inputs)?;
         }
         let report = sim.step()?;
-        step_ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        step_ms.push(ms);
+        if ms > sim.options().dt * 1e3 {
+            tracing::debug!(
+                t = sim.time(),
+                ms,
+                rebuilt = report.rebuilt,
+                cg_iterations = report.fem.cg_iterations,
+                "step longer than its simulated time"
+            );
+        }
         let entry = solves.entry(report.fem.solver.name()).or_default();
         entry.0 += 1;
         entry.1 += report.fem.cg_iterations;

@@ -15,8 +15,10 @@ use crate::error::SimError;
 use crate::options::SimOptions;
 
 mod cutting;
+mod materials;
 use crate::sharing::RotationSharing;
 pub use cutting::TopologyChange;
+use materials::{MaterialMap, Region};
 
 type V3 = Vector3<f64>;
 
@@ -46,52 +48,6 @@ pub struct StepReport {
     pub sharing_blocks_tested: usize,
 }
 
-/// Which region of space gets which material.
-#[derive(Clone, Debug)]
-struct MaterialMap {
-    /// Body shapes with their material index, in scene order.
-    bodies: Vec<(Region, usize)>,
-    /// Inclusions with their material index and whether their boundary is refined.
-    inclusions: Vec<(Region, usize, bool)>,
-}
-
-#[derive(Clone, Debug)]
-enum Region {
-    Box(Aabb),
-    /// A closed mesh's inside, with the grid that answers most queries
-    /// ([`Containment`]: new tets come by the hundred when the lattice refines).
-    Mesh(Box<Containment>),
-    Capsules(Vec<sim_scene::Capsule>),
-}
-
-impl Region {
-    fn contains(&self, p: &V3) -> bool {
-        match self {
-            Region::Box(b) => b.contains(p),
-            Region::Mesh(m) => m.contains(p),
-            Region::Capsules(c) => c.iter().any(|c| c.signed_distance(p) <= 0.0),
-        }
-    }
-}
-
-impl MaterialMap {
-    fn material_at(&self, p: &V3) -> usize {
-        let mut m = self
-            .bodies
-            .iter()
-            .find(|(r, _)| r.contains(p))
-            .or(self.bodies.first())
-            .map(|(_, m)| *m)
-            .unwrap_or(0);
-        for (r, mi, _) in &self.inclusions {
-            if r.contains(p) {
-                m = *mi;
-            }
-        }
-        m
-    }
-}
-
 /// One site's deformable organ. All bodies of a scene share one lattice.
 pub struct Simulation {
     scene: LoadedScene,
@@ -118,6 +74,11 @@ pub struct Simulation {
     material_names: Vec<String>,
     material_map: MaterialMap,
     leaf_material: HashMap<TetId, usize>,
+    /// Fill of every leaf (scene feature `fill_weighting`; empty without it), see
+    /// `engine/materials.rs`.
+    leaf_fill: HashMap<TetId, f64>,
+    /// Bodies containing each fill sample point asked so far (`engine/materials.rs`).
+    fill_inside: HashMap<[u64; 3], u64>,
     shape_ids: HashMap<ShapeKey, u64>,
     fem: Option<FemSystem>,
     fem_fixed: Vec<bool>,
@@ -318,6 +279,8 @@ impl Simulation {
             material_names,
             material_map: map,
             leaf_material: HashMap::new(),
+            leaf_fill: HashMap::new(),
+            fill_inside: HashMap::new(),
             shape_ids: HashMap::new(),
             fem: None,
             fem_fixed: Vec::new(),
@@ -373,6 +336,19 @@ impl Simulation {
         let map = &self.material_map;
         let leaf_material = &mut self.leaf_material;
         leaf_material.retain(|t, _| lattice.is_leaf(*t));
+        if self.scene.scene.features.fill_weighting {
+            let (leaf_fill, inside) = (&mut self.leaf_fill, &mut self.fill_inside);
+            leaf_fill.retain(|t, _| lattice.is_leaf(*t));
+            for &t in lattice.leaves() {
+                if !leaf_material.contains_key(&t) {
+                    let x = lattice.tet_nodes(t).map(|n| lattice.node_rest(n));
+                    let (material, fill) = map.material_and_fill(&x, inside);
+                    leaf_material.insert(t, material);
+                    leaf_fill.insert(t, fill);
+                }
+            }
+            return;
+        }
         for &t in lattice.leaves() {
             leaf_material.entry(t).or_insert_with(|| {
                 let c = lattice
@@ -399,6 +375,8 @@ impl Simulation {
                 .map(|&t| (self.lattice.tet_nodes(t).map(|n| n.0 as usize), t, 1.0))
                 .collect()
         });
+        // The scaled material of each (base material, fill).
+        let mut filled: HashMap<(usize, u64), usize> = HashMap::new();
         for (nodes, t, fraction) in cut_elements {
             let shape = if self.options.template_stiffness() {
                 let key = self.lattice.tet_shape(t);
@@ -414,15 +392,25 @@ impl Simulation {
             let base = self.leaf_material[&t];
             // A copy of a cut leaf carries its volume fraction of the leaf's stiffness and
             // mass (virtual node algorithm): a material scaled by the fraction (E and ρ
-            // scale, ν and the Rayleigh coefficients stay).
-            let material = if fraction < 1.0 {
+            // scale, ν and the Rayleigh coefficients stay). A fill (fill weighting)
+            // scales the same way; the fills are few (`materials.rs`), and the leaves of
+            // one fill share its material, and with it their template stiffness.
+            let fill = self.leaf_fill.get(&t).copied().unwrap_or(1.0);
+            let scaled = |materials: &mut Vec<sim_fem::Material>, factor: f64| {
                 let m = self.materials[base];
                 materials.push(sim_fem::Material {
-                    young: m.young * fraction,
-                    density: m.density * fraction,
+                    young: m.young * factor,
+                    density: m.density * factor,
                     ..m
                 });
                 materials.len() - 1
+            };
+            let material = if fraction < 1.0 {
+                scaled(&mut materials, fraction * fill)
+            } else if fill < 1.0 {
+                *filled
+                    .entry((base, fill.to_bits()))
+                    .or_insert_with(|| scaled(&mut materials, fill))
             } else {
                 base
             };
@@ -757,6 +745,11 @@ impl Simulation {
     /// Materials, in index order.
     pub fn materials(&self) -> &[sim_fem::Material] {
         &self.materials
+    }
+    /// The fraction of leaf `t` that scales its stiffness and mass: its fill under the
+    /// scene feature `fill_weighting` (in steps of a tenth, at least one), else 1.
+    pub fn leaf_fill(&self, t: TetId) -> f64 {
+        self.leaf_fill.get(&t).copied().unwrap_or(1.0)
     }
     /// The FEM system (built lazily after topology changes).
     pub fn fem(&mut self) -> Result<&mut FemSystem, SimError> {

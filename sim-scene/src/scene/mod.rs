@@ -535,6 +535,11 @@ pub struct Features {
     pub contact: bool,
     /// Skip rotation extraction for elements at rest (default true).
     pub skip_rest: bool,
+    /// Fill weighting (default false): each element's stiffness and mass scaled by the
+    /// fraction of its volume inside the bodies' shapes, and an element whose centre lies
+    /// outside every body made of the body it overlaps most (not of the first body).
+    #[serde(skip_serializing_if = "is_false")]
+    pub fill_weighting: bool,
 }
 
 impl Default for Features {
@@ -546,6 +551,7 @@ impl Default for Features {
             template_stiffness: true,
             contact: true,
             skip_rest: true,
+            fill_weighting: false,
         }
     }
 }
