@@ -340,10 +340,10 @@ impl Simulation {
             let (leaf_fill, inside) = (&mut self.leaf_fill, &mut self.fill_inside);
             leaf_fill.retain(|t, _| lattice.is_leaf(*t));
             for &t in lattice.leaves() {
-                if !leaf_material.contains_key(&t) {
+                if let std::collections::hash_map::Entry::Vacant(slot) = leaf_material.entry(t) {
                     let x = lattice.tet_nodes(t).map(|n| lattice.node_rest(n));
                     let (material, fill) = map.material_and_fill(&x, inside);
-                    leaf_material.insert(t, material);
+                    slot.insert(material);
                     leaf_fill.insert(t, fill);
                 }
             }
