@@ -120,6 +120,14 @@ impl Simulation {
             .bodies
             .first()
             .ok_or_else(|| body_err(0, "", "the scene has no body".into()))?;
+        if sc.features.fill_weighting && sc.bodies.len() > materials::MAX_FILL_BODIES {
+            let b = materials::MAX_FILL_BODIES;
+            return Err(body_err(
+                b,
+                &sc.bodies[b].name,
+                format!("fill_weighting handles at most {b} bodies"),
+            ));
+        }
         let cell = first.cell;
         let max_depth = sc.bodies.iter().map(|b| b.max_depth).max().unwrap_or(0);
         let max_depth = u8::try_from(max_depth)
@@ -747,7 +755,7 @@ impl Simulation {
         &self.materials
     }
     /// The fraction of leaf `t` that scales its stiffness and mass: its fill under the
-    /// scene feature `fill_weighting` (in steps of a tenth, at least one), else 1.
+    /// scene feature `fill_weighting` (in tenths, from 0.3 to 1), else 1.
     pub fn leaf_fill(&self, t: TetId) -> f64 {
         self.leaf_fill.get(&t).copied().unwrap_or(1.0)
     }

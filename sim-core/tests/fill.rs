@@ -17,10 +17,11 @@ fn bodies_scene(fill_weighting: bool) -> Simulation {
     Simulation::new(scene, options).expect("simulation")
 }
 
-/// Fill weighting's least fill (`FILL_FLOOR` in `sim-core/src/engine/materials.rs`), and
-/// the largest sampled fraction that rounds to it (fills are rounded to tenths).
+/// Fill weighting's least fill (`FILL_FLOOR_TENTHS` in `sim-core/src/engine/materials.rs`),
+/// and the largest sampled share that takes it (6 of 20 samples: fills are tenths rounded
+/// half up).
 const FLOOR: f64 = 0.3;
-const FLOOR_ROUNDS_FROM: f64 = 0.35;
+const FLOOR_ROUNDS_FROM: f64 = 0.3;
 
 /// Per material index: (the volume of its leaves above the least fill, each times its
 /// fill; the volume of its leaves at the least fill), m³.
@@ -68,8 +69,8 @@ fn liver_and_gallbladder(sim: &Simulation) -> [(usize, f64); 2] {
 /// body's mesh volume lies within what its leaves' fills allow: at least the leaves above
 /// the least fill (each by its fill), at most those plus the leaves at the least fill by
 /// the largest fraction that rounds to it, give or take 5 % for the sampling (20 points a
-/// leaf) and the rounding to tenths. Measured (2 cm): the liver's 906 cm³ in [886, 1,182],
-/// the gallbladder's 32.4 in [30.3, 37.7] (the lattice and the meshes are fixed, so these
+/// leaf) and the rounding to tenths. Measured (2 cm): the liver's 906 cm³ in [865, 1,097],
+/// the gallbladder's 32.4 in [26.9, 38.9] (the lattice and the meshes are fixed, so these
 /// do not vary).
 #[test]
 fn fill_weighting_gives_each_body_its_mesh_volume() {
@@ -104,20 +105,25 @@ fn fill_weighting_gives_each_body_its_mesh_volume() {
             hi * 1e6
         );
     }
-    // Every leaf's fill is a whole number of tenths in [the floor, 1]; 1 without the
-    // feature.
+    // Every leaf's fill is a whole number of tenths in [the floor, 1], and some are
+    // below 1 (the hull).
     let lat = filled.lattice();
+    let mut partial = 0;
     for &t in lat.leaves() {
         let f = filled.leaf_fill(t);
         assert!((FLOOR - 1e-9..=1.0).contains(&f), "fill {f}");
         assert!(((f * 10.0).round() - f * 10.0).abs() < 1e-9, "fill {f}");
-        assert_eq!(plain.leaf_fill(t), 1.0);
+        partial += usize::from(f < 1.0);
     }
+    assert!(
+        partial > lat.leaves().len() / 10,
+        "{partial} partly filled leaves"
+    );
 }
 
 /// The lumped mass follows the fills: without fill weighting the hull doubles the
 /// organ's mass (2,009 g against the 995 g its meshes hold, Σ ρ V); with it the excess
-/// shrinks to what the least fill keeps (1,251 g): at least 70 % of it goes.
+/// shrinks to what the least fill keeps (1,209 g): at least 70 % of it goes (79 %).
 #[test]
 fn fill_weighting_brings_the_mass_to_the_meshes() {
     let mut plain = bodies_scene(false);

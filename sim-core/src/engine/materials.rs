@@ -11,10 +11,10 @@
 //! accuracy"). With it, a tet's stiffness and mass are scaled by the fraction `φ` of its
 //! volume inside the bodies, estimated at [`FILL_SAMPLES`] points spread through it, and a
 //! tet whose centre lies outside every body takes the material of the body most of its
-//! samples lie in. A fill is at least [`FILL_FLOOR`] (light, soft hull tets under the
-//! tools were unstable). On that scene the liver's lattice then holds 1,140 cm³ against its
-//! mesh's 906 cm³ (without: 1,857), the gallbladder's 36.7 against 32.4, and the organ
-//! weighs 1,251 g against the meshes' 995 g (without: 2,009 g; test
+//! samples lie in. A fill is at least [`FILL_FLOOR_TENTHS`] (light, soft hull tets under the
+//! tools were unstable). On that scene the liver's lattice then holds 1,097 cm³ against its
+//! mesh's 906 cm³ (without: 1,857), the gallbladder's 38.9 against 32.4, and the organ
+//! weighs 1,209 g against the meshes' 995 g (without: 2,009 g; test
 //! `sim-core/tests/fill.rs`).
 
 use std::collections::HashMap;
@@ -24,26 +24,26 @@ use sim_scene::{Aabb, Containment};
 
 type V3 = Vector3<f64>;
 
-/// Sample points of a tet for its fill: the points of the barycentric grid of step
-/// 1/[`FILL_GRID`] strictly inside it, spread evenly through its volume (points on its
-/// faces or corners would weigh its boundary, not its volume).
+/// Sample points of a tet for its fill: the centres of the 20 upright sub-tets of its
+/// degree-4 split, `((i, j, k, l) + ¼) / 4` in barycentric coordinates with `i + j + k +
+/// l = 3`. They reach towards the corners (the first version's interior points of the
+/// grid of step 1/7 sat towards the centre: a plane cutting off 12.5 % of the volume at a
+/// corner took 5 % of them; now 1 of 20 for 12.5 %, and 4 of 20 for the corner's 26.6 %
+/// at λ₀ > 0.36).
 pub(super) const FILL_SAMPLES: usize = 20;
 
-/// Barycentric grid of the fill samples: coordinates `(i, j, k, l) / 7`, each at least
-/// 1/7, summing to 1 (C(6, 3) = 20 points).
-const FILL_GRID: u8 = 7;
-
-/// The fill samples' barycentric coordinates (× [`FILL_GRID`]).
+/// The fill samples' barycentric coordinates, × 16: `4 i + 1` for `i + j + k + l = 3`.
 const FILL_BARYCENTRIC: [[u8; 4]; FILL_SAMPLES] = {
     let mut out = [[0u8; 4]; FILL_SAMPLES];
     let mut n = 0;
-    let mut i = 1;
-    while i < FILL_GRID {
-        let mut j = 1;
-        while i + j < FILL_GRID {
-            let mut k = 1;
-            while i + j + k < FILL_GRID {
-                out[n] = [i, j, k, FILL_GRID - i - j - k];
+    let mut i = 0;
+    while i <= 3 {
+        let mut j = 0;
+        while i + j <= 3 {
+            let mut k = 0;
+            while i + j + k <= 3 {
+                let l = 3 - i - j - k;
+                out[n] = [4 * i + 1, 4 * j + 1, 4 * k + 1, 4 * l + 1];
                 n += 1;
                 k += 1;
             }
@@ -55,16 +55,25 @@ const FILL_BARYCENTRIC: [[u8; 4]; FILL_SAMPLES] = {
     out
 };
 
-/// Fills are rounded to this step, so that the scaled materials are few (elements of
-/// one material and shape share a template stiffness).
-pub(super) const FILL_STEP: f64 = 0.1;
+/// Fills are whole tenths (the share of samples inside, rounded half up in integers), so
+/// that the scaled materials are few (elements of one material and shape share a
+/// template stiffness) and each has one bit pattern.
+const TENTHS: u32 = 10;
 
-/// The least fill: hull tets with (nearly) no sample inside keep this share of their
+/// The least fill, in tenths: hull tets with (nearly) no sample inside keep 0.3 of their
 /// material's stiffness and mass. With 0.1, light and soft hull tets under the tools
 /// rotated and inverted in the three-site demo: the energy guard's Newton steps took the
 /// sites to 65–74 Hz (step p99 47–63 ms) and the trainees strayed 7–19 mm; with 0.3 the
 /// demo kept 250 Hz and 0.009 mm (docs/RESULTS.md).
-pub(super) const FILL_FLOOR: f64 = 0.3;
+pub(super) const FILL_FLOOR_TENTHS: u32 = 3;
+
+/// Bodies fill weighting tells apart (a bit each); a scene with more is refused.
+pub(super) const MAX_FILL_BODIES: usize = 64;
+
+/// Points whose containment [`MaterialMap::material_and_fill`] keeps before it starts
+/// afresh (about 40 MB): a point is asked again only when a tet comes back after
+/// coarsening, and a long session refines and coarsens without end.
+pub(super) const MAX_CACHED_POINTS: usize = 1 << 20;
 
 /// Which region of space gets which material.
 #[derive(Clone, Debug)]
@@ -115,7 +124,8 @@ impl MaterialMap {
 
     /// Material and fill of the tet with corners `x` (rest positions, m) under fill
     /// weighting: the fill is the fraction of its [`FILL_SAMPLES`] points inside any
-    /// body, rounded to [`FILL_STEP`] and at least [`FILL_FLOOR`]; the material is
+    /// body, in whole tenths rounded half up and at least [`FILL_FLOOR_TENTHS`]; the
+    /// material is
     /// [`MaterialMap::material_at`] its centroid when a body contains the centroid, else at
     /// the first sample of the body that holds the most samples (the first such body in
     /// scene order), else at the centroid.
@@ -133,7 +143,7 @@ impl MaterialMap {
                 + x[1] * f64::from(w[1])
                 + x[2] * f64::from(w[2])
                 + x[3] * f64::from(w[3]))
-                / f64::from(FILL_GRID)
+                / 16.0
         });
         // Per body: samples inside it, and the first of them.
         let mut count = vec![(0usize, None); self.bodies.len()];
@@ -141,15 +151,17 @@ impl MaterialMap {
         for p in &samples {
             let bodies = self.bodies_containing(p, inside);
             for (b, (n, first)) in count.iter_mut().enumerate() {
-                if b < 64 && bodies & (1 << b) != 0 {
+                if b < MAX_FILL_BODIES && bodies & (1 << b) != 0 {
                     *n += 1;
                     first.get_or_insert(*p);
                 }
             }
             filled += usize::from(bodies != 0);
         }
-        let fill = ((filled as f64 / FILL_SAMPLES as f64 / FILL_STEP).round() * FILL_STEP)
-            .clamp(FILL_FLOOR, 1.0);
+        // Round half up: (2 · 10 · filled + samples) / (2 · samples) tenths.
+        let samples_n = FILL_SAMPLES as u32;
+        let tenths = (2 * TENTHS * filled as u32 + samples_n) / (2 * samples_n);
+        let fill = f64::from(tenths.max(FILL_FLOOR_TENTHS)) / f64::from(TENTHS);
         let centre_inside = self.bodies_containing(&centroid, inside) != 0;
         let most = count
             .iter()
@@ -165,14 +177,17 @@ impl MaterialMap {
         (material, fill)
     }
 
-    /// Bit `b` set when body `b` contains `p` (from `inside` when asked before). Bodies
-    /// past the 64th are not counted (a scene has a handful).
+    /// Bit `b` set when body `b` contains `p` (from `inside` when asked before). A scene
+    /// with fill weighting has at most [`MAX_FILL_BODIES`] bodies (`Simulation::new`).
     fn bodies_containing(&self, p: &V3, inside: &mut HashMap<[u64; 3], u64>) -> u64 {
+        if inside.len() >= MAX_CACHED_POINTS {
+            inside.clear();
+        }
         let key = [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()];
         *inside.entry(key).or_insert_with(|| {
             self.bodies
                 .iter()
-                .take(64)
+                .take(MAX_FILL_BODIES)
                 .enumerate()
                 .filter(|(_, (region, _))| region.contains(p))
                 .fold(0, |bits, (b, _)| bits | 1 << b)
