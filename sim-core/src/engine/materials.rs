@@ -26,10 +26,11 @@ type V3 = Vector3<f64>;
 
 /// Sample points of a tet for its fill: the centres of the 20 upright sub-tets of its
 /// degree-4 split, `((i, j, k, l) + ¼) / 4` in barycentric coordinates with `i + j + k +
-/// l = 3`. They reach towards the corners (the first version's interior points of the
-/// grid of step 1/7 sat towards the centre: a plane cutting off 12.5 % of the volume at a
-/// corner took 5 % of them; now 1 of 20 for 12.5 %, and 4 of 20 for the corner's 26.6 %
-/// at λ₀ > 0.36).
+/// l = 3`. Twenty points cannot be exact for one tet: a plane cutting off the corner where
+/// λ₀ > ½ (12.5 % of the volume) takes 4 of them (20 %), and so does one at λ₀ > 0.36
+/// (26 %). The first version's interior points of the grid of step 1/7 sat towards the
+/// centre and took 1 and 4 of 20; these reach the corners, and over a body's boundary the
+/// errors average out (test `sim-core/tests/fill.rs`).
 pub(super) const FILL_SAMPLES: usize = 20;
 
 /// The fill samples' barycentric coordinates, × 16: `4 i + 1` for `i + j + k + l = 3`.
