@@ -403,7 +403,7 @@ impl Simulation {
             // scale, ν and the Rayleigh coefficients stay). A fill (fill weighting)
             // scales the same way; the fills are few (`materials.rs`), and the leaves of
             // one fill share its material, and with it their template stiffness.
-            let fill = self.leaf_fill.get(&t).copied().unwrap_or(1.0);
+            let fill = self.leaf_fill(t);
             let scaled = |materials: &mut Vec<sim_fem::Material>, factor: f64| {
                 let m = self.materials[base];
                 materials.push(sim_fem::Material {

@@ -65,7 +65,7 @@ const TENTHS: u32 = 10;
 /// material's stiffness and mass. With 0.1, light and soft hull tets under the tools
 /// rotated and inverted in the three-site demo: the energy guard's Newton steps took the
 /// sites to 65–74 Hz (step p99 47–63 ms) and the trainees strayed 7–19 mm; with 0.3 the
-/// demo kept 250 Hz and 0.009 mm (docs/RESULTS.md).
+/// demo kept 250 Hz and its trainees within 0.01 mm (docs/RESULTS.md).
 pub(super) const FILL_FLOOR_TENTHS: u32 = 3;
 
 /// Bodies fill weighting tells apart (a bit each); a scene with more is refused.
@@ -126,10 +126,9 @@ impl MaterialMap {
     /// Material and fill of the tet with corners `x` (rest positions, m) under fill
     /// weighting: the fill is the fraction of its [`FILL_SAMPLES`] points inside any
     /// body, in whole tenths rounded half up and at least [`FILL_FLOOR_TENTHS`]; the
-    /// material is
-    /// [`MaterialMap::material_at`] its centroid when a body contains the centroid, else at
-    /// the first sample of the body that holds the most samples (the first such body in
-    /// scene order), else at the centroid.
+    /// material is [`MaterialMap::material_at`] its centroid when a body contains the
+    /// centroid, else at the first sample of the body that holds the most samples (the
+    /// first such body in scene order), else at the centroid.
     ///
     /// `inside` keeps, per point asked (by its coordinates' bits), the set of bodies
     /// containing it.

@@ -34,6 +34,21 @@ fn total(s: [f64; LANES]) -> f64 {
     (s[0] + s[1]) + (s[2] + s[3])
 }
 
+/// Calls `f(i, l)` for every component `i < n` with its running sum `l`: `i mod 4` over
+/// the whole groups of four, then the rest from lane 0 (the order [`dot`] keeps too).
+#[inline(always)]
+fn for_each_lane(n: usize, mut f: impl FnMut(usize, usize)) {
+    let whole = n - n % LANES;
+    for c in (0..whole).step_by(LANES) {
+        for l in 0..LANES {
+            f(c + l, l);
+        }
+    }
+    for i in whole..n {
+        f(i, i - whole);
+    }
+}
+
 /// `Σ aᵢ bᵢ`.
 pub(super) fn dot(a: &[f64], b: &[f64]) -> f64 {
     assert_eq!(a.len(), b.len(), "dot of equal lengths");
@@ -70,22 +85,13 @@ pub(super) fn update_jacobi(
         "vectors of one length"
     );
     let (mut rr, mut rz) = ([0.0; LANES], [0.0; LANES]);
-    let mut lane = |i: usize, l: usize| {
+    for_each_lane(n, |i, l| {
         x[i] += p[i] * alpha;
         r[i] -= ap[i] * alpha;
         z[i] = r[i] * inv_diag[i];
         rr[l] += r[i] * r[i];
         rz[l] += r[i] * z[i];
-    };
-    let whole = n - n % LANES;
-    for c in (0..whole).step_by(LANES) {
-        for l in 0..LANES {
-            lane(c + l, l);
-        }
-    }
-    for i in whole..n {
-        lane(i, i - whole);
-    }
+    });
     (total(rr), total(rz))
 }
 
@@ -97,20 +103,11 @@ pub(super) fn update(x: &mut [f64], r: &mut [f64], p: &[f64], ap: &[f64], alpha:
         "vectors of one length"
     );
     let mut rr = [0.0; LANES];
-    let mut lane = |i: usize, l: usize| {
+    for_each_lane(n, |i, l| {
         x[i] += p[i] * alpha;
         r[i] -= ap[i] * alpha;
         rr[l] += r[i] * r[i];
-    };
-    let whole = n - n % LANES;
-    for c in (0..whole).step_by(LANES) {
-        for l in 0..LANES {
-            lane(c + l, l);
-        }
-    }
-    for i in whole..n {
-        lane(i, i - whole);
-    }
+    });
     total(rr)
 }
 
