@@ -331,3 +331,62 @@ fn a_late_keyframe_is_compared_with_the_local_state_at_its_time() {
         Correction::Started { .. }
     ));
 }
+
+/// A keyframe older than `max_age_s` (a still owner that keeps the playout lag behind a
+/// moving site sends keyframes a path's delay old) is still compared with the local state
+/// at its time when the history holds it, and the difference it finds there is the one
+/// the two simulations had then; without the history, or older than
+/// `max_history_age_s`, it is skipped.
+#[test]
+fn an_old_keyframe_is_used_through_the_history_and_skipped_without_it() {
+    let config = HybridConfig::default();
+    let (mut a, mut b) = (beam(), beam());
+    let map = beam_map(&a);
+    let loaded = tip_nodes(&a, &map, 0.37);
+    let keep = config.max_history_age_s + b.options().dt;
+    let mut history = StateHistory::default();
+    for _ in 0..20 {
+        push_tip(&mut a, &loaded, 20.0);
+        a.step().unwrap();
+        history.record(&b, keep, false);
+        b.step().unwrap();
+    }
+    // The keyframe of the pushed beam, and the difference the two had at its time.
+    let kf = encode_keyframe(&a, &map, TIP, 1).unwrap();
+    let nodes = map.canonical_nodes(b.lattice(), TIP);
+    let then = nodes
+        .iter()
+        .enumerate()
+        .filter(|(_, n)| !b.is_fixed(**n))
+        .map(|(i, n)| (V3::from(kf.positions[i]) - b.positions()[n.0 as usize]).norm())
+        .fold(0.0, f64::max);
+    assert!(then > 1e-3, "the push moved a's tip ({then} m)");
+    // The local clock runs on past `max_age_s` (both beams settle meanwhile).
+    while b.time() < kf.sim_time + config.max_age_s + 0.1 {
+        history.record(&b, keep, false);
+        b.step().unwrap();
+    }
+    let mut region = CorrectedRegion::new(TIP, config);
+    assert_eq!(
+        region
+            .apply_keyframe(&mut b, &map, &kf, &StateHistory::default())
+            .unwrap(),
+        Correction::TooOld,
+        "without the history"
+    );
+    let mut region = CorrectedRegion::new(TIP, config);
+    match region.apply_keyframe(&mut b, &map, &kf, &history).unwrap() {
+        Correction::Started { max_m, .. } => assert!(
+            (max_m - then).abs() < 1e-6 * then,
+            "measured {max_m} m at the keyframe's time, the beams differed by {then} m"
+        ),
+        other => panic!("an old keyframe with the history at its time gave {other:?}"),
+    }
+    // Older than the history keeps.
+    b.set_time(kf.sim_time + config.max_history_age_s + 0.01);
+    let mut region = CorrectedRegion::new(TIP, config);
+    assert_eq!(
+        region.apply_keyframe(&mut b, &map, &kf, &history).unwrap(),
+        Correction::TooOld
+    );
+}

@@ -848,11 +848,11 @@ impl SiteSession {
         pace
     }
 
-    /// Whether this site leads (owns or claims a region, or `tool_active`: its tool is
-    /// moving, `site::Tools::local_moving`; it then keeps no playout lag, see [`pacing`])
-    /// rather than follows.
+    /// Whether this site leads (owns or claims a region, except under hybrid, or
+    /// `tool_active`: its tool is moving, `site::Tools::local_moving`; it then keeps no
+    /// playout lag, see [`pacing`]) rather than follows.
     pub fn leads(&self, tool_active: bool) -> bool {
-        self.claims.any() || tool_active
+        (self.claims.any() && self.clocks.leads_by_claims()) || tool_active
     }
 
     // ----- outputs -----------------------------------------------------------------

@@ -29,17 +29,22 @@
 //! * The lag is reached and kept by slewing the step rate within
 //!   [`MIN_RATE`]–[`MAX_RATE`] of real time (under hybrid up to [`HYBRID_MAX_RATE`], and
 //!   [`HYBRID_CATCH_UP_RATE`] when far behind), never by jumps.
-//! * A *leading* site (it owns a region, has claimed one, or its tool moved within the last
-//!   half second: a tool held still leads nothing) keeps no lag: it runs level with the
+//! * A *leading* site (its tool moved within the last half second, or, except under
+//!   hybrid, it owns or has claimed a region) keeps no lag: it runs level with the
 //!   other leaders it follows, so two owners following each other never wait for each
 //!   other. When ownership moves, or a resting tool begins to move, the new leader
 //!   catches up and the old one falls back to the lag (under hybrid a follower gets there
 //!   by waiting, see [`HYBRID_HOLD_BEYOND`]; a leader ahead of one catching up keeps real
 //!   time).
+//! * Under hybrid a site follows the sites whose tools move, not the owners: it simulates
+//!   every region from the inputs, so a still owner (holding an organ) keeps the lag
+//!   behind a moving site like any follower, and sees that site's tool in time.
 //! * Independently of the lag, a site never runs more than [`MAX_LEAD`] ahead of an owner
-//!   it follows (owners' keyframes would arrive from its past); during a change of
-//!   leader that cap is relaxed by [`MAX_AUTO_LAG`] so that the change slews instead of
-//!   freezing the old leader.
+//!   it follows (owners' keyframes would arrive from its past); during a change of leader
+//!   that cap is relaxed by [`MAX_AUTO_LAG`] so that the change slews instead of freezing
+//!   the old leader. Not under hybrid, where a late keyframe is compared with the local
+//!   history at its time (up to `sim_core::sync::HybridConfig::max_history_age_s`, 1 s:
+//!   a still owner's keyframes come a path's delay late) or skipped.
 //!
 //! Sans-IO: every time is passed in (wall seconds since any fixed origin), so the pacing
 //! is unit-tested with a fake clock.
@@ -448,11 +453,16 @@ impl PeerClocks {
     }
 
     /// The sites this site follows now: owners of regions it shows and sites whose tool
-    /// poses are arriving.
+    /// poses are arriving and moving. Under hybrid the moving tools alone: a follower
+    /// simulates every region from the inputs, so only the inputs need to be in time,
+    /// and the tool of an owner that holds still is carried on exactly. (Following owners
+    /// there made a still owner, holding the gallbladder, lead and simulate a moving
+    /// site's hook from late samples; see [`PeerClocks::leads_by_claims`].)
     fn followed(&self, now: f64) -> BTreeSet<u16> {
-        self.owners
-            .values()
-            .copied()
+        let owners = (!self.inputs_only).then_some(&self.owners);
+        owners
+            .into_iter()
+            .flat_map(|o| o.values().copied())
             .chain(
                 self.tools
                     .iter()
@@ -460,6 +470,17 @@ impl PeerClocks {
                     .map(|(s, _)| *s),
             )
             .collect()
+    }
+
+    /// Whether a site that claims or owns regions leads for that alone. Not under hybrid:
+    /// there a site leads while its tool moves, and a still owner keeps the playout lag
+    /// behind the moving sites, so it simulates their tools from samples in time.
+    /// Measured in the default demo: the instructor, holding the gallbladder still and
+    /// leading by its claims, simulated trainee B's hook from samples a path's delay late
+    /// at the end of the dissection, and both trainees, which agreed with each other,
+    /// showed 2–4 mm (`average`) and 5–8 mm (`poor`) against it.
+    pub fn leads_by_claims(&self) -> bool {
+        !self.inputs_only
     }
 
     /// Estimated current simulation time of `site` (s): its last stamp advanced by its
@@ -583,7 +604,13 @@ impl PeerClocks {
         } else {
             MAX_LEAD
         };
-        let ahead = self.ahead_of_owners(t, now);
+        // Under hybrid an owner's keyframes only correct, and a late one is compared with
+        // the local history or skipped: no cap (a still owner lags behind moving sites).
+        let ahead = if self.inputs_only {
+            f64::NEG_INFINITY
+        } else {
+            self.ahead_of_owners(t, now)
+        };
         if ahead > cap {
             pace.hold = pace.hold.max((ahead - cap).min(0.02));
         }
@@ -755,9 +782,13 @@ mod tests {
         let want = 0.4 + HYBRID_JITTER_DEVS * 0.03 + HYBRID_INPUT_INTERVAL;
         let lag = c.target_lag();
         assert!((lag - want).abs() < 0.01, "lag {lag} want {want}");
-        c.owners.insert(3, 1);
-        // At the owner's time (about 20 s), a follower with no lag yet waits.
         let now = 399.0 * 0.05 + 0.43;
+        // An owner is not followed under hybrid (nor capped against): its tool is.
+        c.owners.insert(3, 1);
+        assert!(!c.leads_by_claims() && PeerClocks::new(PlayoutLag::Auto).leads_by_claims());
+        assert_eq!(c.pace(now + 1.0, now, false, true).hold, 0.0);
+        c.tool_heard(1, now);
+        // At the tool's site's time (about 20 s), a follower with no lag yet waits.
         let pace = c.pace(399.0 * 0.05 + 0.43, now, false, true);
         assert!(pace.hold > 0.0, "waits to build the lag: {pace:?}");
         // Behind its target it catches up faster than the keyframe strategy may, and far

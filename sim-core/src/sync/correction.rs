@@ -35,8 +35,12 @@
 //! the wire's rounding.
 //!
 //! Keyframes older than [`HybridConfig::max_age_s`] at the time the local clock reaches
-//! them are not used: advancing a stale state by its velocity is worse than the local
-//! simulation (a newer keyframe follows within a heartbeat).
+//! them are not advanced by their velocity: advancing a stale state is worse than the local
+//! simulation. They are compared with the history instead, up to
+//! [`HybridConfig::max_history_age_s`], when it holds a usable state at their time; else
+//! they are not used (a newer keyframe follows within a heartbeat). The history then keeps
+//! that long: one copy of the node states per step (about 7 MB at 250 Hz on the default
+//! organ's 600 nodes).
 //!
 //! Units: SI (m, m/s, s).
 
@@ -54,8 +58,13 @@ pub struct HybridConfig {
     pub max_step_m: f64,
     /// A correction is spread over at least this many steps.
     pub min_steps: u32,
-    /// Keyframes this much older (s of sim time) than the local clock are not applied.
+    /// Keyframes this much older (s of sim time) than the local clock are not applied,
+    /// unless the history holds the local state at their time (below).
     pub max_age_s: f64,
+    /// Keyframes older than [`HybridConfig::max_age_s`] are still compared with the local
+    /// state at their time, up to this age (s), when the history holds it: see the module
+    /// documentation.
+    pub max_history_age_s: f64,
     /// The owner sends each owned region this often while owning (s of sim time).
     pub keyframe_interval_s: f64,
     /// A keyframe whose every node is within this distance (m) of the local state …
@@ -75,6 +84,13 @@ impl Default for HybridConfig {
             max_step_m: 2.5e-4,
             min_steps: 5,
             max_age_s: 0.15,
+            // Under hybrid a still owner keeps the playout lag behind the moving sites like
+            // any follower (`client/src/session/pacing.rs`), so its keyframes reach the
+            // other followers a path's delay after their time: 0.2–0.45 s under the
+            // `average` and `poor` presets. Skipped at 0.15 s, they corrected nothing, and
+            // a follower that strayed during an outage stayed 13 mm off after it
+            // (`cosurg bench sync`, outage, seed 14, 2026-11-29).
+            max_history_age_s: 1.0,
             keyframe_interval_s: 0.1,
             // The wire's rounding (proto's default quantisation) is at most half a step per
             // axis: √3 · 5 µm ≈ 8.7 µm and √3 · 0.05 mm/s ≈ 0.087 mm/s.
@@ -167,7 +183,8 @@ pub enum Correction {
     Started { steps: u32, max_m: f64 },
     /// Not newer than the last keyframe used; ignored.
     Stale,
-    /// Older than [`HybridConfig::max_age_s`]; ignored.
+    /// Older than [`HybridConfig::max_age_s`] with no usable history at its time, or
+    /// older than [`HybridConfig::max_history_age_s`]; ignored.
     TooOld,
     /// Agrees with the local state to within the wire's rounding; no correction (one under
     /// way is dropped: it was measured from an older keyframe). `max_m`: the largest node
@@ -249,7 +266,10 @@ impl CorrectedRegion {
             return Ok(Correction::Stale);
         }
         let age = sim.time() - kf.sim_time;
-        if age > self.config.max_age_s {
+        // Older than `max_age_s`, only against the history (asked before the tree is
+        // matched: a keyframe that will not be used changes nothing).
+        let old = age > self.config.max_age_s;
+        if age > self.config.max_history_age_s || (old && history.at(sim, kf.sim_time).is_none()) {
             self.last_keyframe = Some(kf.keyframe_id);
             return Ok(Correction::TooOld);
         }
@@ -262,6 +282,10 @@ impl CorrectedRegion {
         } else {
             None
         };
+        if old && then.is_none() {
+            self.last_keyframe = Some(kf.keyframe_id);
+            return Ok(Correction::TooOld);
+        }
         let mut diffs = Vec::with_capacity(kf.positions.len());
         // Largest difference measured (m, m/s), and largest displacement to add (m).
         let (mut max_m, mut max_m_s, mut max_dx): (f64, f64, f64) = (0.0, 0.0, 0.0);

@@ -328,7 +328,7 @@ impl SiteSync {
             // a keyframe of this time is compared with (only on a site that has had
             // keyframes to correct towards).
             let correcting = self.corrected.values().any(|c| c.steps_left() > 0);
-            let keep = self.hybrid.max_age_s + sim.options().dt;
+            let keep = self.hybrid.max_age_s.max(self.hybrid.max_history_age_s) + sim.options().dt;
             self.history.record(sim, keep, correcting);
         }
         for c in self.corrected.values_mut() {
