@@ -354,12 +354,19 @@ fn an_old_keyframe_is_used_through_the_history_and_skipped_without_it() {
     // The keyframe of the pushed beam, and the difference the two had at its time.
     let kf = encode_keyframe(&a, &map, TIP, 1).unwrap();
     let nodes = map.canonical_nodes(b.lattice(), TIP);
-    let then = nodes
+    // Per free node, the difference the beams had at the keyframe's time.
+    let gaps: Vec<(usize, V3)> = nodes
         .iter()
         .enumerate()
         .filter(|(_, n)| !b.is_fixed(**n))
-        .map(|(i, n)| (V3::from(kf.positions[i]) - b.positions()[n.0 as usize]).norm())
-        .fold(0.0, f64::max);
+        .map(|(i, n)| {
+            (
+                n.0 as usize,
+                V3::from(kf.positions[i]) - b.positions()[n.0 as usize],
+            )
+        })
+        .collect();
+    let then = gaps.iter().map(|(_, d)| d.norm()).fold(0.0, f64::max);
     assert!(then > 1e-3, "the push moved a's tip ({then} m)");
     // The local clock runs on past `max_age_s` (both beams settle meanwhile).
     while b.time() < kf.sim_time + config.max_age_s + 0.1 {
@@ -374,13 +381,40 @@ fn an_old_keyframe_is_used_through_the_history_and_skipped_without_it() {
         Correction::TooOld,
         "without the history"
     );
+    // A correction under way since the keyframe's time: its shares are not in the
+    // recorded states, so the old keyframe is skipped.
+    let mut marked = history.clone();
+    marked.record(&b, keep, true);
     let mut region = CorrectedRegion::new(TIP, config);
-    match region.apply_keyframe(&mut b, &map, &kf, &history).unwrap() {
-        Correction::Started { max_m, .. } => assert!(
-            (max_m - then).abs() < 1e-6 * then,
-            "measured {max_m} m at the keyframe's time, the beams differed by {then} m"
-        ),
+    assert_eq!(
+        region.apply_keyframe(&mut b, &map, &kf, &marked).unwrap(),
+        Correction::TooOld
+    );
+    let mut region = CorrectedRegion::new(TIP, config);
+    let steps = match region.apply_keyframe(&mut b, &map, &kf, &history).unwrap() {
+        Correction::Started { max_m, steps } => {
+            assert!(
+                (max_m - then).abs() < 1e-6 * then,
+                "measured {max_m} m at the keyframe's time, the beams differed by {then} m"
+            );
+            steps
+        }
         other => panic!("an old keyframe with the history at its time gave {other:?}"),
+    };
+    // The correction adds exactly that difference (its velocity difference, of 0.25 s
+    // ago, is not carried), with no physics in between.
+    let before: Vec<V3> = b.positions().to_vec();
+    let velocities: Vec<V3> = b.velocities().to_vec();
+    for _ in 0..steps {
+        region.drive(&mut b);
+    }
+    for (j, gap) in &gaps {
+        let moved = b.positions()[*j] - before[*j];
+        assert!(
+            (moved - gap).norm() < 1e-12,
+            "node {j} moved {moved:?}, the gap was {gap:?}"
+        );
+        assert!((b.velocities()[*j] - velocities[*j]).norm() < 1e-12);
     }
     // Older than the history keeps.
     b.set_time(kf.sim_time + config.max_history_age_s + 0.01);

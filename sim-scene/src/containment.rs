@@ -186,10 +186,14 @@ fn crossings(mesh: &TriMesh, triangles: &[u32], q0: &V3, q1: &V3) -> Option<i32>
 }
 
 impl Containment {
-    /// The grid for `mesh` (kept); for an empty, open or inconsistently oriented mesh, no
-    /// grid.
+    /// The grid for `mesh` (kept); for an empty, open or inconsistently oriented mesh, or
+    /// one with a non-finite vertex (no crossing test decides against NaN), no grid.
     pub fn new(mesh: TriMesh) -> Self {
-        let grid = (mesh.is_closed() && mesh.is_consistently_oriented())
+        let finite = mesh
+            .vertices
+            .iter()
+            .all(|v| v.iter().all(|c| c.is_finite()));
+        let grid = (finite && mesh.is_closed() && mesh.is_consistently_oriented())
             .then(|| mesh.bounding_box())
             .flatten()
             .map(|bb| build_grid(&mesh, bb.min, bb.max));
@@ -427,6 +431,16 @@ mod tests {
                 points.push(v + n * d * size.max());
             }
         }
+        // Points at surface cells' centres: the segment from the centre has no length.
+        let g = c.grid.as_ref().unwrap();
+        let surface_centres = (0..g.cells.len())
+            .filter(|i| matches!(g.cells[*i], Cell::Surface(_)))
+            .step_by(7)
+            .map(|i| {
+                let (x, yz) = (i % g.dims[0], i / g.dims[0]);
+                g.center([x, yz % g.dims[1], yz / g.dims[1]])
+            });
+        points.extend(surface_centres.collect::<Vec<_>>());
         let (mut inside, mut outside) = (0, 0);
         for p in &points {
             let want = mesh.contains(p);

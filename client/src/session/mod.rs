@@ -808,8 +808,8 @@ impl SiteSession {
     }
 
     /// The step ended at simulated time `t`: pacing against the sites followed. A leading
-    /// site (it owns or claims a region, or `tool_active`: its tool is moving) runs level
-    /// with the other leaders; a follower keeps the playout lag behind the sites it
+    /// site (`tool_active`: its tool is moving, or, except under hybrid, it owns or claims
+    /// a region) runs level with the other leaders; a follower keeps the playout lag behind the sites it
     /// follows by slewing its step rate. The next step is due at [`Self::poll_timeout`].
     pub fn end_step(&mut self, t: f64, tool_active: bool, now: Instant) -> Pace {
         let leading = self.leads(tool_active);
@@ -837,7 +837,7 @@ impl SiteSession {
             wake = wake.max(self.next_due);
         }
         // Never run ahead of the owners whose regions we show (their keyframes would
-        // arrive from our past).
+        // arrive from our past); not under hybrid, see `pacing`.
         if pace.hold > 0.0 {
             let hold = Duration::from_secs_f64(pace.hold);
             self.stats.paced_seconds += pace.hold;

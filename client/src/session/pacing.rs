@@ -550,7 +550,8 @@ impl PeerClocks {
     }
 
     /// The pace of the next step for a site at simulation time `t` (s) at wall time
-    /// `now` (s); `leading`: it owns or claims a region or its tool is moving.
+    /// `now` (s); `leading`: its tool is moving, or (except under hybrid) it owns or
+    /// claims a region ([`SiteSession::leads`](super::SiteSession::leads)).
     pub fn pace(&self, t: f64, now: f64, leading: bool, realtime: bool) -> Pace {
         let lead = self
             .followed(now)

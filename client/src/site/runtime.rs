@@ -301,7 +301,8 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         // input is late is waited for rather than carried on (see `Tools::input_awaited`
         // and `InputWait`). The schedule is not moved: after a wait the follower steps
         // without pause until it is back on it. A leader never waits: leaders run level,
-        // and would wait for each other.
+        // and would wait for each other. (Under hybrid a still owner is no leader: it
+        // waits like any follower, and so simulates the moving tools from their samples.)
         if !session.leads(tools.local_moving(sim.time())) {
             let now = clock.now();
             let awaited = tools.input_awaited(sim.time() + dt, MAX_INPUT_WAIT_S);

@@ -37,10 +37,12 @@
 //! Keyframes older than [`HybridConfig::max_age_s`] at the time the local clock reaches
 //! them are not advanced by their velocity: advancing a stale state is worse than the local
 //! simulation. They are compared with the history instead, up to
-//! [`HybridConfig::max_history_age_s`], when it holds a usable state at their time; else
-//! they are not used (a newer keyframe follows within a heartbeat). The history then keeps
-//! that long: one copy of the node states per step (about 7 MB at 250 Hz on the default
-//! organ's 600 nodes).
+//! [`HybridConfig::max_history_age_s`], when it holds a usable state at their time and the
+//! region's tree is the keyframe's; only the position difference found there is carried
+//! (the velocity difference of a second ago says little of now). Otherwise they are not
+//! used (a newer keyframe follows within a heartbeat). The history then keeps that long:
+//! one copy of the node states per step (about 7 MB at 250 Hz on the default organ's 600
+//! nodes).
 //!
 //! Units: SI (m, m/s, s).
 
@@ -266,10 +268,17 @@ impl CorrectedRegion {
             return Ok(Correction::Stale);
         }
         let age = sim.time() - kf.sim_time;
-        // Older than `max_age_s`, only against the history (asked before the tree is
-        // matched: a keyframe that will not be used changes nothing).
+        // Older than `max_age_s`: only against the history, and only on the region's own
+        // tree (asked before the tree is matched, so that a keyframe that is not used
+        // changes nothing: an old tree applied here would also invalidate the history).
         let old = age > self.config.max_age_s;
-        if age > self.config.max_history_age_s || (old && history.at(sim, kf.sim_time).is_none()) {
+        let other_tree = || {
+            sim_lattice::RegionState::from_bytes(&kf.tree_bits)
+                .map_or(true, |theirs| theirs != map.state(sim.lattice(), kf.region))
+        };
+        if age > self.config.max_history_age_s
+            || (old && (history.at(sim, kf.sim_time).is_none() || other_tree()))
+        {
             self.last_keyframe = Some(kf.keyframe_id);
             return Ok(Correction::TooOld);
         }
@@ -301,6 +310,13 @@ impl CorrectedRegion {
             };
             let (x_k, v_k) = (V3::from(kf.positions[i]), V3::from(kf.velocities[i]));
             let (dx, dv, gap) = match then {
+                // Older than `max_age_s`: the velocity difference of then says little of
+                // now (a release's spring-back is over in 0.3 s); the position
+                // difference alone is carried.
+                Some((x, _)) if old && j < x.len() => {
+                    let dx_k = x_k - x[j];
+                    (dx_k, V3::zeros(), dx_k.norm())
+                }
                 Some((x, v)) if j < x.len() => {
                     let (dx_k, dv_k) = (x_k - x[j], v_k - v[j]);
                     (dx_k + dv_k * ahead, dv_k, dx_k.norm())
