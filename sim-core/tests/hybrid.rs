@@ -416,7 +416,8 @@ fn an_old_keyframe_is_used_through_the_history_and_skipped_without_it() {
         );
         assert!((b.velocities()[*j] - velocities[*j]).norm() < 1e-12);
     }
-    // Older than the history keeps.
+    // Older than `max_history_age_s` (the age limit; the history's own eviction is not
+    // what skips it here).
     b.set_time(kf.sim_time + config.max_history_age_s + 0.01);
     let mut region = CorrectedRegion::new(TIP, config);
     assert_eq!(

@@ -125,6 +125,12 @@ impl Grid {
         &self.triangles[s.first as usize..s.end as usize]
     }
 
+    /// Every cell, x fastest.
+    fn all_cells(&self) -> impl Iterator<Item = [usize; 3]> + use<> {
+        let [nx, ny, nz] = self.dims;
+        (0..nz).flat_map(move |z| (0..ny).flat_map(move |y| (0..nx).map(move |x| [x, y, z])))
+    }
+
     /// The 6-neighbours of cell `c`.
     fn neighbours(&self, c: [usize; 3]) -> impl Iterator<Item = [usize; 3]> + '_ {
         (0..3).flat_map(move |ax| {
@@ -312,27 +318,22 @@ fn build_grid(mesh: &TriMesh, min: V3, max: V3) -> Grid {
         .map(|c| matches!(c, Cell::Surface(_)))
         .collect();
     let mut stack = Vec::new();
-    for z in 0..dims[2] {
-        for y in 0..dims[1] {
-            for x in 0..dims[0] {
-                let start = g.index([x, y, z]);
-                if labelled[start] {
-                    continue;
-                }
-                // No triangle's box touches the cell: its centre is off the surface.
-                let w = mesh.winding_number(&g.center([x, y, z])).round() as i32;
-                labelled[start] = true;
-                stack.push([x, y, z]);
-                while let Some(c) = stack.pop() {
-                    let i = g.index(c);
-                    g.cells[i] = Cell::Free(w);
-                    for n in g.neighbours(c).collect::<Vec<_>>() {
-                        let j = g.index(n);
-                        if !labelled[j] {
-                            labelled[j] = true;
-                            stack.push(n);
-                        }
-                    }
+    for start in g.all_cells() {
+        if labelled[g.index(start)] {
+            continue;
+        }
+        // No triangle's box touches the cell: its centre is off the surface.
+        let w = mesh.winding_number(&g.center(start)).round() as i32;
+        labelled[g.index(start)] = true;
+        stack.push(start);
+        while let Some(c) = stack.pop() {
+            let i = g.index(c);
+            g.cells[i] = Cell::Free(w);
+            for n in g.neighbours(c).collect::<Vec<_>>() {
+                let j = g.index(n);
+                if !labelled[j] {
+                    labelled[j] = true;
+                    stack.push(n);
                 }
             }
         }
@@ -345,11 +346,9 @@ fn build_grid(mesh: &TriMesh, min: V3, max: V3) -> Grid {
 /// signed crossings between neighbouring centres, breadth first from the labelled free
 /// cells; a centre no crossing test reaches takes the exact winding number.
 fn label_surface_centres(mesh: &TriMesh, g: &mut Grid) {
-    let dims = g.dims;
-    let all = (0..dims[2])
-        .flat_map(|z| (0..dims[1]).flat_map(move |y| (0..dims[0]).map(move |x| [x, y, z])));
     // Centres known so far: (cell, winding number there), to carry on from.
-    let mut frontier: std::collections::VecDeque<([usize; 3], i32)> = all
+    let mut frontier: std::collections::VecDeque<([usize; 3], i32)> = g
+        .all_cells()
         .filter_map(|c| match g.cells[g.index(c)] {
             Cell::Free(w) => Some((c, w)),
             Cell::Surface(_) => None,
@@ -374,26 +373,20 @@ fn label_surface_centres(mesh: &TriMesh, g: &mut Grid) {
                 Cell::Surface(j) => g.triangles_of(j),
                 Cell::Free(_) => no_triangles,
             };
-            let to = g.center(n);
-            let across = crossings(mesh, own, &from, &to)
-                .and_then(|x| Some(x + crossings(mesh, g.triangles_of(k), &from, &to)?));
-            // A triangle listed by both cells is counted once.
-            let twice = own
+            // The two cells' triangles, one listed by both counted once.
+            let theirs = g.triangles_of(k);
+            let both: Vec<u32> = own
                 .iter()
-                .filter(|t| g.triangles_of(k).contains(t))
-                .try_fold(0, |sum, &t| {
-                    let [a, b, c] = mesh.triangles[t as usize].map(|v| mesh.vertices[v as usize]);
-                    Some(sum + signed_crossing(&from, &to, [a, b, c])?)
-                });
-            if let (Some(x), Some(t)) = (across, twice) {
-                g.surface[k as usize].centre_winding = Some(w + x - t);
-                frontier.push_back((n, w + x - t));
+                .chain(theirs.iter().filter(|t| !own.contains(t)))
+                .copied()
+                .collect();
+            if let Some(x) = crossings(mesh, &both, &from, &g.center(n)) {
+                g.surface[k as usize].centre_winding = Some(w + x);
+                frontier.push_back((n, w + x));
             }
         }
     }
-    for c in (0..dims[2])
-        .flat_map(|z| (0..dims[1]).flat_map(move |y| (0..dims[0]).map(move |x| [x, y, z])))
-    {
+    for c in g.all_cells() {
         if let Cell::Surface(k) = g.cells[g.index(c)]
             && g.surface[k as usize].centre_winding.is_none()
         {
