@@ -59,9 +59,14 @@ pub(super) struct SourceStiffness {
     /// order, and the storage keeps block `(b, a)`).
     diag_slots: Vec<u32>,
     pair_slots: Vec<(u32, bool)>,
-    /// The elements' material, if they all have the same (then they all have the same
-    /// assembly coefficient and the source assembles as one).
-    material: Option<usize>,
+    /// Whether the elements share one stiffness damping `β` (bit for bit), hence one
+    /// assembly coefficient `dt β + dt²`: then the source assembles as one. Their
+    /// materials may differ otherwise: `K_s` sums each element's own matrix, so a source
+    /// that mixes fill-weighted boundary tets (E and ρ scaled, `β` kept) with whole ones
+    /// assembles as one too. (Until 2026-11-29 one material was required, and the
+    /// fill-weighted organ assembled most of its surface element by element: the 1.33 cm
+    /// organ's step went from 23.3 to 21.9 M instructions, docs/RESULTS.md.)
+    one_coefficient: bool,
 }
 
 impl SourceStiffness {
@@ -88,13 +93,12 @@ impl SourceStiffness {
         let mut pairs_of: Vec<Vec<(u32, u32)>> = vec![Vec::new(); nodes.len()];
         let (mut pairs, mut off, mut pair_slots) = (Vec::new(), Vec::new(), Vec::new());
         let pattern = sys.caches.pattern.as_ref().expect("pattern built");
-        let m0 = sys.mesh.elements[elements[0] as usize].material;
-        let mut material = Some(m0);
+        let beta = |ei: u32| sys.mesh.materials[sys.mesh.elements[ei as usize].material].beta;
+        let beta0 = beta(elements[0]).to_bits();
+        let mut one_coefficient = true;
         for (&ei, l) in elements.iter().zip(&locals) {
             let e = &sys.mesh.elements[ei as usize];
-            if e.material != m0 {
-                material = None;
-            }
+            one_coefficient &= beta(ei).to_bits() == beta0;
             let k = sys.k0_matrix(ei as usize, mode);
             let slots = pattern.element_slots(ei as usize);
             for a in 0..4 {
@@ -135,7 +139,7 @@ impl SourceStiffness {
             off,
             diag_slots,
             pair_slots,
-            material,
+            one_coefficient,
         }
     }
 
@@ -221,9 +225,9 @@ impl LocalIndex {
 }
 
 impl SourceStiffness {
-    /// Whether its elements assemble as one: they share one material (one coefficient).
+    /// Whether its elements assemble as one: they share one assembly coefficient.
     pub(super) fn assembles_as_one(&self) -> bool {
-        self.material.is_some()
+        self.one_coefficient
     }
 
     /// `blocks += c R K_s Rᵀ` into the assembled operator's upper storage (`c`: the

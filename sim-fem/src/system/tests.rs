@@ -164,6 +164,14 @@ fn largest_displacement(x: &[V3], rest: &[V3]) -> f64 {
 /// `source_stiffness.rs`) and whose last tenth one per cube (6 tets: left to the
 /// per-element loops), with its deformed positions and their rotations stored.
 fn block_shared_beam() -> (crate::FemSystem, Vec<V3>) {
+    block_shared_beam_with(vec![crate::Material::new(2e4, 0.45, 1000.0)], |_| 0)
+}
+
+/// [`block_shared_beam`] with `materials`, element `e` taking `material_of(e)`.
+fn block_shared_beam_with(
+    materials: Vec<crate::Material>,
+    material_of: impl Fn(usize) -> usize,
+) -> (crate::FemSystem, Vec<V3>) {
     let mesh = crate::mesh::kuhn_box([8, 2, 2], [0.4, 0.1, 0.1], V3::zeros());
     let centroid = |t: &[usize; 4]| t.iter().map(|&n| mesh.rest[n]).sum::<V3>() / 4.0;
     let key = |c: V3| {
@@ -183,15 +191,16 @@ fn block_shared_beam() -> (crate::FemSystem, Vec<V3>) {
     keys.dedup();
     let mut elements = mesh.elements(0);
     let mut source_nodes = vec![None; keys.len()];
-    for (e, t) in elements.iter_mut().zip(&mesh.tets) {
+    for (i, (e, t)) in elements.iter_mut().zip(&mesh.tets).enumerate() {
         let s = keys.binary_search(&key(centroid(t))).unwrap();
         e.rotation_source = Some(s);
+        e.material = material_of(i);
         source_nodes[s].get_or_insert(*t);
     }
     let mut sys = crate::FemSystem::new(&crate::FemDesc {
         rest: mesh.rest.clone(),
         elements,
-        materials: vec![crate::Material::new(2e4, 0.45, 1000.0)],
+        materials,
         fixed: mesh.nodes_with_x_at_most(1e-9),
         rotation_sources: source_nodes
             .into_iter()
@@ -309,6 +318,70 @@ fn source_assembly_matches_the_per_element_assembly() {
         let pattern = sys.caches.pattern.as_ref().unwrap();
         for &d in pattern.diagonal_slots() {
             assert_eq!(got[d], got[d].transpose(), "{mode:?}: diagonal block {d}");
+        }
+    }
+}
+
+/// A source whose tets differ in stiffness and density but share one stiffness damping β
+/// (as fill-weighted boundary tets beside whole ones do) assembles as one, matching the
+/// per-element assembly with the step's own coefficients `dt β + dt²`; a source whose
+/// tets' β differ keeps the per-element loop (its tets need different coefficients).
+#[test]
+fn a_source_of_mixed_stiffness_assembles_as_one_when_its_damping_is_shared() {
+    use super::operator::ElemMats;
+    use crate::{OperatorMode, StiffnessMode};
+    let dt = 0.01;
+    for (second_beta, sums) in [(0.01, 3), (0.02, 0)] {
+        let whole = crate::Material {
+            rayleigh_stiffness: 0.01,
+            ..crate::Material::new(2e4, 0.45, 1000.0)
+        };
+        // A tet 40 % inside its body: E and ρ scaled.
+        let filled = crate::Material {
+            young: 0.4 * whole.young,
+            density: 0.4 * whole.density,
+            rayleigh_stiffness: second_beta,
+            ..whole
+        };
+        let (mut sys, _) = block_shared_beam_with(vec![whole, filled], |e| usize::from(e % 3 == 0));
+        let n = sys.mesh.rest.len();
+        let (mass_coef, coef) = sys.linearised_coefficients(dt);
+        assert!(mass_coef.len() == n);
+        let mode = StiffnessMode::Template;
+        let assemble = |sys: &mut crate::FemSystem| {
+            let elem = ElemMats::Rotated {
+                coef: coef.clone(),
+                rotated: true,
+            };
+            let op = sys.build_operator(
+                mass_coef.clone(),
+                elem,
+                dt * dt,
+                mode,
+                OperatorMode::Assembled,
+            );
+            let blocks = op.assembled.clone().expect("assembled");
+            let buffers = op.into_buffers();
+            sys.caches.recycle(buffers);
+            blocks
+        };
+        sys.caches.source_stiffness.clear();
+        let want = assemble(&mut sys);
+        sys.refresh_source_stiffness(mode);
+        sys.refresh_source_stiffness(mode);
+        let as_one = sys.caches.source_stiffness.iter().flatten();
+        assert_eq!(
+            as_one.filter(|k| k.assembles_as_one()).count(),
+            sums,
+            "β {second_beta}"
+        );
+        let got = assemble(&mut sys);
+        let scale = want.iter().map(|b| b.amax()).fold(0.0, f64::max);
+        for (s, (w, g)) in want.iter().zip(&got).enumerate() {
+            assert!(
+                (w - g).amax() <= 1e-12 * scale,
+                "β {second_beta}, slot {s}: {w} against {g}"
+            );
         }
     }
 }
