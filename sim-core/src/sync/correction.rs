@@ -41,8 +41,8 @@
 //! region's tree is the keyframe's; only the position difference found there is carried
 //! (the velocity difference of a second ago says little of now). Otherwise they are not
 //! used (a newer keyframe follows within a heartbeat). The history then keeps that long:
-//! one copy of the node states per step, 48 bytes a node (by count, about 5 MB at 250 Hz
-//! for the default organ's 445 nodes at rest; more where it is refined).
+//! one copy of the node states per step, 48 bytes a node (by count, about 8.4 MB at
+//! 250 Hz for the default organ's 703 nodes at rest; more where it is refined).
 //!
 //! Units: SI (m, m/s, s).
 

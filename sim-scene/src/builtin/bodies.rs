@@ -163,15 +163,17 @@ pub const CUT_AT: f64 = 0.55;
 /// gallbladder up (from 9.5 s on the demo's clock; static until the cut), as offsets from
 /// its rest position (m) at [`CLIP_NECK`], [`CUT_AT`] and [`CLIP_HILUM`]: measured with
 /// `cosurg run` (scene probes on the duct's axis at those fractions, dt 2 ms, at 10 s; at
-/// 11 s within 10 µm of it), on the scene with fill weighting (2026-11-29: the duct's
-/// lattice hull no longer weighs as much as the vessel, and the duct hangs 3.1, 2.4 and
-/// 1.6 mm low where it hung 7.8, 6.2 and 4.3 mm low without it). The clips and the blade
+/// 11 s within 10 µm of it), on the scene with fill weighting and the gallbladder's surface
+/// at level 4 (2026-11-29: with fill weighting the duct's lattice hull no longer weighs as
+/// much as the vessel, and the duct hung 3.1, 2.4 and 1.6 mm low where it hung 7.8, 6.2 and
+/// 4.3 mm low without it; with the finer gallbladder its neck hangs lower, and the duct
+/// 4.4, 3.3 and 2.1 mm low). The clips and the blade
 /// aim there, as a surgeon aims at the duct where it is; the demo's end-to-end test
 /// checks that both clips and the cut land.
 const DUCT_SAG: [(f64, [f64; 3]); 3] = [
-    (CLIP_NECK, [0.00048, 0.00021, -0.00306]),
-    (CUT_AT, [0.00009, -0.00002, -0.00243]),
-    (CLIP_HILUM, [0.00012, -0.00007, -0.00159]),
+    (CLIP_NECK, [0.00035, 0.00002, -0.00437]),
+    (CUT_AT, [0.00003, -0.00007, -0.00326]),
+    (CLIP_HILUM, [0.00013, -0.00012, -0.00213]),
 ];
 
 /// A point of the duct's axis at `f` (fraction from the neck) where it hangs after the
