@@ -7,8 +7,9 @@ use sim_core::sim_scene::{LoadedScene, Scene, builtin};
 
 /// Help of every command's `--cell`.
 pub const CELL_HELP: &str = "Lattice cell size (m) of every body, instead of the scene's: \
-a finer or coarser organ (the default scene has 2 cm; 1.33 cm gives about 4,700 tets, 1 cm \
-about 8,500; 1.5 cm is refused, since the gallbladder bed needs one empty cell between liver \
+a finer or coarser organ (the default scene has 2 cm, 2,672 tets; 1.33 cm gives about 7,700 \
+tets, 1 cm about 14,500, the gallbladder's surface one level finer than the rest as at 2 cm; \
+1.5 cm is refused, since the gallbladder bed needs one empty cell between liver \
 and gallbladder). The scene's hash changes with it, so every site of a session must give the \
 same cell.";
 

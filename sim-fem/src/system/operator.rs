@@ -347,7 +347,14 @@ impl SysOp<'_> {
                             match sys.source_stiffness_for(s, elements, self.mode) {
                                 Some(ks) if *rotated && ks.assembles_as_one() => {
                                     let r = &sys.rotations.sources[s].rotation;
-                                    ks.add_blocks(r, coef[elements[0] as usize], &mut blocks);
+                                    let c = coef[elements[0] as usize];
+                                    // One β gives one coefficient only if the caller's
+                                    // coefficients are `dt β + dt²` (`linearised.rs`).
+                                    debug_assert!(
+                                        elements.iter().all(|&e| coef[e as usize] == c),
+                                        "a summed source's elements take one coefficient"
+                                    );
+                                    ks.add_blocks(r, c, &mut blocks);
                                 }
                                 _ => {
                                     let k = k.as_deref_mut();
