@@ -271,45 +271,65 @@ fn source_forces_match_the_per_element_loop() {
     }
 }
 
+/// The one-thread assembly of `A = diag(mass_coef) + Σ coef_e R K_e Rᵀ + dt² K_c` in
+/// `mode`, element by element (no source kept) and then with the sources summed
+/// (`source_stiffness.rs`, refreshed twice so that they are kept); the sums stay in
+/// `sys`'s caches.
+fn assembled_without_and_with_sums(
+    sys: &mut crate::FemSystem,
+    mass_coef: &[f64],
+    coef: &[f64],
+    dt: f64,
+    mode: crate::StiffnessMode,
+) -> (Vec<Matrix3<f64>>, Vec<Matrix3<f64>>) {
+    use super::operator::ElemMats;
+    let assemble = |sys: &mut crate::FemSystem| {
+        let elem = ElemMats::Rotated {
+            coef: coef.to_vec(),
+            rotated: true,
+        };
+        let assembled = crate::OperatorMode::Assembled;
+        let op = sys.build_operator(mass_coef.to_vec(), elem, dt * dt, mode, assembled);
+        let blocks = op.assembled.clone().expect("assembled");
+        let buffers = op.into_buffers();
+        sys.caches.recycle(buffers);
+        blocks
+    };
+    sys.caches.source_stiffness.clear();
+    let want = assemble(sys);
+    sys.refresh_source_stiffness(mode);
+    sys.refresh_source_stiffness(mode);
+    (want, assemble(sys))
+}
+
+/// Every block of `got` within 1e-12 of the largest block of `want`.
+fn assert_blocks_match(want: &[Matrix3<f64>], got: &[Matrix3<f64>], what: &str) {
+    let scale = want.iter().map(|b| b.amax()).fold(0.0, f64::max);
+    for (s, (w, g)) in want.iter().zip(got).enumerate() {
+        assert!(
+            (w - g).amax() <= 1e-12 * scale,
+            "{what}, slot {s}: {w} against {g}"
+        );
+    }
+}
+
 /// The one-thread assembly of `coef R K Rᵀ` with sources summed (`source_stiffness.rs`)
 /// against the per-element assembly, on [`block_shared_beam`]: every stored block to
 /// 1e-12 of the largest, the diagonal blocks exactly symmetric (where the per-element
 /// blocks are).
 #[test]
 fn source_assembly_matches_the_per_element_assembly() {
-    use super::operator::ElemMats;
-    use crate::{OperatorMode, StiffnessMode};
+    use crate::StiffnessMode;
     let (mut sys, _) = block_shared_beam();
-    let n = sys.mesh.rest.len();
+    let unit_mass = vec![1.0; sys.mesh.rest.len()];
     let (dt, beta) = (0.01, 0.0);
     let coef = vec![dt * beta + dt * dt; sys.mesh.elements.len()];
     // (Dense mode reads the per-element matrices built here.)
     sys.ensure_dense();
     for mode in STIFFNESS_MODES {
-        let assemble = |sys: &mut crate::FemSystem| {
-            let elem = ElemMats::Rotated {
-                coef: coef.clone(),
-                rotated: true,
-            };
-            let op = sys.build_operator(vec![1.0; n], elem, dt * dt, mode, OperatorMode::Assembled);
-            let blocks = op.assembled.clone().expect("assembled");
-            let buffers = op.into_buffers();
-            sys.caches.recycle(buffers);
-            blocks
-        };
-        sys.caches.source_stiffness.clear();
-        let want = assemble(&mut sys);
-        sys.refresh_source_stiffness(mode);
-        sys.refresh_source_stiffness(mode);
+        let (want, got) = assembled_without_and_with_sums(&mut sys, &unit_mass, &coef, dt, mode);
         assert_eq!(sys.caches.source_stiffness.iter().flatten().count(), 3);
-        let got = assemble(&mut sys);
-        let scale = want.iter().map(|b| b.amax()).fold(0.0, f64::max);
-        for (s, (w, g)) in want.iter().zip(&got).enumerate() {
-            assert!(
-                (w - g).amax() <= 1e-12 * scale,
-                "{mode:?} slot {s}: {w} against {g}"
-            );
-        }
+        assert_blocks_match(&want, &got, &format!("{mode:?}"));
         // (Dense per-element blocks are rotated whole and need not be exactly symmetric;
         // the sources beyond x = 0.3 m add them to the diagonal.)
         if mode == StiffnessMode::Dense {
@@ -328,8 +348,6 @@ fn source_assembly_matches_the_per_element_assembly() {
 /// tets' β differ keeps the per-element loop (its tets need different coefficients).
 #[test]
 fn a_source_of_mixed_stiffness_assembles_as_one_when_its_damping_is_shared() {
-    use super::operator::ElemMats;
-    use crate::OperatorMode;
     let dt = 0.01;
     for (second_beta, sums) in [(0.01, 3), (0.02, 0)] {
         let whole = crate::Material {
@@ -348,41 +366,15 @@ fn a_source_of_mixed_stiffness_assembles_as_one_when_its_damping_is_shared() {
         // (Dense mode reads the per-element matrices built here.)
         sys.ensure_dense();
         for mode in STIFFNESS_MODES {
-            let assemble = |sys: &mut crate::FemSystem| {
-                let elem = ElemMats::Rotated {
-                    coef: coef.clone(),
-                    rotated: true,
-                };
-                let op = sys.build_operator(
-                    mass_coef.clone(),
-                    elem,
-                    dt * dt,
-                    mode,
-                    OperatorMode::Assembled,
-                );
-                let blocks = op.assembled.clone().expect("assembled");
-                let buffers = op.into_buffers();
-                sys.caches.recycle(buffers);
-                blocks
-            };
-            sys.caches.source_stiffness.clear();
-            let want = assemble(&mut sys);
-            sys.refresh_source_stiffness(mode);
-            sys.refresh_source_stiffness(mode);
+            let (want, got) =
+                assembled_without_and_with_sums(&mut sys, &mass_coef, &coef, dt, mode);
             let as_one = sys.caches.source_stiffness.iter().flatten();
             assert_eq!(
                 as_one.filter(|k| k.assembles_as_one()).count(),
                 sums,
                 "{mode:?}, β {second_beta}"
             );
-            let got = assemble(&mut sys);
-            let scale = want.iter().map(|b| b.amax()).fold(0.0, f64::max);
-            for (s, (w, g)) in want.iter().zip(&got).enumerate() {
-                assert!(
-                    (w - g).amax() <= 1e-12 * scale,
-                    "{mode:?}, β {second_beta}, slot {s}: {w} against {g}"
-                );
-            }
+            assert_blocks_match(&want, &got, &format!("{mode:?}, β {second_beta}"));
         }
     }
 }
