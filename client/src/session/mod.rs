@@ -810,7 +810,8 @@ impl SiteSession {
     /// The step ended at simulated time `t`: pacing against the sites followed. A leading
     /// site (`tool_active`: its tool is moving, or, except under hybrid, it owns or claims
     /// a region) runs level with the other leaders; a follower keeps the playout lag
-    /// behind the sites it follows by slewing its step rate. The next step is due at [`Self::poll_timeout`].
+    /// behind the sites it follows by slewing its step rate. The next step is due at
+    /// [`Self::poll_timeout`].
     pub fn end_step(&mut self, t: f64, tool_active: bool, now: Instant) -> Pace {
         let leading = self.leads(tool_active);
         let pace = self
