@@ -21,9 +21,12 @@ pub fn serial() -> std::sync::MutexGuard<'static, ()> {
 }
 pub const SESSION: &str = "e2e";
 
+/// A `cosurg` command logging warnings only, or what `COSURG_E2E_LOG` asks for (a
+/// `COSURG_LOG` filter, to read a failed run's site logs with `COSURG_E2E_KEEP`).
 pub fn cosurg() -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_cosurg"));
-    c.env("COSURG_LOG", "warn");
+    let filter = std::env::var("COSURG_E2E_LOG").unwrap_or_else(|_| "warn".into());
+    c.env("COSURG_LOG", filter);
     c
 }
 

@@ -60,6 +60,14 @@ pub struct SessionStats {
     /// Sum and count of per-step lags behind the sites followed (s).
     pub behind_sum: f64,
     pub behind_steps: u64,
+    /// Simulated time (s) at which the follower first came within
+    /// [`pacing::LAG_REACHED_WITHIN`](super::pacing::LAG_REACHED_WITHIN) of its target
+    /// lag, and the sum and count of its lags from then on: the display delay without the
+    /// catch-up of a late start (a site that learns late that it joined, its Welcome
+    /// retransmitted on a lossy path, starts up to a second behind and fast-forwards).
+    pub lag_reached_at: Option<f64>,
+    pub reached_behind_sum: f64,
+    pub reached_behind_steps: u64,
     /// Topology ops received and applied (duplicates not counted), their CPU time (µs,
     /// sum), keyframes dropped because their topology was not reached yet, and the bytes of
     /// the topology ops we sent (framed).

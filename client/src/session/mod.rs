@@ -144,8 +144,10 @@ pub struct SiteSession {
     baselines: BaselineTracker,
     claims: Claims,
     clocks: PeerClocks,
-    /// Wall-time origin of the pacing's clock.
-    start: Instant,
+    /// Wall-time origin of the pacing's clock: the session's creation, not the start of
+    /// its simulation clock, so that stamps heard while waiting to start keep their
+    /// times (a site may start on them, see [`Self::is_ready`]).
+    origin: Instant,
     next_stamp: f64,
     next_pose: f64,
     /// Under hybrid: the local tool's recent samples.
@@ -198,7 +200,7 @@ impl SiteSession {
             epoch: 0,
             inbox: Inbox::default(),
             claims: Claims::default(),
-            start: now,
+            origin: now,
             next_stamp: 0.0,
             next_pose: 0.0,
             pose_history: inputs::InputHistory::default(),
@@ -333,12 +335,24 @@ impl SiteSession {
 
     /// Whether the site may start its clock: welcomed, `expect_sites` present, and the
     /// join snapshot seen (or [`SNAPSHOT_WAIT`] passed without it).
+    ///
+    /// A site is present once the coordinator's table lists it or once its clock stamps
+    /// (datagrams, sent from its first step) arrive: a site's arrival is announced on the
+    /// reliable control stream, and under `poor` a lost packet there and its
+    /// retransmission timeouts told a waiting trainee 1.1 s of session time after the
+    /// instructor had started (measured in `tests/e2e.rs`, 2026-11-29), so it started
+    /// that far behind and its mean display delay rose by 200–250 ms while it caught up.
     pub fn is_ready(&self, expect_sites: usize, now: Instant) -> bool {
         let snapshot_wait_over = self
             .welcomed_at
             .is_some_and(|w| now.duration_since(w) > SNAPSHOT_WAIT);
+        let stamped_only = self
+            .clocks
+            .stamped_sites()
+            .filter(|&s| self.sites.is_other(s) && !self.sites.contains(s))
+            .count();
         self.sites.me().is_some()
-            && self.sites.len() >= expect_sites
+            && self.sites.len() + stamped_only >= expect_sites
             && (self.got_snapshot || snapshot_wait_over)
     }
 
@@ -346,7 +360,6 @@ impl SiteSession {
     /// (seeds the playout lag: about two one-way hops, owner → coordinator → us).
     pub fn start(&mut self, now: Instant, rtt_us: Option<u64>) {
         self.started = true;
-        self.start = now;
         self.next_due = now;
         if let Some(rtt) = rtt_us {
             self.clocks.seed_delay(rtt as f64 / 1e6);
@@ -354,7 +367,7 @@ impl SiteSession {
     }
 
     fn wall(&self, now: Instant) -> f64 {
-        now.saturating_duration_since(self.start).as_secs_f64()
+        now.saturating_duration_since(self.origin).as_secs_f64()
     }
 
     // ----- inputs ------------------------------------------------------------------
@@ -820,6 +833,14 @@ impl SiteSession {
         if let Some(b) = pace.behind {
             self.stats.behind_sum += b;
             self.stats.behind_steps += 1;
+            let error = b - self.clocks.target_lag();
+            if self.stats.lag_reached_at.is_none() && error.abs() <= pacing::LAG_REACHED_WITHIN {
+                self.stats.lag_reached_at = Some(t);
+            }
+            if self.stats.lag_reached_at.is_some() {
+                self.stats.reached_behind_sum += b;
+                self.stats.reached_behind_steps += 1;
+            }
             if self.stats.behind_steps.is_multiple_of(50) {
                 tracing::trace!(
                     t,

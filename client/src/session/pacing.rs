@@ -72,6 +72,9 @@ pub const HYBRID_JITTER_DEVS: f64 = 0.0;
 const HYBRID_INPUT_INTERVAL: f64 = 0.008;
 /// Under hybrid: a follower this far (s) short of its target lag waits instead of slewing.
 const HYBRID_HOLD_BEYOND: f64 = 0.02;
+/// A follower within this much (s) of its target lag has reached it (for the report's
+/// display delay without a late start's catch-up, `SessionStats::lag_reached_at`).
+pub const LAG_REACHED_WITHIN: f64 = HYBRID_HOLD_BEYOND;
 /// Under hybrid: largest automatic playout lag (s).
 pub const MAX_HYBRID_LAG: f64 = 2.0;
 /// Under hybrid: headroom (s) the automatic lag keeps above the largest input shortfall
@@ -397,6 +400,11 @@ impl PeerClocks {
                 transit: smoothed,
             },
         );
+    }
+
+    /// The sites whose clock stamps we have heard.
+    pub fn stamped_sites(&self) -> impl Iterator<Item = u16> + '_ {
+        self.peers.keys().copied()
     }
 
     /// A tool pose of `site` arrived at `now` (wall s): its site is followed for a while.

@@ -46,6 +46,11 @@ impl SiteTable {
         self.me != Some(site) && !self.former.contains(&site)
     }
 
+    /// Whether the table lists `site`.
+    pub fn contains(&self, site: SiteId) -> bool {
+        self.sites.contains_key(&site)
+    }
+
     pub fn is_empty(&self) -> bool {
         self.sites.is_empty()
     }

@@ -236,6 +236,14 @@ pub struct SiteReport {
     /// The playout lag aimed at at the end of the run (ms).
     #[serde(default)]
     pub playout_target_ms: f64,
+    /// Simulated time (s) at which this site, following, first came within 20 ms of its
+    /// target lag (`session::pacing::LAG_REACHED_WITHIN`); `None` if it never did.
+    #[serde(default)]
+    pub lag_reached_at_s: Option<f64>,
+    /// Display delay from then on (ms): [`Self::playout_lag_ms`] without the catch-up of
+    /// a late start.
+    #[serde(default)]
+    pub playout_lag_reached_ms: Option<f64>,
     /// Scene epoch at the end (one more per scene reset of the session).
     #[serde(default)]
     pub epoch: u32,

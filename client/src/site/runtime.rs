@@ -495,6 +495,9 @@ pub fn run_site(mut cfg: SiteConfig) -> Result<SiteReport> {
         0.0
     };
     report.playout_target_ms = session.target_lag() * 1e3;
+    report.lag_reached_at_s = stats.lag_reached_at;
+    report.playout_lag_reached_ms = (stats.reached_behind_steps > 0)
+        .then(|| stats.reached_behind_sum / stats.reached_behind_steps as f64 * 1e3);
     report.paced_seconds = stats.paced_seconds;
     report.late_inputs = stats.late_inputs;
     report.reconnects = stats.reconnects;

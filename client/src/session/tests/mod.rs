@@ -262,6 +262,92 @@ fn join_waits_for_the_snapshot_and_takes_its_time_and_epoch() {
     assert!(t.is_ready(1, clock.now().wall));
 }
 
+/// A site whose arrival the coordinator's table does not list yet (its announcement is
+/// late on the control stream) counts as present once its clock stamps arrive, and the
+/// stamps heard while waiting keep their wall times once the clock starts.
+#[test]
+fn a_site_heard_by_its_clock_stamps_completes_the_session() {
+    let mut clock = FakeClock::new();
+    let mut sim = new_sim();
+    let mut s = session_with(Role::Trainee, &sim, &clock, SyncStrategy::Hybrid);
+    s.handle_welcome(&welcome(3, &[(3, Role::Trainee)]), clock.now());
+    s.handle_message(&mut sim, snapshot(0.0, 0, Vec::new()), clock.now())
+        .unwrap();
+    assert!(!s.is_ready(2, clock.now().wall), "alone in the table");
+    let stamp = |site, sim_time_s: f64, clock: &FakeClock| {
+        Message::SimTime(proto::SimTimeStamp {
+            site,
+            sim_time_s,
+            step: (sim_time_s / 0.004) as u64,
+            // sent 100 ms before now, on the coordinator's clock
+            wall_send_us: clock.now().coordinator_us - 100_000,
+        })
+    };
+    // Our own stamps (echoed) and those of a former id do not count.
+    s.handle_message(&mut sim, stamp(3, 0.05, &clock), clock.now())
+        .unwrap();
+    assert!(!s.is_ready(2, clock.now().wall), "our own stamp");
+    clock.advance(1_000);
+    s.handle_message(&mut sim, stamp(1, 0.30, &clock), clock.now())
+        .unwrap();
+    assert!(s.is_ready(2, clock.now().wall), "site 1's stamp");
+    assert!(!s.is_ready(3, clock.now().wall), "a third site is missing");
+    // Once listed, a site is not counted twice.
+    s.handle_message(
+        &mut sim,
+        Message::SiteJoined(SiteEntry {
+            site: 1,
+            name: "site-1".into(),
+            role: Role::Instructor,
+        }),
+        clock.now(),
+    )
+    .unwrap();
+    assert!(s.is_ready(2, clock.now().wall));
+    assert!(!s.is_ready(3, clock.now().wall), "site 1 counted once");
+    // Started a second after the stamp was heard, and following site 1's moving tool,
+    // the follower is that second plus the stamp's transit behind site 1's stamped time
+    // (site 1 runs on at real time): the stamp kept its wall time across the start.
+    clock.advance(1_000);
+    s.start(clock.now().wall, None);
+    for (k, x) in [0.0f32, 0.01].into_iter().enumerate() {
+        s.handle_message(
+            &mut sim,
+            Message::ToolPose(proto::ToolPose {
+                site: 1,
+                tool: 0,
+                sim_time_s: 0.3 + 0.004 * k as f64,
+                position: [x, 0.0, 0.0],
+                orientation: [1.0, 0.0, 0.0, 0.0],
+                jaw_rad: 0.0,
+                velocity: [0.0; 3],
+                angular_velocity: [0.0; 3],
+            }),
+            clock.now(),
+        )
+        .unwrap();
+    }
+    let behind = s.end_step(0.0, false, clock.now().wall).behind;
+    let expected = 0.30 + 1.0 + 0.1;
+    assert!(
+        behind.is_some_and(|b| (b - expected).abs() < 1e-6),
+        "behind {behind:?} s, expected {expected} s"
+    );
+    // Its (fixed, zero) target lag not reached yet, then reached once caught up: the
+    // report's display delay without the catch-up counts from there.
+    assert_eq!(s.stats().lag_reached_at, None);
+    let behind = s.end_step(expected, false, clock.now().wall).behind;
+    assert!(
+        behind.is_some_and(|b| b.abs() < 1e-9),
+        "caught up: {behind:?}"
+    );
+    assert_eq!(s.stats().lag_reached_at, Some(expected));
+    assert_eq!(
+        (s.stats().behind_steps, s.stats().reached_behind_steps),
+        (2, 1)
+    );
+}
+
 /// Tissue that still moves after the tool let go stays owned (its owner keeps sending
 /// keyframes of the motion) until it is at rest, or for [`claims::HOLD_MOVING_AT_MOST`].
 #[test]
