@@ -35,7 +35,7 @@ pub mod wire;
 #[cfg(test)]
 mod tests;
 
-use std::collections::VecDeque;
+use std::collections::{BTreeSet, VecDeque};
 use std::time::{Duration, Instant};
 
 use proto::{
@@ -67,6 +67,10 @@ pub const RESET_MARGIN: f64 = 0.02;
 pub const MAX_RESET_MARGIN: f64 = 1.0;
 /// A late joiner waits this long after its Welcome for the coordinator's snapshot.
 pub const SNAPSHOT_WAIT: Duration = Duration::from_secs(3);
+/// A site whose session is complete waits at most this long (session time) for the
+/// clock stamps of every site it knows of before it starts anyway (see
+/// [`SiteSession::is_ready`]; the longest wait measured was 1.1 s).
+pub const PRESENCE_WAIT: Duration = Duration::from_secs(3);
 
 /// The time an input happens at: wall time (pacing) and the coordinator's clock as the
 /// link estimates it (claims, time stamps).
@@ -157,6 +161,11 @@ pub struct SiteSession {
     /// When the driver should run the next step (wall).
     wake: Option<Instant>,
     welcomed_at: Option<Instant>,
+    /// When, waiting to start, the session was first complete but for the other sites'
+    /// clocks ([`Self::is_ready`]).
+    complete_at: Option<Instant>,
+    /// Wall time (s, pacing origin) of the next presence stamp while waiting to start.
+    next_presence: f64,
     got_snapshot: bool,
     started: bool,
     /// A reset to apply when the simulated time reaches it: (new epoch, sim time s).
@@ -207,6 +216,8 @@ impl SiteSession {
             next_due: now,
             wake: None,
             welcomed_at: None,
+            complete_at: None,
+            next_presence: 0.0,
             got_snapshot: false,
             started: false,
             scheduled_reset: None,
@@ -333,27 +344,67 @@ impl SiteSession {
         }
     }
 
-    /// Whether the site may start its clock: welcomed, `expect_sites` present, and the
-    /// join snapshot seen (or [`SNAPSHOT_WAIT`] passed without it).
+    /// Whether the site may start its clock: welcomed, `expect_sites` present, the join
+    /// snapshot seen (or [`SNAPSHOT_WAIT`] passed without it), and the clock of every
+    /// site it knows of heard (or [`PRESENCE_WAIT`] passed since the rest was true).
     ///
-    /// A site is present once the coordinator's table lists it or once its clock stamps
-    /// (datagrams, sent from its first step) arrive: a site's arrival is announced on the
-    /// reliable control stream, and under `poor` a lost packet there and its
-    /// retransmission timeouts told a waiting trainee 1.1 s of session time after the
-    /// instructor had started (measured in `tests/e2e.rs`, 2026-11-29), so it started
-    /// that far behind and its mean display delay rose by 200–250 ms while it caught up.
-    pub fn is_ready(&self, expect_sites: usize, now: Instant) -> bool {
+    /// Sites learn of each other on the reliable control stream (the Welcome and
+    /// `SiteJoined`), and under `poor` a lost packet there and its retransmission
+    /// timeouts, behind a snapshot filling the 500 kbit/s link, told one site 1.1 s of
+    /// session time after the other (measured in `tests/e2e.rs`, 2026-11-29, dilated ×3).
+    /// Whichever learnt first started alone: a trainee started that far behind the
+    /// instructor and its mean display delay rose by 200–250 ms while it caught up, or
+    /// ran that far ahead of it and then waited 1.5 s, receiving the instructor's first
+    /// inputs late (2.1 mm of divergence). So the sites also announce themselves with
+    /// clock stamps while they wait ([`Self::announce_presence`]), datagrams repeated
+    /// every [`SIM_TIME_INTERVAL`]: a site counts as present once its stamps arrive, even
+    /// before the table lists it, and a site starts once it has heard every other site's
+    /// clock (observers send none). The sites then start within a path's delay of one
+    /// another, the followers near their lag.
+    pub fn is_ready(&mut self, expect_sites: usize, now: Instant) -> bool {
         let snapshot_wait_over = self
             .welcomed_at
             .is_some_and(|w| now.duration_since(w) > SNAPSHOT_WAIT);
-        let stamped_only = self
-            .clocks
-            .stamped_sites()
-            .filter(|&s| self.sites.is_other(s) && !self.sites.contains(s))
+        let heard: BTreeSet<SiteId> = self.clocks.stamped_sites().collect();
+        let stamped_only = heard
+            .iter()
+            .filter(|&&s| self.sites.is_other(s) && !self.sites.contains(s))
             .count();
-        self.sites.me().is_some()
+        let complete = self.sites.me().is_some()
             && self.sites.len() + stamped_only >= expect_sites
-            && (self.got_snapshot || snapshot_wait_over)
+            && (self.got_snapshot || snapshot_wait_over);
+        if !complete {
+            return false;
+        }
+        let complete_at = *self.complete_at.get_or_insert(now);
+        let unheard = self
+            .sites
+            .receivers()
+            .filter(|&s| self.sites.role(s) != Some(Role::Observer) && !heard.contains(&s))
+            .count();
+        unheard == 0 || now.duration_since(complete_at) > PRESENCE_WAIT
+    }
+
+    /// While waiting to start, a welcomed site (not an observer) sends its clock as it
+    /// stands every [`SIM_TIME_INTERVAL`] of wall time: the others count it as present
+    /// and wait for it ([`Self::is_ready`]). Call it in the wait loop; nothing once
+    /// started.
+    pub fn announce_presence(&mut self, sim: &Simulation, now: Now) {
+        if self.started || !self.cfg.linked || self.cfg.role == Role::Observer {
+            return;
+        }
+        let Some(me) = self.sites.me() else { return };
+        let wall = self.wall(now.wall);
+        if wall < self.next_presence {
+            return;
+        }
+        self.next_presence = wall + SIM_TIME_INTERVAL;
+        self.datagram(Message::SimTime(proto::SimTimeStamp {
+            site: me,
+            sim_time_s: sim.time(),
+            step: sim.steps(),
+            wall_send_us: now.coordinator_us,
+        }));
     }
 
     /// The simulation clock starts now; `rtt_us`: the link's round trip, if measured

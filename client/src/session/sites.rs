@@ -65,6 +65,10 @@ impl SiteTable {
         self.sites.keys().copied().filter(|s| Some(*s) != self.me)
     }
 
+    pub fn role(&self, site: SiteId) -> Option<Role> {
+        self.sites.get(&site).map(|(_, r)| *r)
+    }
+
     pub fn name(&self, site: SiteId) -> Option<&str> {
         self.sites.get(&site).map(|(n, _)| n.as_str())
     }

@@ -107,6 +107,17 @@ fn snapshot(sim_time_s: f64, epoch: Epoch, keyframes: Vec<proto::RegionKeyframe>
     })
 }
 
+/// A clock stamp of `site` at simulated time `sim_time_s`, sent 100 ms before now on the
+/// coordinator's clock.
+fn stamp(site: SiteId, sim_time_s: f64, clock: &FakeClock) -> Message {
+    Message::SimTime(proto::SimTimeStamp {
+        site,
+        sim_time_s,
+        step: (sim_time_s / 0.004) as u64,
+        wall_send_us: clock.now().coordinator_us - 100_000,
+    })
+}
+
 fn drain(s: &mut SiteSession) -> Vec<Transmit> {
     std::iter::from_fn(|| s.poll_transmit()).collect()
 }
@@ -251,6 +262,12 @@ fn join_waits_for_the_snapshot_and_takes_its_time_and_epoch() {
     assert!(!s.is_ready(3, clock.now().wall), "a site is missing");
     s.handle_message(&mut sim, snapshot(2.5, 4, Vec::new()), clock.now())
         .unwrap();
+    assert!(
+        !s.is_ready(2, clock.now().wall),
+        "site 1's clock not heard yet"
+    );
+    s.handle_message(&mut sim, stamp(1, 2.5, &clock), clock.now())
+        .unwrap();
     assert!(s.is_ready(2, clock.now().wall));
     assert_eq!(sim.time(), 2.5, "a late joiner takes the session's time");
     assert_eq!(s.epoch(), 4, "… and its scene epoch");
@@ -274,15 +291,6 @@ fn a_site_heard_by_its_clock_stamps_completes_the_session() {
     s.handle_message(&mut sim, snapshot(0.0, 0, Vec::new()), clock.now())
         .unwrap();
     assert!(!s.is_ready(2, clock.now().wall), "alone in the table");
-    let stamp = |site, sim_time_s: f64, clock: &FakeClock| {
-        Message::SimTime(proto::SimTimeStamp {
-            site,
-            sim_time_s,
-            step: (sim_time_s / 0.004) as u64,
-            // sent 100 ms before now, on the coordinator's clock
-            wall_send_us: clock.now().coordinator_us - 100_000,
-        })
-    };
     // Our own stamps (echoed) and those of a former id do not count.
     s.handle_message(&mut sim, stamp(3, 0.05, &clock), clock.now())
         .unwrap();
@@ -346,6 +354,80 @@ fn a_site_heard_by_its_clock_stamps_completes_the_session() {
         (s.stats().behind_steps, s.stats().reached_behind_steps),
         (2, 1)
     );
+}
+
+/// A site whose session is complete starts once it has heard the clock of every site it
+/// knows of (observers send none), or after [`PRESENCE_WAIT`]; while it waits it sends
+/// its own clock every [`SIM_TIME_INTERVAL`], and once started (or as an observer) it
+/// sends none.
+#[test]
+fn a_complete_session_waits_for_the_clock_of_every_site_it_knows() {
+    let presence = |s: &mut SiteSession| -> Vec<(SiteId, f64)> {
+        drain(s)
+            .into_iter()
+            .filter_map(|t| match t {
+                Transmit::Datagram(Message::SimTime(st)) => Some((st.site, st.sim_time_s)),
+                _ => None,
+            })
+            .collect()
+    };
+    let sites = [
+        (1, Role::Instructor),
+        (2, Role::Observer),
+        (3, Role::Trainee),
+    ];
+    let mut clock = FakeClock::new();
+    let mut sim = new_sim();
+    let mut s = session(Role::Trainee, &sim, &clock);
+    s.announce_presence(&sim, clock.now());
+    assert_eq!(presence(&mut s), [], "not welcomed yet: no id to send");
+    s.handle_welcome(&welcome(3, &sites), clock.now());
+    s.handle_message(&mut sim, snapshot(0.0, 0, Vec::new()), clock.now())
+        .unwrap();
+    s.announce_presence(&sim, clock.now());
+    assert_eq!(presence(&mut s), [(3, 0.0)]);
+    clock.advance(20);
+    s.announce_presence(&sim, clock.now());
+    assert_eq!(presence(&mut s), [], "one stamp per interval");
+    clock.advance(40);
+    s.announce_presence(&sim, clock.now());
+    assert_eq!(presence(&mut s), [(3, 0.0)]);
+    assert!(
+        !s.is_ready(3, clock.now().wall),
+        "the instructor's clock unheard"
+    );
+    s.handle_message(&mut sim, stamp(1, 0.0, &clock), clock.now())
+        .unwrap();
+    assert!(
+        s.is_ready(3, clock.now().wall),
+        "every site heard but the observer, which sends no clock"
+    );
+    s.start(clock.now().wall, None);
+    clock.advance(100);
+    s.announce_presence(&sim, clock.now());
+    assert_eq!(presence(&mut s), [], "started: the steps send the stamps");
+
+    // Nobody heard: the site starts PRESENCE_WAIT after its session was complete.
+    let mut t = session(Role::Trainee, &sim, &clock);
+    t.handle_welcome(&welcome(3, &sites), clock.now());
+    clock.advance(1_000);
+    assert!(!t.is_ready(3, clock.now().wall), "no snapshot yet");
+    t.handle_message(&mut sim, snapshot(0.0, 0, Vec::new()), clock.now())
+        .unwrap();
+    assert!(!t.is_ready(3, clock.now().wall));
+    clock.advance(PRESENCE_WAIT.as_millis() as u64);
+    assert!(
+        !t.is_ready(3, clock.now().wall),
+        "the wait counts from completion"
+    );
+    clock.advance(1);
+    assert!(t.is_ready(3, clock.now().wall));
+
+    // An observer sends no clock.
+    let mut o = session(Role::Observer, &sim, &clock);
+    o.handle_welcome(&welcome(2, &sites), clock.now());
+    o.announce_presence(&sim, clock.now());
+    assert_eq!(presence(&mut o), []);
 }
 
 /// Tissue that still moves after the tool let go stays owned (its owner keeps sending
