@@ -582,10 +582,11 @@ fn hybrid_follows_under(preset: &str) {
             r.name
         );
     }
-    // The display delay once the trainee reached its lag: a trainee that learns late that
-    // it joined (its Welcome retransmitted on the lossy path) starts up to 1.2 s behind
-    // and fast-forwards, and the mean over the whole run counted that catch-up (CI,
-    // 2026-11-29: 581 and 659 ms where the run's steady lag was 420–450 ms).
+    // The display delay once the trainee reached its lag. A trainee that started late
+    // caught up by fast-forwarding, and the mean over the whole run counted that: before
+    // the sites waited for one another's clocks (`SiteSession::is_ready`), a trainee that
+    // learnt of the instructor 1.1 s late under `poor` started that far behind, and CI
+    // failed twice on the whole-run mean (581 and 659 ms, 2026-11-29).
     let reached_at = r_t.lag_reached_at_s;
     let (delay, target) = (
         r_t.playout_lag_reached_ms.unwrap_or(f64::NAN),

@@ -63,8 +63,8 @@ pub struct SessionStats {
     /// Simulated time (s) at which the follower first came within
     /// [`pacing::LAG_REACHED_WITHIN`](super::pacing::LAG_REACHED_WITHIN) of its target
     /// lag, and the sum and count of its lags from then on: the display delay without the
-    /// catch-up of a late start (a site that learns late that it joined, its Welcome
-    /// retransmitted on a lossy path, starts up to a second behind and fast-forwards).
+    /// catch-up of a late start (the sites wait for one another's clocks, but at most
+    /// `PRESENCE_WAIT`; see `SiteSession::is_ready`).
     pub lag_reached_at: Option<f64>,
     pub reached_behind_sum: f64,
     pub reached_behind_steps: u64,
