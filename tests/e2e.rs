@@ -512,6 +512,10 @@ const HYBRID_DELAY_ABOVE_PATH_MS: f64 = 150.0;
 /// hence the dilation below.
 const MIN_REAL_TIME_FRACTION: f64 = 0.97;
 
+/// Simulated time (s) by which a hybrid follower must have reached its playout lag (see
+/// `hybrid_follows_under`).
+const REACHED_LAG_BY_S: f64 = 2.5;
+
 /// The time dilation of the hybrid runs (`--time-scale`): the session runs this many
 /// times slower than real time and the impairment is stretched to match, so that the
 /// test-profile sites (opt-level 1) keep their session's real time on a loaded two-core
@@ -602,10 +606,12 @@ fn hybrid_follows_under(preset: &str) {
          delay {delay:.0} ms from {reached_at:?} s ({whole_run:.0} over the run; path \
          {path_ms:.0} ms, target lag at the end {target:.0} ms)"
     );
-    // It must get there with at least 2 s of the session left to measure (it did by
-    // 3.6 s after a 1.1 s late start, 2026-11-29).
+    // The sites start within a path's delay of each other, so the trainee reaches its
+    // lag early: at 0.70–1.39 s of simulated time in seven runs under `poor` (2026-11-29).
+    // A late start takes longer: 2.4–3.6 s after starting 1.1 s behind, before the sites
+    // waited for one another's clocks.
     assert!(
-        reached_at.is_some_and(|t| t < SESSION_SECONDS.parse::<f64>().unwrap() - 2.0),
+        reached_at.is_some_and(|t| t < REACHED_LAG_BY_S),
         "the trainee reached its playout lag at {reached_at:?} s of simulated time"
     );
     // Display delay: the goal (≤ path + 50 ms) is met on seven presets of eight in the

@@ -362,18 +362,18 @@ impl SiteSession {
     /// clock (observers send none). The sites then start within a path's delay of one
     /// another, the followers near their lag.
     pub fn is_ready(&mut self, expect_sites: usize, now: Instant) -> bool {
-        let snapshot_wait_over = self
-            .welcomed_at
-            .is_some_and(|w| now.duration_since(w) > SNAPSHOT_WAIT);
         let heard: BTreeSet<SiteId> = self.clocks.stamped_sites().collect();
         let stamped_only = heard
             .iter()
-            .filter(|&&s| self.sites.is_other(s) && !self.sites.contains(s))
+            .filter(|&&s| {
+                self.sites.is_other(s) && !self.sites.contains(s) && !self.sites.departed(s)
+            })
             .count();
         let complete = self.sites.me().is_some()
             && self.sites.len() + stamped_only >= expect_sites
-            && (self.got_snapshot || snapshot_wait_over);
+            && self.snapshot_taken(now);
         if !complete {
+            self.complete_at = None;
             return false;
         }
         let complete_at = *self.complete_at.get_or_insert(now);
@@ -385,12 +385,18 @@ impl SiteSession {
         unheard == 0 || now.duration_since(complete_at) > PRESENCE_WAIT
     }
 
-    /// While waiting to start, a welcomed site (not an observer) sends its clock as it
-    /// stands every [`SIM_TIME_INTERVAL`] of wall time: the others count it as present
+    /// While waiting to start, a welcomed site (not an observer) that has its join
+    /// snapshot sends its clock as it stands every [`SIM_TIME_INTERVAL`] of wall time: the others count it as present
     /// and wait for it ([`Self::is_ready`]). Call it in the wait loop; nothing once
     /// started.
     pub fn announce_presence(&mut self, sim: &Simulation, now: Now) {
-        if self.started || !self.cfg.linked || self.cfg.role == Role::Observer {
+        // Not before the snapshot: a late joiner takes the session's time from it, and a
+        // stamp at 0 followed by one at that time would read as a clock running fast.
+        if self.started
+            || !self.cfg.linked
+            || self.cfg.role == Role::Observer
+            || !self.snapshot_taken(now.wall)
+        {
             return;
         }
         let Some(me) = self.sites.me() else { return };
@@ -405,6 +411,15 @@ impl SiteSession {
             step: sim.steps(),
             wall_send_us: now.coordinator_us,
         }));
+    }
+
+    /// Whether the join snapshot was seen, or [`SNAPSHOT_WAIT`] passed since the Welcome
+    /// without it.
+    fn snapshot_taken(&self, now: Instant) -> bool {
+        self.got_snapshot
+            || self
+                .welcomed_at
+                .is_some_and(|w| now.duration_since(w) > SNAPSHOT_WAIT)
     }
 
     /// The simulation clock starts now; `rtt_us`: the link's round trip, if measured

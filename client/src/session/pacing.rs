@@ -131,9 +131,12 @@ const MAX_TRANSIT: f64 = 5.0;
 /// For this long (wall s) after a followed site appears mid-session (a join, or a rejoin
 /// under a new id) or our own link comes back, samples carry the gap, not the path: input
 /// shortfalls and stamp transits (of every site: one estimate serves them all) neither
-/// raise the hybrid lag nor enter the delay estimate. At a session's start this also
-/// holds for a second once a second site is heard; keyframe ages (the keyframe lag model)
-/// are not held back. Measured after the
+/// raise the hybrid lag nor enter the delay estimate. It starts when a site is first
+/// heard and again when its clock first advances: a site waiting to start announces
+/// itself with stamps of a clock that stands still (`SiteSession::announce_presence`),
+/// up to seconds before its first step. At a session's start this also holds for a
+/// second once a second site is heard; keyframe ages (the keyframe lag model) are not
+/// held back. Measured after the
 /// `outage` preset's cut: inputs 0.4–0.6 s late and stamp transits of 0.2–0.4 s on a
 /// 80 ms path, which left a trainee's lag at 430–670 ms for the rest of the run.
 const QUIET_AFTER_JOIN_S: f64 = 1.0;
@@ -221,6 +224,13 @@ struct PeerClock {
     rate: f64,
     /// Smoothed one-way transit of its stamps to us (s), when measured.
     transit: Option<f64>,
+    /// Whether this stamp's simulation time is past the one before (false for the first
+    /// stamp heard and for a clock standing still: a site waiting to start).
+    advancing: bool,
+    /// Whether its clock was ever seen to advance, and whether, before that, it was seen
+    /// standing still (a site waiting to start).
+    moved: bool,
+    waited: bool,
 }
 
 /// What the pacing asks of the next step.
@@ -359,17 +369,23 @@ impl PeerClocks {
     pub fn heard(&mut self, site: u16, sim_time: f64, now: f64, transit: Option<f64>) {
         let transit = transit.filter(|d| (0.0..MAX_TRANSIT).contains(d));
         let prev = self.peers.get(&site).copied();
-        if prev.is_none() && self.delay.mean.is_some() {
-            // A site that appears once the session runs: see `QUIET_AFTER_JOIN_S`.
+        let advancing = prev.is_some_and(|p| sim_time > p.sim_time);
+        let starts_moving = advancing && prev.is_some_and(|p| p.waited && !p.moved);
+        if (prev.is_none() || starts_moving) && self.delay.mean.is_some() {
+            // A site that appears, or starts its clock, once the session runs: see
+            // `QUIET_AFTER_JOIN_S`.
             self.quiet(now);
         }
         let sent_at = transit.map(|d| now - d);
         // The rate is measured between send times where both are known: arrival times
         // carry the path's jitter (stamps 50 ms apart may arrive together after a
         // delayed packet), and a rate of 1.6 taken from them put the owner 0.3 s ahead of
-        // where it was over a 0.45 s transit (measured under `poor`).
+        // where it was over a 0.45 s transit (measured under `poor`). Only between two
+        // stamps of a running clock: across the last stamp of a clock that stood still (a
+        // site waiting to start) it would count the wait, and across a site's first stamp
+        // the time before it.
         let rate = match prev {
-            Some(p) if sim_time > p.sim_time => {
+            Some(p) if advancing && p.advancing => {
                 let measured = match (p.sent_at, sent_at) {
                     (Some(a), Some(b)) if b > a => Some((sim_time - p.sim_time) / (b - a)),
                     (Some(_), Some(_)) => None,
@@ -398,6 +414,9 @@ impl PeerClocks {
                 sent_at,
                 rate,
                 transit: smoothed,
+                advancing,
+                moved: advancing || prev.is_some_and(|p| p.moved),
+                waited: prev.is_some_and(|p| p.waited || (!p.moved && sim_time == p.sim_time)),
             },
         );
     }
@@ -889,6 +908,38 @@ mod tests {
             e.followed(1.2 + TOOL_ACTIVE_FOR + 0.01).is_empty(),
             "still again"
         );
+    }
+
+    /// A site waiting to start announces a clock that stands still (at 0 here, for a
+    /// second). Once it runs, its rate is measured between running stamps only, so the
+    /// wait does not read as a slow clock: its time is estimated exactly. (Measured across
+    /// the last still stamp, the first running one gave a rate of 0.5 and a smoothed 0.9,
+    /// and the estimate 0.2 s later was 19 ms short.) Its first step starts a quiet second
+    /// of its own, although it was first heard long before.
+    #[test]
+    fn a_clock_that_stood_still_before_it_started_keeps_its_rate() {
+        let mut c = hybrid_heard(200);
+        let transit = 0.1;
+        // Site 2 waits from wall 10.0 to 11.0, then runs at real time from 11.0.
+        for k in 0..20 {
+            let sent = 10.0 + 0.05 * f64::from(k);
+            c.heard(2, 0.0, sent + transit, Some(transit));
+        }
+        let base = c.target_lag();
+        for k in 1..=3 {
+            let sent = 11.0 + 0.05 * f64::from(k);
+            c.heard(2, sent - 11.0, sent + transit, Some(transit));
+        }
+        let now = 11.15 + transit + 0.2;
+        let estimate = c.estimate_now(2, now).unwrap();
+        assert!(
+            (estimate - (now - 11.0)).abs() < 1e-9,
+            "site 2 estimated at {estimate} s at wall {now}, running since 11.0"
+        );
+        // Its first running stamp (wall 11.15) started a quiet second: a long transit
+        // then is not taken as the path's, though the site was first heard at 10.1.
+        c.heard(2, 0.2, 11.5, Some(0.3));
+        assert_eq!(c.target_lag(), base, "quiet after its start");
     }
 
     /// A site that appears once the session runs (a rejoin under a new id), or our own

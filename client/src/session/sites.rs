@@ -12,6 +12,8 @@ pub struct SiteTable {
     /// coordinator for its snapshot) is still ours, not another site's.
     former: Vec<SiteId>,
     sites: BTreeMap<SiteId, (String, Role)>,
+    /// Sites that left: their late datagrams do not make them present again.
+    departed: std::collections::BTreeSet<SiteId>,
 }
 
 impl SiteTable {
@@ -29,11 +31,18 @@ impl SiteTable {
     }
 
     pub fn joined(&mut self, s: SiteEntry) {
+        self.departed.remove(&s.site);
         self.sites.insert(s.site, (s.name, s.role));
     }
 
     pub fn left(&mut self, site: SiteId) {
         self.sites.remove(&site);
+        self.departed.insert(site);
+    }
+
+    /// Whether `site` left the session (and did not join again under that id).
+    pub fn departed(&self, site: SiteId) -> bool {
+        self.departed.contains(&site)
     }
 
     /// Our id; `None` before the Welcome (or without a link).

@@ -291,7 +291,7 @@ fn a_site_heard_by_its_clock_stamps_completes_the_session() {
     s.handle_message(&mut sim, snapshot(0.0, 0, Vec::new()), clock.now())
         .unwrap();
     assert!(!s.is_ready(2, clock.now().wall), "alone in the table");
-    // Our own stamps (echoed) and those of a former id do not count.
+    // Our own stamps (echoed) do not count.
     s.handle_message(&mut sim, stamp(3, 0.05, &clock), clock.now())
         .unwrap();
     assert!(!s.is_ready(2, clock.now().wall), "our own stamp");
@@ -313,6 +313,22 @@ fn a_site_heard_by_its_clock_stamps_completes_the_session() {
     .unwrap();
     assert!(s.is_ready(2, clock.now().wall));
     assert!(!s.is_ready(3, clock.now().wall), "site 1 counted once");
+    // A site that left does not count, even if a datagram of its comes after its Leave.
+    s.handle_message(&mut sim, stamp(4, 0.30, &clock), clock.now())
+        .unwrap();
+    assert!(s.is_ready(3, clock.now().wall), "site 4's stamp");
+    s.handle_message(
+        &mut sim,
+        Message::Leave(proto::Leave {
+            site: 4,
+            reason: "gone".into(),
+        }),
+        clock.now(),
+    )
+    .unwrap();
+    s.handle_message(&mut sim, stamp(4, 0.35, &clock), clock.now())
+        .unwrap();
+    assert!(!s.is_ready(3, clock.now().wall), "site 4 left");
     // Started a second after the stamp was heard, and following site 1's moving tool,
     // the follower is that second plus the stamp's transit behind site 1's stamped time
     // (site 1 runs on at real time): the stamp kept its wall time across the start.
@@ -420,7 +436,24 @@ fn a_complete_session_waits_for_the_clock_of_every_site_it_knows() {
         !t.is_ready(3, clock.now().wall),
         "the wait counts from completion"
     );
+    // Incomplete again (the instructor left) and complete again (it joined again): the
+    // wait starts over.
+    let instructor = SiteEntry {
+        site: 1,
+        name: "site-1".into(),
+        role: Role::Instructor,
+    };
+    let leave = Message::Leave(proto::Leave {
+        site: 1,
+        reason: "gone".into(),
+    });
+    t.handle_message(&mut sim, leave, clock.now()).unwrap();
+    assert!(!t.is_ready(3, clock.now().wall), "two sites of three");
+    t.handle_message(&mut sim, Message::SiteJoined(instructor), clock.now())
+        .unwrap();
     clock.advance(1);
+    assert!(!t.is_ready(3, clock.now().wall), "the wait starts over");
+    clock.advance(PRESENCE_WAIT.as_millis() as u64 + 1);
     assert!(t.is_ready(3, clock.now().wall));
 
     // An observer sends no clock.
