@@ -8,8 +8,8 @@
 //! (`tests.rs`) and driven by `site::run_site` with a real link.
 //!
 //! It owns the joining and the start of the clock (`start.rs`: the site starts once every
-//! site it knows of is heard), the site table ([`sites`]), region claims and releases ([`claims`]), the
-//! keyframe acknowledgements and delta baselines (`proto`'s [`BaselineTracker`]), the
+//! site it knows of is heard), the site table ([`sites`]), region claims and releases
+//! ([`claims`]), the keyframe acknowledgements and delta baselines (`proto`'s [`BaselineTracker`]), the
 //! frames waiting for the site's simulated time ([`inbox`]), the playout clock
 //! ([`pacing`]) and the scene epoch; and it is the only place where sim-core's sync frames
 //! become `proto` messages and back ([`wire`]). The simulation itself stays with the
@@ -721,13 +721,18 @@ impl SiteSession {
         let t = sim.time();
         if t >= self.next_stamp {
             self.next_stamp = t + SIM_TIME_INTERVAL;
-            self.datagram(Message::SimTime(proto::SimTimeStamp {
-                site: me,
-                sim_time_s: t,
-                step: sim.steps(),
-                wall_send_us: now.coordinator_us,
-            }));
+            self.send_clock(me, sim, now);
         }
+    }
+
+    /// Our simulation clock as it stands, to every other site (a datagram).
+    fn send_clock(&mut self, me: SiteId, sim: &Simulation, now: Now) {
+        self.datagram(Message::SimTime(proto::SimTimeStamp {
+            site: me,
+            sim_time_s: sim.time(),
+            step: sim.steps(),
+            wall_send_us: now.coordinator_us,
+        }));
     }
 
     /// Whether the local tool's pose is due at `t` (every step under input-only and

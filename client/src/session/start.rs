@@ -4,7 +4,7 @@
 use std::collections::BTreeSet;
 use std::time::Instant;
 
-use proto::{Message, Role, SiteId, Welcome};
+use proto::{Role, SiteId, Welcome};
 use sim_core::Simulation;
 use tracing::info;
 
@@ -60,9 +60,9 @@ impl SiteSession {
     }
 
     /// While waiting to start, a welcomed site (not an observer) that has its join
-    /// snapshot sends its clock as it stands every [`SIM_TIME_INTERVAL`] of wall time: the others count it as present
-    /// and wait for it ([`Self::is_ready`]). Call it in the wait loop; nothing once
-    /// started.
+    /// snapshot sends its clock as it stands every [`SIM_TIME_INTERVAL`] of wall time: the
+    /// others count it as present and wait for it ([`Self::is_ready`]). Call it in the
+    /// wait loop; nothing once started.
     pub fn announce_presence(&mut self, sim: &Simulation, now: Now) {
         // Not before the snapshot: a late joiner takes the session's time from it, and a
         // stamp at 0 followed by one at that time would read as a clock running fast.
@@ -79,12 +79,7 @@ impl SiteSession {
             return;
         }
         self.next_presence = wall + SIM_TIME_INTERVAL;
-        self.datagram(Message::SimTime(proto::SimTimeStamp {
-            site: me,
-            sim_time_s: sim.time(),
-            step: sim.steps(),
-            wall_send_us: now.coordinator_us,
-        }));
+        self.send_clock(me, sim, now);
     }
 
     /// Whether the join snapshot was seen, or [`SNAPSHOT_WAIT`] passed since the Welcome

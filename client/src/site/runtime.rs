@@ -634,7 +634,7 @@ fn wait_for_session(
             Some(other) => debug!(?other, "link event before start"),
             None => {}
         }
-        session.announce_presence(sim, now_of(clock, Some(link)));
+        session.announce_presence(sim, now);
         flush(Some(link), session);
         if session.is_ready(cfg.expect_sites, clock.now()) {
             info!(site = %cfg.name, id = ?session.site_id(), sites = session.sites().len(), "session complete, starting");
