@@ -183,7 +183,9 @@ pub fn run(args: RunArgs) -> Result<()> {
     };
     writer.write_frame(&sim, &frames(&interaction), None)?;
     let mut step_ms = Vec::with_capacity(steps as usize);
-    let mut max_force: f64 = 0.0;
+    // The largest force on any tool, which tool and when: a spike points at the script's
+    // moment where contact misbehaves.
+    let mut max_force: (f64, usize, f64) = (0.0, 0, 0.0);
     // Steps and CG iterations per linear solver (`auto` may move from one to another).
     let mut solves: std::collections::BTreeMap<&'static str, (u64, usize)> = Default::default();
     for k in 1..=steps {
@@ -201,14 +203,19 @@ pub fn run(args: RunArgs) -> Result<()> {
                 ms,
                 rebuilt = report.rebuilt,
                 cg_iterations = report.fem.cg_iterations,
+                newton_iterations = report.fem.newton_iterations,
+                fallback = report.fem.fallback,
+                inverted = report.fem.inverted,
                 "step longer than its simulated time"
             );
         }
         let entry = solves.entry(report.fem.solver.name()).or_default();
         entry.0 += 1;
         entry.1 += report.fem.cg_iterations;
-        for c in &interaction.state().tools {
-            max_force = max_force.max(c.force.norm());
+        for (i, c) in interaction.state().tools.iter().enumerate() {
+            if c.force.norm() > max_force.0 {
+                max_force = (c.force.norm(), i, sim.time());
+            }
         }
         if k % frame_every == 0 {
             writer.write_frame(
@@ -240,7 +247,13 @@ pub fn run(args: RunArgs) -> Result<()> {
             *iterations as f64 / *n as f64
         );
     }
-    println!("largest tool force {max_force:.3} N");
+    match interaction.tools.tools.get(max_force.1) {
+        Some(tool) if max_force.0 > 0.0 => println!(
+            "largest tool force {:.3} N ({} at t = {:.3} s)",
+            max_force.0, tool.name, max_force.2
+        ),
+        _ => println!("largest tool force 0.000 N"),
+    }
     for (name, p) in sim.probes() {
         println!("probe {name}: [{:.6}, {:.6}, {:.6}] m", p.x, p.y, p.z);
     }

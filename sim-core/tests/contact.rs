@@ -594,3 +594,131 @@ fn a_grasp_tears_only_where_tearing_is_on_and_always_lets_go_when_the_jaws_open(
         }
     }
 }
+
+/// A leaf turned inside out turns the surface triangles it hosts inside out too: their
+/// normals point into the tissue. A tool beside them must not read that as penetration:
+/// it would push the tissue further through itself (on the default organ with its
+/// gallbladder at level 5 it did, 2026-11-29: one inverted element became 155 within
+/// 0.2 s, 154 samples of the hook read as penetrating and it felt 68 N). Here the host
+/// leaf of the top face's centre vertex is inverted by mirroring that vertex's node
+/// through the leaf's opposite face, and a probe is held at the vertex.
+#[test]
+fn a_tool_does_not_push_on_surface_turned_inside_out_by_an_inverted_leaf() {
+    let probe_at_centre_vertex = |invert: bool, lift: f64| {
+        let mut sim = sim_of(block_scene(0, true, false, false));
+        let centre = V3::new(0.04, 0.04, 0.04);
+        let surface = &sim.surfaces()[0];
+        let v = (0..surface.rest.vertices.len())
+            .find(|&v| (surface.rest.vertices[v] - centre).norm() < 1e-9)
+            .expect("a surface vertex at the top face's centre");
+        let (nodes, w) = sim.surface_vertex_host(0, v);
+        let k = (0..4).max_by(|&a, &b| w[a].total_cmp(&w[b])).unwrap();
+        assert!(w[k] > 1.0 - 1e-9, "the vertex sits on a lattice node");
+        let x = sim.positions();
+        let moved = if invert {
+            // Mirror the node through the plane of the other three: det F changes sign.
+            let o: Vec<V3> = (0..4).filter(|&j| j != k).map(|j| x[nodes[j]]).collect();
+            let n = (o[1] - o[0]).cross(&(o[2] - o[0])).normalize();
+            x[nodes[k]] - 2.0 * n * (x[nodes[k]] - o[0]).dot(&n)
+        } else {
+            x[nodes[k]]
+        };
+        sim.set_node_state(NodeId(nodes[k] as u32), moved, V3::zeros());
+        let mut ia = Interaction::new(&sim);
+        let input = probe_at(moved.z + lift, moved.x);
+        ia.before_step(&mut sim, &[input]).unwrap();
+        let st = ia.state();
+        (
+            st.tools[0].contacts.len(),
+            st.tools[0].force,
+            st.stats.samples_on_inverted,
+            moved,
+        )
+    };
+    // Untouched: 4 mm under the vertex the probe is pushed up (detection works here), 4 mm
+    // over it the probe is in the air.
+    let (contacts, force, on_inverted, _) = probe_at_centre_vertex(false, -0.004);
+    assert!(
+        contacts > 0 && force.z > 0.0,
+        "{contacts} contacts, force {force:?} N"
+    );
+    assert_eq!(on_inverted, 0);
+    assert_eq!(probe_at_centre_vertex(false, 0.004).0, 0);
+    // Inverted: the vertex's node now lies on the block's side face, the top face folds
+    // over to it, and the probe 4 mm over the vertex is still in the air above the top
+    // face. Its samples are nearest the inside-out triangles, and touch nothing (before
+    // this was handled: 2 samples read as penetrating, 7.2 N).
+    for lift in [0.006, 0.004, 0.002] {
+        let (contacts, force, on_inverted, moved) = probe_at_centre_vertex(true, lift);
+        assert!(moved.x < 0.001, "the node went to the side face: {moved:?}");
+        assert!(
+            on_inverted > 0,
+            "{lift} m over: no sample nearest the inverted leaf"
+        );
+        assert_eq!(
+            contacts, 0,
+            "{lift} m over: force {force:?} N from inside-out triangles"
+        );
+    }
+}
+
+/// Contact fades as a leaf collapses towards inversion rather than switching off when it
+/// inverts: every contact's normal force is `ω k_c d` with `ω = clamp(J / J_fade, 0, 1)`,
+/// `J` the least volume ratio over the host leaves of its triangle's vertices (recomputed
+/// here from the positions). The top face's centre node is moved 7/8 of the way to the
+/// opposite face of its vertex's host leaf (that leaf at J = 1/8), and a still probe
+/// presses 4 mm into the face beside it.
+#[test]
+fn contact_weakens_in_proportion_as_its_leaf_collapses() {
+    let mut sim = sim_of(block_scene(0, true, false, false));
+    let centre = V3::new(0.04, 0.04, 0.04);
+    let surface = &sim.surfaces()[0];
+    let v = (0..surface.rest.vertices.len())
+        .find(|&v| (surface.rest.vertices[v] - centre).norm() < 1e-9)
+        .expect("a surface vertex at the top face's centre");
+    let (nodes, w) = sim.surface_vertex_host(0, v);
+    let k = (0..4).max_by(|&a, &b| w[a].total_cmp(&w[b])).unwrap();
+    let x = sim.positions();
+    let o: Vec<V3> = (0..4).filter(|&j| j != k).map(|j| x[nodes[j]]).collect();
+    let n = (o[1] - o[0]).cross(&(o[2] - o[0])).normalize();
+    let moved = x[nodes[k]] - n * (x[nodes[k]] - o[0]).dot(&n) * 7.0 / 8.0;
+    sim.set_node_state(NodeId(nodes[k] as u32), moved, V3::zeros());
+    let mut ia = Interaction::new(&sim);
+    let params = ia.contact.params;
+    let input = probe_at(0.036, 0.03);
+    // Twice at the same pose: the second pass sees a still tool (no damping force).
+    ia.before_step(&mut sim, &[input]).unwrap();
+    ia.before_step(&mut sim, &[input]).unwrap();
+
+    let x = sim.positions();
+    let volume = |p: [V3; 4]| (p[1] - p[0]).dot(&(p[2] - p[0]).cross(&(p[3] - p[0])));
+    let weight = |surface: usize, triangle: usize| {
+        sim.surfaces()[surface].rest.triangles[triangle]
+            .iter()
+            .map(|&v| {
+                let (d, _) = sim.surface_vertex_host(surface, v as usize);
+                let j = volume(d.map(|d| x[d])) / volume(d.map(|d| sim.dof_rest_position(d)));
+                (j / params.fade_volume_ratio).clamp(0.0, 1.0)
+            })
+            .fold(1.0, f64::min)
+    };
+    let contacts = &ia.state().tools[0].contacts;
+    assert!(!contacts.is_empty(), "the probe should touch the face");
+    let mut faded = 0;
+    for c in contacts {
+        let omega = weight(c.surface, c.triangle);
+        // `force` is what the sample applies to the tissue: inwards, against the normal.
+        let normal = -c.force.dot(&c.normal);
+        let expected = omega * params.stiffness * c.depth;
+        assert!(
+            (normal - expected).abs() <= 1e-9 * params.stiffness * c.depth,
+            "sample {}: normal force {normal} N, expected ω = {omega} × {} N",
+            c.sample,
+            params.stiffness * c.depth
+        );
+        if omega > 0.0 && omega < 1.0 {
+            faded += 1;
+        }
+    }
+    assert!(faded > 0, "no contact on the collapsing leaf's triangles");
+}

@@ -240,6 +240,29 @@ impl ContactPipeline {
         })
     }
 
+    /// Contact weight of global triangle `t` at this pass's positions: the least of its
+    /// vertices', each `clamp(J / J_fade, 0, 1)` with `J = det F` of the vertex's host
+    /// leaf ([`ContactParams::fade_volume_ratio`](super::ContactParams)). Computed only for
+    /// the triangles that samples end up nearest to, and cached for the pass.
+    fn tri_contact_weight(&mut self, sim: &Simulation, t: u32) -> f64 {
+        let (s, k) = self.tri_owner[t as usize];
+        let base = self.vert_base[s as usize];
+        let x = sim.positions();
+        let mut weight: f64 = 1.0;
+        for v in sim.surfaces()[s as usize].rest.triangles[k as usize] {
+            let g = (base + v) as usize;
+            if self.weight_stamp[g] != self.pass {
+                let (n, _) = sim.surface_vertex_host(s as usize, v as usize);
+                let rest = n.map(|d| sim.dof_rest_position(d));
+                let j = signed_volume(&n.map(|d| x[d])) / signed_volume(&rest);
+                self.vert_weight[g] = (j / self.params.fade_volume_ratio).clamp(0.0, 1.0);
+                self.weight_stamp[g] = self.pass;
+            }
+            weight = weight.min(self.vert_weight[g]);
+        }
+        weight
+    }
+
     /// Node weights of a point on global triangle `t` with barycentrics `bary`.
     pub(super) fn tri_weights(
         &self,
@@ -306,6 +329,7 @@ impl ContactPipeline {
                 };
                 if better {
                     best = Some(Hit {
+                        weight: 1.0,
                         tri: c.tri,
                         bary,
                         point: p,
@@ -314,6 +338,20 @@ impl ContactPipeline {
                     });
                 }
             }
+            // An inverted leaf turns the triangles it hosts inside out: their normals point
+            // into the tissue, so a sample nearest to one would read as deep and push the
+            // tissue further through itself, and the next triangle out would read deeper
+            // still. Such a sample touches nothing until the elements' own restoring force
+            // (the inversion rule of `sim_fem::polar`) has brought them back out; nearer
+            // inversion it touches more softly (`ContactParams::fade_volume_ratio`), so
+            // that contact does not switch off in one step.
+            if let Some(b) = &mut best {
+                b.weight = self.tri_contact_weight(sim, b.tri);
+            }
+            if best.is_some_and(|b| b.weight <= 0.0) {
+                self.state.stats.samples_on_inverted += 1;
+                best = None;
+            }
             *hit = best;
         }
         self.state.stats.narrow_tests += tests;
@@ -321,6 +359,11 @@ impl ContactPipeline {
         self.last_cands = cands;
         hits
     }
+}
+
+/// Six times the signed volume of tet `p` (m³).
+fn signed_volume(p: &[V3; 4]) -> f64 {
+    (p[1] - p[0]).dot(&(p[2] - p[0]).cross(&(p[3] - p[0])))
 }
 
 #[inline]

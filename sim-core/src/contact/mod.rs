@@ -71,6 +71,11 @@ pub struct ContactParams {
     pub tangential_stiffness: f64,
     /// Detection margin (m): surface points farther than this from a sample are ignored.
     pub margin: f64,
+    /// Volume ratio `J = det F` of a host leaf below which contact on the surface
+    /// triangles it hosts weakens in proportion, to none at `J ≤ 0` (dimensionless).
+    /// An inverted leaf turns its triangles inside out; this keeps contact from
+    /// switching off in one step as a leaf collapses.
+    pub fade_volume_ratio: f64,
     /// Grasp spring per attached point (N/m).
     pub grasp_stiffness: f64,
     /// Grasp damping per attached point (N·s/m).
@@ -84,6 +89,8 @@ pub struct ContactParams {
 impl ContactParams {
     /// Defaults for a simulation: `k_c` from the scene's `contact_stiffness`, `c = 0.005 s
     /// · k_c`, μ = 0.3, `k_t = k_c`, margin = twice the largest tool radius (≥ 2 mm),
+    /// contact fading below a quarter of a leaf's rest volume (tissue a tool presses
+    /// keeps `J` near 1 at ν ≈ 0.45; only a leaf collapsing towards inversion passes it),
     /// grasp springs `4 k_c` with `0.005 s` damping, capture distance = the largest tool
     /// radius, tearing at 2 cm.
     pub fn from_sim(sim: &Simulation) -> Self {
@@ -101,6 +108,7 @@ impl ContactParams {
             friction: 0.3,
             tangential_stiffness: k,
             margin: (2.0 * r).max(0.002),
+            fade_volume_ratio: 0.25,
             grasp_stiffness: 4.0 * k,
             grasp_damping: 0.005 * 4.0 * k,
             grasp_capture: r,
@@ -124,6 +132,9 @@ pub struct ContactStats {
     pub leaf_tests: u64,
     /// Candidate triangles gathered from hit leaves.
     pub candidate_triangles: u64,
+    /// Samples nearest to a triangle with a vertex in an inverted leaf, left without
+    /// contact.
+    pub samples_on_inverted: u64,
     /// Exact point–triangle closest-point tests.
     pub narrow_tests: u64,
     /// Penetrating samples found.
@@ -287,6 +298,8 @@ struct Cand {
 #[derive(Clone, Copy, Debug)]
 struct Hit {
     tri: u32,
+    /// Contact weight in [0, 1] of the triangle (`ContactPipeline::tri_contact_weight`).
+    weight: f64,
     bary: [f64; 3],
     point: V3,
     normal: V3,
@@ -307,6 +320,11 @@ pub struct ContactPipeline {
     vert_base: Vec<u32>,
     /// Deformed vertex cache of the current pass.
     vert_pos: Vec<V3>,
+    /// Contact weight of each vertex at the pass's positions (when `weight_stamp` is the
+    /// pass): 1, less as its host leaf collapses towards inversion, 0 once inverted
+    /// ([`ContactParams::fade_volume_ratio`]).
+    vert_weight: Vec<f64>,
+    weight_stamp: Vec<u32>,
     vert_stamp: Vec<u32>,
     pass: u32,
     tri_stamp: Vec<u32>,
@@ -341,6 +359,8 @@ impl ContactPipeline {
             tri_edge,
             vert_base,
             vert_pos: vec![V3::zeros(); verts as usize],
+            vert_weight: vec![1.0; verts as usize],
+            weight_stamp: vec![0; verts as usize],
             vert_stamp: vec![0; verts as usize],
             pass: 0,
             stamp: 0,
@@ -481,6 +501,7 @@ impl ContactPipeline {
         self.pass = self.pass.wrapping_add(1);
         if self.pass == 0 {
             self.vert_stamp.iter_mut().for_each(|s| *s = 0);
+            self.weight_stamp.iter_mut().for_each(|s| *s = 0);
             self.pass = 1;
         }
         // Node slots: the lattice's, then (after a cut) the virtual nodes'.
@@ -501,6 +522,8 @@ impl ContactPipeline {
             self.tri_edge = tri_edge;
             self.vert_base = vert_base;
             self.vert_pos = vec![V3::zeros(); verts as usize];
+            self.vert_weight = vec![1.0; verts as usize];
+            self.weight_stamp = vec![0; verts as usize];
             self.vert_stamp = vec![0; verts as usize];
             self.topo = Topology::default();
             self.last_cands.clear();

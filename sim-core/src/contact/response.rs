@@ -93,7 +93,6 @@ impl ContactPipeline {
     ) {
         let tool = &tools.tools[ti];
         let tip = tool.tip();
-        let p = self.params;
         let v = sim.velocities();
         let mut w: Vec<(u32, f64)> = Vec::with_capacity(12);
         let mut wa: Vec<(u32, f64)> = Vec::with_capacity(12);
@@ -103,6 +102,11 @@ impl ContactPipeline {
                 self.memory[ti].anchors[si] = None;
                 continue;
             };
+            // Softer on tissue collapsing towards inversion (`Hit::weight`).
+            let mut p = self.params;
+            p.stiffness *= h.weight;
+            p.damping *= h.weight;
+            p.tangential_stiffness *= h.weight;
             let n = h.normal;
             let depth = (h.point - s).dot(&n);
             self.tri_weights(sim, h.tri, &h.bary, &mut w);

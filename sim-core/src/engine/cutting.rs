@@ -399,6 +399,16 @@ impl Simulation {
         (n.map(|n| n.0 as usize), w)
     }
 
+    /// Rest position (m) of degree of freedom `d`: a lattice node's, or once a cut exists
+    /// a virtual node's (the rest position of the node it copies).
+    pub fn dof_rest_position(&self, d: usize) -> V3 {
+        let node = match &self.cut {
+            Some(c) => c.separation.dof_node(d),
+            None => NodeId(d as u32),
+        };
+        self.lattice.node_rest(node)
+    }
+
     /// The clips placed on the tissue ([`crate::clip`]).
     pub fn clips(&self) -> &crate::clip::Clips {
         &self.clips
@@ -654,13 +664,7 @@ impl Simulation {
 
     /// The rest point with barycentric coordinates `w` in the element of `dofs`.
     fn rest_of(&self, dofs: &[usize; 4], w: &[f64; 4]) -> V3 {
-        let node_of = |d: usize| match &self.cut {
-            Some(c) => c.separation.dof_node(d),
-            None => NodeId(d as u32),
-        };
-        (0..4)
-            .map(|k| w[k] * self.lattice.node_rest(node_of(dofs[k])))
-            .sum()
+        (0..4).map(|k| w[k] * self.dof_rest_position(dofs[k])).sum()
     }
 
     /// Applies lattice events that the cut code itself caused (refinement along a sheet).
