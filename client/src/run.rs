@@ -189,6 +189,8 @@ pub fn run(args: RunArgs) -> Result<()> {
     // Steps and CG iterations per linear solver (`auto` may move from one to another).
     let mut solves: std::collections::BTreeMap<&'static str, (u64, usize)> = Default::default();
     for k in 1..=steps {
+        // The time of this step's tool pass (its forces are reported below, after the step).
+        let pass_time = sim.time();
         let t0 = Instant::now();
         if !args.no_tools {
             let inputs = interaction.scripted_inputs(&sim, sim.time());
@@ -214,7 +216,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         entry.1 += report.fem.cg_iterations;
         for (i, c) in interaction.state().tools.iter().enumerate() {
             if c.force.norm() > max_force.0 {
-                max_force = (c.force.norm(), i, sim.time());
+                max_force = (c.force.norm(), i, pass_time);
             }
         }
         if k % frame_every == 0 {

@@ -137,9 +137,12 @@ fn follow(lag: usize) {
     // level with the owner (it extrapolates), 9.3 mm for one behind it (it holds the next
     // keyframe and interpolates towards it, but the snap is faster than the owner's 30 ms
     // keyframe rate cap), measured 2026-11-27. While keyframe sync decided refinement in
-    // rest space the receiver behind measured 12.1 mm. At the end the tissue has settled
-    // on both.
-    let bound = if lag > 1 { 0.010 } else { 0.015 };
+    // rest space the receiver behind measured 12.1 mm. Since contact fades on collapsing
+    // leaves and stops on inverted ones (2026-11-29; in the scene's scripted 2,500 steps
+    // a sample is nearest an inverted leaf's triangle 14 times, `contact_cost`), 12.2 and
+    // 10.2 mm (12.5 and 9.3 before, the same day). At the end the tissue has settled on
+    // both.
+    let bound = if lag > 1 { 0.011 } else { 0.015 };
     assert!(worst < bound, "receiver diverged by {worst} m");
     let a = &owner.surfaces()[0].deformed;
     let b = &recv.surfaces()[0].deformed;

@@ -66,13 +66,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("simulation step: mean {m:.0} µs, median {med:.0} µs, p99 {p99:.0} µs");
     let st = ia.state().stats;
     println!(
-        "passes run {}, narrow tests/pass {:.0}, candidate triangles/pass {:.0}, leaf tests/pass {:.0}, cache rebuilds {}, adaptivity passes {adapt_passes}, leaves now {}",
+        "passes run {}, narrow tests/pass {:.0}, candidate triangles/pass {:.0}, leaf tests/pass {:.0}, cache rebuilds {}, adaptivity passes {adapt_passes}, leaves now {}, samples nearest inverted leaves {}",
         st.passes_run,
         st.narrow_tests as f64 / st.passes_run as f64,
         st.candidate_triangles as f64 / st.passes_run as f64,
         st.leaf_tests as f64 / st.passes_run as f64,
         st.cache_rebuilds,
-        sim.lattice().leaf_count()
+        sim.lattice().leaf_count(),
+        st.samples_on_inverted
     );
     for t in &ia.state().tools {
         println!(

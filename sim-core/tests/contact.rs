@@ -3,6 +3,7 @@
 
 use std::path::Path;
 
+use cosurg_sim_core::contact::closest_point_triangle;
 use cosurg_sim_core::sim_fem::{Model, StiffnessMode};
 use cosurg_sim_core::sim_scene::{LoadedScene, Scene};
 use cosurg_sim_core::{
@@ -595,13 +596,51 @@ fn a_grasp_tears_only_where_tearing_is_on_and_always_lets_go_when_the_jaws_open(
     }
 }
 
+/// Tool 0's samples that lie under (against the normal of) their nearest surface triangle
+/// within `margin`, by brute force over all triangles of the deformed surfaces (no
+/// hierarchy, no candidates): what plain nearest-triangle contact would take for
+/// penetration.
+fn samples_under_nearest_triangle(sim: &Simulation, ia: &Interaction, margin: f64) -> usize {
+    let x = sim.positions();
+    let mut triangles: Vec<[V3; 3]> = Vec::new();
+    for (s, surface) in sim.surfaces().iter().enumerate() {
+        let at = |v: u32| {
+            let (n, w) = sim.surface_vertex_host(s, v as usize);
+            (0..4).map(|j| x[n[j]] * w[j]).sum::<V3>()
+        };
+        triangles.extend(surface.rest.triangles.iter().map(|t| t.map(at)));
+    }
+    ia.tools.tools[0]
+        .world_samples()
+        .iter()
+        .filter(|s| {
+            // Nearest point; where several triangles share it (an edge or a vertex), the
+            // one that sees the sample most squarely decides the side, as in contact.
+            let hits: Vec<(f64, f64)> = triangles
+                .iter()
+                .map(|t| {
+                    let p = closest_point_triangle(s, &t[0], &t[1], &t[2]).0;
+                    let n = (t[1] - t[0]).cross(&(t[2] - t[0])).normalize();
+                    ((p - **s).norm(), (p - **s).dot(&n))
+                })
+                .collect();
+            let nearest = hits.iter().map(|h| h.0).fold(f64::INFINITY, f64::min);
+            let squarest = hits
+                .iter()
+                .filter(|h| h.0 <= nearest + 1e-12 * margin)
+                .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()));
+            nearest <= margin && squarest.is_some_and(|h| h.1 > 0.0)
+        })
+        .count()
+}
+
 /// A leaf turned inside out turns the surface triangles it hosts inside out too: their
 /// normals point into the tissue. A tool beside them must not read that as penetration:
 /// it would push the tissue further through itself (on the default organ with its
 /// gallbladder at level 5 it did, 2026-11-29: one inverted element became 155 within
-/// 0.2 s, 154 samples of the hook read as penetrating and it felt 68 N). Here the host
+/// 0.5 s, 154 samples of the hook read as penetrating and it felt 68 N). Here the host
 /// leaf of the top face's centre vertex is inverted by mirroring that vertex's node
-/// through the leaf's opposite face, and a probe is held at the vertex.
+/// through the leaf's opposite face, and a probe is held over the vertex.
 #[test]
 fn a_tool_does_not_push_on_surface_turned_inside_out_by_an_inverted_leaf() {
     let probe_at_centre_vertex = |invert: bool, lift: f64| {
@@ -628,29 +667,36 @@ fn a_tool_does_not_push_on_surface_turned_inside_out_by_an_inverted_leaf() {
         let input = probe_at(moved.z + lift, moved.x);
         ia.before_step(&mut sim, &[input]).unwrap();
         let st = ia.state();
+        let under = samples_under_nearest_triangle(&sim, &ia, ia.contact.params.margin);
         (
             st.tools[0].contacts.len(),
             st.tools[0].force,
             st.stats.samples_on_inverted,
             moved,
+            under,
         )
     };
-    // Untouched: 4 mm under the vertex the probe is pushed up (detection works here), 4 mm
-    // over it the probe is in the air.
-    let (contacts, force, on_inverted, _) = probe_at_centre_vertex(false, -0.004);
+    // Untouched: 4 mm under the vertex the probe is pushed up, by as many samples as lie
+    // under their nearest triangle (detection works here); 4 mm over it, it is in the air.
+    let (contacts, force, on_inverted, _, under) = probe_at_centre_vertex(false, -0.004);
     assert!(
         contacts > 0 && force.z > 0.0,
         "{contacts} contacts, force {force:?} N"
     );
-    assert_eq!(on_inverted, 0);
+    assert_eq!((on_inverted, contacts), (0, under));
     assert_eq!(probe_at_centre_vertex(false, 0.004).0, 0);
     // Inverted: the vertex's node now lies on the block's side face, the top face folds
-    // over to it, and the probe 4 mm over the vertex is still in the air above the top
-    // face. Its samples are nearest the inside-out triangles, and touch nothing (before
-    // this was handled: 2 samples read as penetrating, 7.2 N).
+    // over to it, and the probe 2-6 mm over the vertex is in the air above the top face.
+    // Yet some of its samples lie under their nearest (inside-out) triangle, found here by
+    // brute force: what contact used to take for penetration (at 4 mm: 2 samples, 7.2 N).
+    // They must touch nothing.
     for lift in [0.006, 0.004, 0.002] {
-        let (contacts, force, on_inverted, moved) = probe_at_centre_vertex(true, lift);
+        let (contacts, force, on_inverted, moved, under) = probe_at_centre_vertex(true, lift);
         assert!(moved.x < 0.001, "the node went to the side face: {moved:?}");
+        assert!(
+            under > 0,
+            "{lift} m over: no sample under its nearest triangle"
+        );
         assert!(
             on_inverted > 0,
             "{lift} m over: no sample nearest the inverted leaf"
@@ -663,11 +709,11 @@ fn a_tool_does_not_push_on_surface_turned_inside_out_by_an_inverted_leaf() {
 }
 
 /// Contact fades as a leaf collapses towards inversion rather than switching off when it
-/// inverts: every contact's normal force is `ω k_c d` with `ω = clamp(J / J_fade, 0, 1)`,
-/// `J` the least volume ratio over the host leaves of its triangle's vertices (recomputed
-/// here from the positions). The top face's centre node is moved 7/8 of the way to the
-/// opposite face of its vertex's host leaf (that leaf at J = 1/8), and a still probe
-/// presses 4 mm into the face beside it.
+/// inverts: every contact's normal force is `ω k_c d`, with `ω` its triangle's vertex
+/// weights `clamp(J / J_fade, 0, 1)` interpolated at the contact point, `J` the volume
+/// ratio of each vertex's host leaf (recomputed here from the positions). The top face's
+/// centre node is moved 7/8 of the way to the opposite face of its vertex's host leaf
+/// (that leaf at J = 1/8), and a still probe presses 4 mm into the face beside it.
 #[test]
 fn contact_weakens_in_proportion_as_its_leaf_collapses() {
     let mut sim = sim_of(block_scene(0, true, false, false));
@@ -692,21 +738,36 @@ fn contact_weakens_in_proportion_as_its_leaf_collapses() {
 
     let x = sim.positions();
     let volume = |p: [V3; 4]| (p[1] - p[0]).dot(&(p[2] - p[0]).cross(&(p[3] - p[0])));
-    let weight = |surface: usize, triangle: usize| {
-        sim.surfaces()[surface].rest.triangles[triangle]
+    let ratio =
+        |d: [usize; 4]| volume(d.map(|d| x[d])) / volume(d.map(|d| sim.dof_rest_position(d)));
+    // The construction's own J, independent of the contact code: 1/8.
+    assert!((ratio(nodes) - 0.125).abs() < 1e-12, "J = {}", ratio(nodes));
+    // Per vertex ω = clamp(J / J_fade, 0, 1); at a point, 0 if a vertex's is, else the
+    // vertices' interpolated.
+    let weight = |surface: usize, triangle: usize, bary: &[f64; 3]| {
+        let omega: Vec<f64> = sim.surfaces()[surface].rest.triangles[triangle]
             .iter()
             .map(|&v| {
-                let (d, _) = sim.surface_vertex_host(surface, v as usize);
-                let j = volume(d.map(|d| x[d])) / volume(d.map(|d| sim.dof_rest_position(d)));
+                let j = ratio(sim.surface_vertex_host(surface, v as usize).0);
                 (j / params.fade_volume_ratio).clamp(0.0, 1.0)
             })
-            .fold(1.0, f64::min)
+            .collect();
+        if omega.contains(&0.0) {
+            0.0
+        } else {
+            omega.iter().zip(bary).map(|(o, b)| o * b).sum()
+        }
     };
     let contacts = &ia.state().tools[0].contacts;
     assert!(!contacts.is_empty(), "the probe should touch the face");
     let mut faded = 0;
     for c in contacts {
-        let omega = weight(c.surface, c.triangle);
+        let omega = weight(c.surface, c.triangle, &c.bary);
+        assert!(
+            (c.weight - omega).abs() <= 1e-12,
+            "reported ω {} vs {omega}",
+            c.weight
+        );
         // `force` is what the sample applies to the tissue: inwards, against the normal.
         let normal = -c.force.dot(&c.normal);
         let expected = omega * params.stiffness * c.depth;

@@ -8,6 +8,7 @@ use nalgebra::Vector3;
 use sim_lattice::TetId;
 
 use super::{Cand, ContactPipeline, Hit, STRETCH, Topology};
+use crate::cut::predicates::orient3d;
 use crate::engine::Simulation;
 use crate::tools::ToolSet;
 
@@ -240,25 +241,40 @@ impl ContactPipeline {
         })
     }
 
-    /// Contact weight of global triangle `t` at this pass's positions: the least of its
-    /// vertices', each `clamp(J / J_fade, 0, 1)` with `J = det F` of the vertex's host
-    /// leaf ([`ContactParams::fade_volume_ratio`](super::ContactParams)). Computed only for
-    /// the triangles that samples end up nearest to, and cached for the pass.
-    fn tri_contact_weight(&mut self, sim: &Simulation, t: u32) -> f64 {
+    /// Contact weight of the point with barycentrics `bary` on global triangle `t`, at
+    /// this pass's positions. Each vertex has `ω_v = clamp(J / J_fade, 0, 1)`, with
+    /// `J = det F` of its host leaf and `J_fade` the [`ContactParams::fade_volume_ratio`]
+    /// (non-positive or NaN `J`: 0). The point's weight is 0 when a vertex's is (the
+    /// triangle is inside out), else the vertices' weights interpolated, so that it is
+    /// continuous across the edges between triangles. Computed only for the triangles
+    /// samples end up nearest to, and cached per vertex for the pass.
+    fn contact_weight(&mut self, sim: &Simulation, t: u32, bary: &[f64; 3]) -> f64 {
         let (s, k) = self.tri_owner[t as usize];
         let base = self.vert_base[s as usize];
         let x = sim.positions();
-        let mut weight: f64 = 1.0;
-        for v in sim.surfaces()[s as usize].rest.triangles[k as usize] {
+        let corners = sim.surfaces()[s as usize].rest.triangles[k as usize];
+        let mut weight = 0.0;
+        for (v, b) in corners.into_iter().zip(bary) {
             let g = (base + v) as usize;
             if self.weight_stamp[g] != self.pass {
                 let (n, _) = sim.surface_vertex_host(s as usize, v as usize);
+                // A ratio of two orientations of the same node order: the order's sign
+                // cancels, and the sign of the deformed one is exact (every site agrees on
+                // which leaves are inverted).
                 let rest = n.map(|d| sim.dof_rest_position(d));
-                let j = signed_volume(&n.map(|d| x[d])) / signed_volume(&rest);
-                self.vert_weight[g] = (j / self.params.fade_volume_ratio).clamp(0.0, 1.0);
+                let j = orient3d(&x[n[0]], &x[n[1]], &x[n[2]], &x[n[3]])
+                    / orient3d(&rest[0], &rest[1], &rest[2], &rest[3]);
+                self.vert_weight[g] = if j > 0.0 {
+                    (j / self.params.fade_volume_ratio).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
                 self.weight_stamp[g] = self.pass;
             }
-            weight = weight.min(self.vert_weight[g]);
+            if self.vert_weight[g] <= 0.0 {
+                return 0.0;
+            }
+            weight += b * self.vert_weight[g];
         }
         weight
     }
@@ -346,7 +362,7 @@ impl ContactPipeline {
             // inversion it touches more softly (`ContactParams::fade_volume_ratio`), so
             // that contact does not switch off in one step.
             if let Some(b) = &mut best {
-                b.weight = self.tri_contact_weight(sim, b.tri);
+                b.weight = self.contact_weight(sim, b.tri, &b.bary);
             }
             if best.is_some_and(|b| b.weight <= 0.0) {
                 self.state.stats.samples_on_inverted += 1;
@@ -359,11 +375,6 @@ impl ContactPipeline {
         self.last_cands = cands;
         hits
     }
-}
-
-/// Six times the signed volume of tet `p` (m³).
-fn signed_volume(p: &[V3; 4]) -> f64 {
-    (p[1] - p[0]).dot(&(p[2] - p[0]).cross(&(p[3] - p[0])))
 }
 
 #[inline]

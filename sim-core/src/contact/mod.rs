@@ -18,7 +18,11 @@
 //! normal `n`) pushes the tissue with `f = −(k_c d + c ḋ) n` (no pull), plus a regularised
 //! Coulomb friction spring `f_t = −k_t P (a − s)` between a surface anchor `a` and the
 //! sample `s` (`P = I − n nᵀ`), capped at `μ k_c d`; when it slips, the anchor moves along
-//! the surface so that the spring sits at the cap. Each force is spread onto the lattice
+//! the surface so that the spring sits at the cap. On tissue collapsing towards inversion
+//! `k_c`, `c` and `k_t` are scaled by a weight `ω` that falls from 1 to 0 with the host
+//! leaves' volume ratio ([`ContactParams::fade_volume_ratio`]); a sample nearest to a
+//! triangle with a vertex in an inverted leaf (inside out: its normal points into the
+//! tissue) touches nothing. Each force is spread onto the lattice
 //! nodes with the weights `β_v w_{v,i}` (triangle barycentrics × each vertex's host-tet
 //! weights), so that `Σ w_i x_i` is the application point and force and torque balance
 //! exactly. Its stiffness goes into the implicit step as row-sum-lumped diagonal blocks
@@ -74,7 +78,7 @@ pub struct ContactParams {
     /// Volume ratio `J = det F` of a host leaf below which contact on the surface
     /// triangles it hosts weakens in proportion, to none at `J ≤ 0` (dimensionless).
     /// An inverted leaf turns its triangles inside out; this keeps contact from
-    /// switching off in one step as a leaf collapses.
+    /// switching off in one step as a leaf collapses. 0: full contact until `J ≤ 0`.
     pub fade_volume_ratio: f64,
     /// Grasp spring per attached point (N/m).
     pub grasp_stiffness: f64,
@@ -132,8 +136,8 @@ pub struct ContactStats {
     pub leaf_tests: u64,
     /// Candidate triangles gathered from hit leaves.
     pub candidate_triangles: u64,
-    /// Samples nearest to a triangle with a vertex in an inverted leaf, left without
-    /// contact.
+    /// Samples whose nearest surface point (within the margin, penetrating or not) lies on
+    /// a triangle with a vertex in an inverted leaf: they are given no surface point.
     pub samples_on_inverted: u64,
     /// Exact point–triangle closest-point tests.
     pub narrow_tests: u64,
@@ -158,6 +162,9 @@ pub struct ContactPoint {
     pub rest: V3,
     /// Outward surface normal.
     pub normal: V3,
+    /// Contact weight `ω` in (0, 1] that scaled this sample's stiffness, damping and
+    /// friction ([`ContactParams::fade_volume_ratio`]).
+    pub weight: f64,
     /// Penetration depth (m).
     pub depth: f64,
     /// Force on the tissue (normal + friction + damping, N).
@@ -176,7 +183,7 @@ pub struct LocalModel {
     /// Torque on the tool about its tip (N·m).
     pub torque: V3,
     /// `∂[F; τ]/∂[δ; θ]` (symmetric, negative semi-definite; geometric terms of the
-    /// moving lever arm neglected). Its top-left block is `−Σ K_s` (e.g. `−Σ k_c n nᵀ`).
+    /// moving lever arm neglected). Its top-left block is `−Σ K_s` (e.g. `−Σ ω k_c n nᵀ`).
     pub stiffness: Matrix6<f64>,
 }
 
@@ -298,7 +305,7 @@ struct Cand {
 #[derive(Clone, Copy, Debug)]
 struct Hit {
     tri: u32,
-    /// Contact weight in [0, 1] of the triangle (`ContactPipeline::tri_contact_weight`).
+    /// Contact weight in [0, 1] at the point (`ContactPipeline::contact_weight`).
     weight: f64,
     bary: [f64; 3],
     point: V3,

@@ -178,6 +178,7 @@ impl ContactPipeline {
                 point: h.point,
                 rest,
                 normal: n,
+                weight: h.weight,
                 depth,
                 force: total,
                 sticking,
