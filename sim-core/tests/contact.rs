@@ -634,6 +634,29 @@ fn samples_under_nearest_triangle(sim: &Simulation, ia: &Interaction, margin: f6
         .count()
 }
 
+/// The host leaf of the block's top-face centre vertex: its nodes, and which of them the
+/// vertex sits on.
+fn centre_vertex_host(sim: &Simulation) -> ([usize; 4], usize) {
+    let centre = V3::new(0.04, 0.04, 0.04);
+    let surface = &sim.surfaces()[0];
+    let v = (0..surface.rest.vertices.len())
+        .find(|&v| (surface.rest.vertices[v] - centre).norm() < 1e-9)
+        .expect("a surface vertex at the top face's centre");
+    let (nodes, w) = sim.surface_vertex_host(0, v);
+    let k = (0..4).max_by(|&a, &b| w[a].total_cmp(&w[b])).unwrap();
+    assert!(w[k] > 1.0 - 1e-9, "the vertex sits on a lattice node");
+    (nodes, k)
+}
+
+/// Node `k` of leaf `nodes` moved towards the plane of the other three by `fraction` of
+/// its distance to it: the leaf's volume ratio becomes `1 − fraction` (2: mirrored).
+fn towards_opposite_face(sim: &Simulation, nodes: [usize; 4], k: usize, fraction: f64) -> V3 {
+    let x = sim.positions();
+    let o: Vec<V3> = (0..4).filter(|&j| j != k).map(|j| x[nodes[j]]).collect();
+    let n = (o[1] - o[0]).cross(&(o[2] - o[0])).normalize();
+    x[nodes[k]] - n * (x[nodes[k]] - o[0]).dot(&n) * fraction
+}
+
 /// A leaf turned inside out turns the surface triangles it hosts inside out too: their
 /// normals point into the tissue. A tool beside them must not read that as penetration:
 /// it would push the tissue further through itself (on the default organ with its
@@ -645,23 +668,9 @@ fn samples_under_nearest_triangle(sim: &Simulation, ia: &Interaction, margin: f6
 fn a_tool_does_not_push_on_surface_turned_inside_out_by_an_inverted_leaf() {
     let probe_at_centre_vertex = |invert: bool, lift: f64| {
         let mut sim = sim_of(block_scene(0, true, false, false));
-        let centre = V3::new(0.04, 0.04, 0.04);
-        let surface = &sim.surfaces()[0];
-        let v = (0..surface.rest.vertices.len())
-            .find(|&v| (surface.rest.vertices[v] - centre).norm() < 1e-9)
-            .expect("a surface vertex at the top face's centre");
-        let (nodes, w) = sim.surface_vertex_host(0, v);
-        let k = (0..4).max_by(|&a, &b| w[a].total_cmp(&w[b])).unwrap();
-        assert!(w[k] > 1.0 - 1e-9, "the vertex sits on a lattice node");
-        let x = sim.positions();
-        let moved = if invert {
-            // Mirror the node through the plane of the other three: det F changes sign.
-            let o: Vec<V3> = (0..4).filter(|&j| j != k).map(|j| x[nodes[j]]).collect();
-            let n = (o[1] - o[0]).cross(&(o[2] - o[0])).normalize();
-            x[nodes[k]] - 2.0 * n * (x[nodes[k]] - o[0]).dot(&n)
-        } else {
-            x[nodes[k]]
-        };
+        let (nodes, k) = centre_vertex_host(&sim);
+        // Mirrored through the plane of the other three: det F changes sign.
+        let moved = towards_opposite_face(&sim, nodes, k, if invert { 2.0 } else { 0.0 });
         sim.set_node_state(NodeId(nodes[k] as u32), moved, V3::zeros());
         let mut ia = Interaction::new(&sim);
         let input = probe_at(moved.z + lift, moved.x);
@@ -717,17 +726,8 @@ fn a_tool_does_not_push_on_surface_turned_inside_out_by_an_inverted_leaf() {
 #[test]
 fn contact_weakens_in_proportion_as_its_leaf_collapses() {
     let mut sim = sim_of(block_scene(0, true, false, false));
-    let centre = V3::new(0.04, 0.04, 0.04);
-    let surface = &sim.surfaces()[0];
-    let v = (0..surface.rest.vertices.len())
-        .find(|&v| (surface.rest.vertices[v] - centre).norm() < 1e-9)
-        .expect("a surface vertex at the top face's centre");
-    let (nodes, w) = sim.surface_vertex_host(0, v);
-    let k = (0..4).max_by(|&a, &b| w[a].total_cmp(&w[b])).unwrap();
-    let x = sim.positions();
-    let o: Vec<V3> = (0..4).filter(|&j| j != k).map(|j| x[nodes[j]]).collect();
-    let n = (o[1] - o[0]).cross(&(o[2] - o[0])).normalize();
-    let moved = x[nodes[k]] - n * (x[nodes[k]] - o[0]).dot(&n) * 7.0 / 8.0;
+    let (nodes, k) = centre_vertex_host(&sim);
+    let moved = towards_opposite_face(&sim, nodes, k, 7.0 / 8.0);
     sim.set_node_state(NodeId(nodes[k] as u32), moved, V3::zeros());
     let mut ia = Interaction::new(&sim);
     let params = ia.contact.params;

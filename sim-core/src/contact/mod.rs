@@ -22,10 +22,9 @@
 //! `k_c`, `c` and `k_t` are scaled by a weight `ω` that falls from 1 to 0 with the host
 //! leaves' volume ratio ([`ContactParams::fade_volume_ratio`]); a sample nearest to a
 //! triangle with a vertex in an inverted leaf (inside out: its normal points into the
-//! tissue) touches nothing. Each force is spread onto the lattice
-//! nodes with the weights `β_v w_{v,i}` (triangle barycentrics × each vertex's host-tet
-//! weights), so that `Σ w_i x_i` is the application point and force and torque balance
-//! exactly. Its stiffness goes into the implicit step as row-sum-lumped diagonal blocks
+//! tissue) touches nothing. Each force is spread onto the lattice nodes with the weights
+//! `β_v w_{v,i}` (triangle barycentrics × each vertex's host-tet weights), so that
+//! `Σ w_i x_i` is the application point and force and torque balance exactly. Its stiffness goes into the implicit step as row-sum-lumped diagonal blocks
 //! `K_i = |w_i| Σ_j |w_j| K` (`K = k_c n nᵀ + k_t P`), which dominate the exact
 //! `w wᵀ ⊗ K` and keep stiff contact stable; the tissue-velocity part of the damping is
 //! made implicit by adding `c/dt · n nᵀ` to the same blocks (the linearised step's
