@@ -4,7 +4,7 @@
 //! the instructor clips the cystic duct, trainee A takes the clip applier and clips it
 //! again, and the instructor divides it between the clips with the blade. At the end every
 //! site has applied the same topology ops (epoch) with the same result (digest): the whole
-//! bed released, both clips and one cut; and the sites stayed close to each other.
+//! bed released, both clips and the duct divided; and the sites stayed close to each other.
 
 use std::process::Command;
 use std::time::Duration;
@@ -41,10 +41,15 @@ fn demo_dissection_clips_and_cut_end_with_the_same_topology_on_every_site() {
     assert!(digests.iter().all(|d| *d == digests[0]), "{digests:?}");
     assert_eq!(field("springs_released"), vec![272; 3], "{summary}");
     assert_eq!(field("clips"), vec![2; 3], "both clips land: {summary}");
-    assert_eq!(
-        field("cuts"),
-        vec![1; 3],
-        "one cut divides the duct: {summary}"
+    // The blade rises once through the duct. A stroke is committed when the blade's edge
+    // is wholly out of the tissue, so an edge that leaves it and re-enters it on the way
+    // up makes two ops; each is extended a quarter cell past its ends, so together they
+    // still divide what the edge passed through. One CI run of `da15c6e` saw
+    // two on every site, with equal digests; runs usually see one.
+    let cuts = field("cuts");
+    assert!(
+        (1..=2).contains(&cuts[0]) && cuts.iter().all(|c| *c == cuts[0]),
+        "the blade's stroke divides the duct, in the same ops on every site: {summary}"
     );
     for s in sites {
         let d = s["divergence_max_mm"].as_f64().unwrap();
