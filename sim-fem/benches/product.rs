@@ -1,5 +1,6 @@
 //! CG's sparse product on the cantilever beams' Kuhn lattices (5,184 and 12,288 tets): the
-//! symmetric upper-stored product against the full-row one (`solver/full_product.rs`,
+//! symmetric upper-stored product (in place, scalar; and copied into contiguous rows,
+//! vectorised: `solver/upper_product.rs`) against the full-row one (`solver/full_product.rs`,
 //! vectorised with AVX where the CPU has it), and the per-step copy into full rows that the
 //! full-row product needs. A step makes one copy and one product per CG iteration.
 
@@ -16,8 +17,8 @@ fn main() {
     divan::main();
 }
 
-/// Cells of the 0.4 × 0.1 × 0.1 m beam: 5,184 and 12,288 tets.
-const CELLS: [[usize; 3]; 2] = [[24, 6, 6], [32, 8, 8]];
+/// Cells of the 0.4 × 0.1 × 0.1 m beam: 5,184, 12,288 and 98,304 tets.
+const CELLS: [[usize; 3]; 3] = [[24, 6, 6], [32, 8, 8], [64, 16, 16]];
 
 /// The beam's pattern, random upper blocks (diagonally dominant) and a random vector.
 fn setup(cells: [usize; 3]) -> (BlockPattern, Vec<Matrix3<f64>>, Vec<V3>) {
@@ -47,6 +48,23 @@ fn upper_product(bencher: Bencher, cells: [usize; 3]) {
     let (pat, upper, p) = setup(cells);
     let mut out = vec![V3::zeros(); p.len()];
     bencher.bench_local(|| pat.multiply_upper(&upper, &p, &mut out));
+}
+
+#[divan::bench(args = CELLS)]
+fn upper_rows_product(bencher: Bencher, cells: [usize; 3]) {
+    let (pat, upper, p) = setup(cells);
+    let mut rows = cosurg_sim_fem::solver::UpperRows::default();
+    rows.copy_from(&pat, &upper);
+    let mut out = vec![V3::zeros(); p.len()];
+    bencher.bench_local(|| rows.multiply(&p, &mut out));
+}
+
+#[divan::bench(args = CELLS)]
+fn copy_into_upper_rows(bencher: Bencher, cells: [usize; 3]) {
+    let (pat, upper, _) = setup(cells);
+    let mut rows = cosurg_sim_fem::solver::UpperRows::default();
+    rows.copy_from(&pat, &upper);
+    bencher.bench_local(|| rows.copy_from(&pat, &upper));
 }
 
 #[divan::bench(args = CELLS)]

@@ -5,7 +5,9 @@ use nalgebra::{Matrix3, Vector3};
 
 mod cg_vectors;
 mod full_product;
+mod upper_product;
 pub use full_product::RowBlock;
+pub use upper_product::UpperRows;
 
 use cg_vectors::{flat, flat_mut};
 
@@ -330,6 +332,10 @@ impl BlockPattern {
     /// Number of 3×3 blocks.
     pub fn num_blocks(&self) -> usize {
         self.cols.len()
+    }
+    /// Number of 3×3 blocks on and above the diagonal (those a symmetric assembly stores).
+    pub fn upper_blocks(&self) -> usize {
+        (self.cols.len() + self.diag.len()) / 2
     }
     /// Block slots of element `e`, index `4a + b`.
     pub fn element_slots(&self, e: usize) -> &[u32; 16] {

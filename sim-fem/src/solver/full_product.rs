@@ -225,12 +225,12 @@ impl BlockPattern {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
     /// A random symmetric block matrix on a small Kuhn-like tet set, upper-stored.
-    fn random_upper(seed: u64) -> (BlockPattern, Vec<Matrix3<f64>>, Vec<V3>) {
+    pub(in crate::solver) fn random_upper(seed: u64) -> (BlockPattern, Vec<Matrix3<f64>>, Vec<V3>) {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
         let n = 40;
         let tets: Vec<[usize; 4]> = (0..60)

@@ -31,6 +31,7 @@ pub(super) struct Caches {
     /// The same by full rows for the one-thread product, kept likewise (a new 1.7 MB
     /// buffer per step at 5,184 tets cost as much in page faults as the copy itself).
     pub(super) full_buf: Vec<crate::solver::RowBlock>,
+    pub(super) upper_rows_buf: crate::solver::UpperRows,
     /// Per-element rotated blocks of earlier assemblies (`element_blocks.rs`), kept while
     /// most rotations stay as they were.
     pub(super) element_blocks: Vec<super::element_blocks::CachedBlocks>,
@@ -134,6 +135,7 @@ impl Caches {
     pub(super) fn recycle(&mut self, buffers: super::operator::OperatorBuffers) {
         self.block_buf = buffers.blocks;
         self.full_buf = buffers.full;
+        self.upper_rows_buf = buffers.upper_rows;
         // An operator that did not use the per-element cache left it here.
         if !buffers.element_blocks.is_empty() {
             self.element_blocks = buffers.element_blocks;

@@ -12,7 +12,7 @@ use super::element_blocks::{
 use super::{FemSystem, V3, gather};
 use crate::element::{Mat12, apply_dense};
 use crate::parallel::{multiply_full_parts, split_ranges};
-use crate::solver::{LinearOperator, RowBlock};
+use crate::solver::{LinearOperator, RowBlock, UpperRows};
 use crate::system::{OperatorMode, StiffnessMode};
 
 /// Element matrices entering a linear operator.
@@ -40,6 +40,7 @@ impl FemSystem {
         }
         let buf = std::mem::take(&mut self.caches.block_buf);
         let full_spare = Mutex::new(std::mem::take(&mut self.caches.full_buf));
+        let upper_spare = Mutex::new(std::mem::take(&mut self.caches.upper_rows_buf));
         let elements = self.mesh.elements.len();
         // Only a one-thread assembly of rotated blocks reads the cache.
         let reads_cache = operator == OperatorMode::Assembled
@@ -73,6 +74,8 @@ impl FemSystem {
             assembled: None,
             full: OnceLock::new(),
             full_spare,
+            upper_rows: OnceLock::new(),
+            upper_spare,
             element_blocks,
         };
         if operator == OperatorMode::Assembled {
@@ -125,6 +128,7 @@ impl Default for RotatedScratch {
 pub(super) struct OperatorBuffers {
     pub(super) blocks: Vec<Matrix3<f64>>,
     pub(super) full: Vec<RowBlock>,
+    pub(super) upper_rows: UpperRows,
     pub(super) element_blocks: Vec<CachedBlocks>,
 }
 
@@ -140,8 +144,13 @@ pub(super) struct SysOp<'a> {
     /// ([`crate::solver::BlockPattern::full_rows_into`]), made at the first product in the
     /// storage of `full_spare` (the previous step's). `assembled` must not change after
     /// that product (only [`SysOp::assemble`], in `build_operator`, writes it).
-    full: OnceLock<Vec<RowBlock>>,
+    pub(super) full: OnceLock<Vec<RowBlock>>,
     full_spare: Mutex<Vec<RowBlock>>,
+    /// The assembled blocks by contiguous upper rows, for the product of a matrix that
+    /// outgrows the cache on one thread, made at its first product in the storage of
+    /// `upper_spare` (as `full`).
+    pub(super) upper_rows: OnceLock<UpperRows>,
+    upper_spare: Mutex<UpperRows>,
     /// Per-element rotated blocks kept from earlier assemblies (one per element, or empty:
     /// not used this step; see `element_blocks.rs`).
     element_blocks: Vec<CachedBlocks>,
@@ -162,11 +171,29 @@ impl SysOp<'_> {
         if let (Some(blocks), ElemMats::Rotated { .. }) = (&self.assembled, &self.elem)
             && self.product_partition(out.len()).is_none()
         {
-            let pat = self.sys.caches.pattern.as_ref().expect("pattern");
-            pat.multiply_upper(blocks, p, out);
+            if crate::prefetch::outgrows_cache(blocks) {
+                self.multiply_upper_rows(blocks, p, out);
+            } else {
+                let pat = self.sys.caches.pattern.as_ref().expect("pattern");
+                pat.multiply_upper(blocks, p, out);
+            }
             return;
         }
         self.apply(p, out);
+    }
+
+    /// `out = A p` from the assembled blocks copied into contiguous upper rows, for a
+    /// matrix that outgrows the cache, on one thread (`solver/upper_product.rs`: half the
+    /// bytes of the full rows per product, and a cheaper copy).
+    fn multiply_upper_rows(&self, blocks: &[Matrix3<f64>], p: &[V3], out: &mut [V3]) {
+        let rows = self.upper_rows.get_or_init(|| {
+            let pat = self.sys.caches.pattern.as_ref().expect("pattern");
+            let mut rows =
+                std::mem::take(&mut *self.upper_spare.lock().unwrap_or_else(|e| e.into_inner()));
+            rows.copy_from(pat, blocks);
+            rows
+        });
+        rows.multiply(p, out);
     }
 
     /// The partition an assembled product of `n` nodes is split over, if any: below
@@ -186,6 +213,10 @@ impl SysOp<'_> {
             full: match self.full.into_inner() {
                 Some(full) => full,
                 None => self.full_spare.into_inner().unwrap_or_default(),
+            },
+            upper_rows: match self.upper_rows.into_inner() {
+                Some(rows) => rows,
+                None => self.upper_spare.into_inner().unwrap_or_default(),
             },
             element_blocks: self.element_blocks,
         }
@@ -390,6 +421,9 @@ impl LinearOperator for SysOp<'_> {
         if let Some(blocks) = &self.assembled {
             let pat = self.sys.caches.pattern.as_ref().expect("pattern");
             match (&self.elem, self.product_partition(out.len())) {
+                (ElemMats::Rotated { .. }, None) if crate::prefetch::outgrows_cache(blocks) => {
+                    self.multiply_upper_rows(blocks, p, out);
+                }
                 (ElemMats::Rotated { .. }, part) => {
                     let full = self.full.get_or_init(|| {
                         let mut full = std::mem::take(

@@ -1,0 +1,255 @@
+//! CG's sparse product read from the symmetric operator's upper blocks in place, once the
+//! matrix outgrows the cache: `(A p)_i = Σ_{j ≥ i} A_ij p_j + Σ_{j < i} A_jiᵀ p_j`, each
+//! stored block used twice, for its own row and, transposed, for its column's row.
+//!
+//! Why: at 98,304 tets the step is bound by the bytes it streams from memory, not by its
+//! arithmetic, and CG's product by full rows ([`BlockPattern::multiply_full`]) streams a
+//! copy of the whole matrix, every block stored twice (18 MB), every iteration, against
+//! 9 MB for the upper blocks; the full-row copy itself is one more pass (read and write)
+//! per step. In the cache the full rows stay: there arithmetic bounds the product, and
+//! the transposed half costs more than the blocks it saves (below the size of
+//! [`crate::prefetch::outgrows_cache`] this product is not used, so a smaller mesh steps on
+//! the same bits as before). The scalar upper product ([`BlockPattern::multiply_upper`])
+//! is arithmetic-bound even at 98,304 tets (an MG-PCG step 10–15 % slower with it than
+//! with the full rows, 2026-11-29); this one is vectorised.
+//!
+//! **The transposed product.** A block is read as its three columns `c_k` (four lanes from
+//! its `k`-th column's first entry; the last column's fourth lane masked to zero).
+//! `A_ijᵀ p_i` is the three dot products `c_k · p_i`: multiplied lane-wise with
+//! `[p_i, 0]`, then summed pairwise, `(l₀ + l₁) + (l₂ + l₃)`, where the fourth lane is the
+//! next column's first entry times zero. Each row's transposed products gather in a
+//! four-lane buffer of the column's row, which the row reads, adds its own sum to, and
+//! zeroes when it is reached (a row's transposed products all fall on later rows).
+//!
+//! **Same bits on every machine**, as for the full-row product: the portable path does the
+//! AVX path's IEEE operations in the same order, the zero-times-entry terms included (test
+//! `avx_and_portable_upper_products_are_bit_identical`).
+
+use std::sync::Mutex;
+
+use nalgebra::{Matrix3, Vector3};
+
+use super::BlockPattern;
+
+type V3 = Vector3<f64>;
+
+/// The upper blocks of a symmetric block matrix, row by row and contiguous, for
+/// [`UpperRows::multiply`].
+#[derive(Debug, Default)]
+pub struct UpperRows {
+    /// Row `i`'s blocks are `start[i]..start[i + 1]`, its diagonal block first.
+    start: Vec<u32>,
+    cols: Vec<u32>,
+    blocks: Vec<Matrix3<f64>>,
+    /// Per row, the transposed products gathered for it (lane 3 unused): all zero between
+    /// products.
+    sums: Mutex<Vec<[f64; 4]>>,
+}
+
+impl Clone for UpperRows {
+    fn clone(&self) -> Self {
+        UpperRows {
+            start: self.start.clone(),
+            cols: self.cols.clone(),
+            blocks: self.blocks.clone(),
+            // All zero between products.
+            sums: Mutex::default(),
+        }
+    }
+}
+
+impl UpperRows {
+    /// The rows of `pat`'s upper blocks `upper` (slot-indexed, as
+    /// [`BlockPattern::multiply_upper`] reads them), into this storage (reused; its index
+    /// kept while the node count is the same, which is so for one pattern).
+    pub fn copy_from(&mut self, pat: &BlockPattern, upper: &[Matrix3<f64>]) {
+        let n = pat.row_ptr.len() - 1;
+        if self.start.len() != n + 1 || self.cols.len() != pat.upper_blocks() {
+            self.start.clear();
+            self.cols.clear();
+            self.start.push(0);
+            for i in 0..n {
+                let (d, end) = (pat.diag[i], pat.row_ptr[i + 1]);
+                self.cols.extend(pat.cols[d..end].iter().map(|&j| j as u32));
+                self.start.push(self.cols.len() as u32);
+            }
+        }
+        self.blocks.clear();
+        for i in 0..n {
+            self.blocks
+                .extend_from_slice(&upper[pat.diag[i]..pat.row_ptr[i + 1]]);
+        }
+    }
+
+    /// `out = A p`, vectorised where the CPU has AVX, with the same result bit for bit
+    /// elsewhere.
+    pub fn multiply(&self, p: &[V3], out: &mut [V3]) {
+        let n = self.start.len().saturating_sub(1);
+        assert!(
+            p.len() == n && out.len() == n,
+            "vectors of the matrix's {n} nodes"
+        );
+        let mut sums = self.sums.lock().unwrap_or_else(|e| e.into_inner());
+        sums.resize(n, [0.0; 4]);
+        let sums = &mut sums[..];
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx") {
+            // SAFETY: the CPU has AVX (checked just above).
+            unsafe { self.multiply_avx(p, out, sums) };
+            return;
+        }
+        self.multiply_portable(p, out, sums);
+    }
+
+    /// [`UpperRows::multiply`] in plain Rust (the reference order of operations).
+    pub(crate) fn multiply_portable(&self, p: &[V3], out: &mut [V3], sums: &mut [[f64; 4]]) {
+        for i in 0..out.len() {
+            let (d, end) = (self.start[i] as usize, self.start[i + 1] as usize);
+            let pi = &p[i];
+            let (mut a0, mut a1, mut a2) = ([0.0; 3], [0.0; 3], [0.0; 3]);
+            for s in d..end {
+                let b = self.blocks[s].as_slice();
+                let pj = &p[self.cols[s] as usize];
+                for l in 0..3 {
+                    a0[l] += b[l] * pj.x;
+                    a1[l] += b[3 + l] * pj.y;
+                    a2[l] += b[6 + l] * pj.z;
+                }
+                if s > d {
+                    let t = &mut sums[self.cols[s] as usize];
+                    for k in 0..3 {
+                        // Lane 3: the next column's first entry (none for the last) times
+                        // the zero lane of `[p_i, 0]`.
+                        let next = if k < 2 { b[3 * k + 3] } else { 0.0 };
+                        let c = &b[3 * k..3 * k + 3];
+                        t[k] += (c[0] * pi.x + c[1] * pi.y) + (c[2] * pi.z + next * 0.0);
+                    }
+                }
+            }
+            let t = std::mem::replace(&mut sums[i], [0.0; 4]);
+            out[i] = V3::from_fn(|l, _| t[l] + ((a0[l] + a1[l]) + a2[l]));
+        }
+    }
+
+    /// [`UpperRows::multiply`] on 4-lane AVX vectors.
+    ///
+    /// # Safety
+    /// The CPU must support AVX.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx")]
+    pub(crate) unsafe fn multiply_avx(&self, p: &[V3], out: &mut [V3], sums: &mut [[f64; 4]]) {
+        use std::arch::x86_64::{
+            _mm256_add_pd, _mm256_broadcast_sd, _mm256_hadd_pd, _mm256_loadu_pd,
+            _mm256_maskload_pd, _mm256_mul_pd, _mm256_permute2f128_pd, _mm256_set_epi64x,
+            _mm256_setzero_pd, _mm256_storeu_pd,
+        };
+        assert!(sums.len() == out.len() && p.len() == out.len());
+        // Lanes 0–2: a block's last column, or `[p_i, 0]`.
+        let three = _mm256_set_epi64x(0, -1, -1, -1);
+        for i in 0..out.len() {
+            let (d, end) = (self.start[i] as usize, self.start[i + 1] as usize);
+            // SAFETY (every block below): `p`, `blocks` and `sums` are indexed within
+            // bounds (a row's blocks, nodes of their columns); a block holds 9 f64: the
+            // loads at 0 and 3 read four each, the masked load at 6 three (the masked
+            // lane is not accessed); a `p` entry holds 3 f64, of which the masked load
+            // reads three and each broadcast one; a `sums` entry holds four.
+            unsafe {
+                let pi = _mm256_maskload_pd(p[i].as_ptr(), three);
+                let (mut a0, mut a1, mut a2) = (
+                    _mm256_setzero_pd(),
+                    _mm256_setzero_pd(),
+                    _mm256_setzero_pd(),
+                );
+                for s in d..end {
+                    let c = self.blocks[s].as_ptr();
+                    let (c0, c1, c2) = (
+                        _mm256_loadu_pd(c),
+                        _mm256_loadu_pd(c.add(3)),
+                        _mm256_maskload_pd(c.add(6), three),
+                    );
+                    let j = self.cols[s] as usize;
+                    let pj = &p[j];
+                    a0 = _mm256_add_pd(a0, _mm256_mul_pd(c0, _mm256_broadcast_sd(&pj.x)));
+                    a1 = _mm256_add_pd(a1, _mm256_mul_pd(c1, _mm256_broadcast_sd(&pj.y)));
+                    a2 = _mm256_add_pd(a2, _mm256_mul_pd(c2, _mm256_broadcast_sd(&pj.z)));
+                    if s > d {
+                        // [c0·l01, c1·l01, c0·l23, c1·l23] and [c2·l01, c2·l01, c2·l23, c2·l23]
+                        let h01 = _mm256_hadd_pd(_mm256_mul_pd(c0, pi), _mm256_mul_pd(c1, pi));
+                        let m2 = _mm256_mul_pd(c2, pi);
+                        let h2 = _mm256_hadd_pd(m2, m2);
+                        let dots = _mm256_add_pd(
+                            _mm256_permute2f128_pd::<0x20>(h01, h2),
+                            _mm256_permute2f128_pd::<0x31>(h01, h2),
+                        );
+                        let t = sums[j].as_mut_ptr();
+                        _mm256_storeu_pd(t, _mm256_add_pd(_mm256_loadu_pd(t), dots));
+                    }
+                }
+                let t = sums[i].as_mut_ptr();
+                let row = _mm256_add_pd(_mm256_add_pd(a0, a1), a2);
+                let mut lanes = [0.0; 4];
+                _mm256_storeu_pd(lanes.as_mut_ptr(), _mm256_add_pd(_mm256_loadu_pd(t), row));
+                _mm256_storeu_pd(t, _mm256_setzero_pd());
+                out[i] = V3::new(lanes[0], lanes[1], lanes[2]);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::solver::full_product::tests::random_upper;
+
+    #[test]
+    fn upper_rows_product_equals_the_scalar_one_and_leaves_its_sums_zero() {
+        for seed in 0..5 {
+            let (pat, upper, p) = random_upper(seed);
+            let n = p.len();
+            let (mut want, mut got) = (vec![V3::zeros(); n], vec![V3::zeros(); n]);
+            pat.multiply_upper(&upper, &p, &mut want);
+            let mut rows = UpperRows::default();
+            rows.copy_from(&pat, &upper);
+            // Twice: the second product starts from the sums the first left.
+            for _ in 0..2 {
+                rows.multiply(&p, &mut got);
+                for (w, g) in want.iter().zip(&got) {
+                    assert!(
+                        (w - g).norm() <= 1e-13 * (1.0 + w.norm()),
+                        "{w} against {g}"
+                    );
+                }
+                let sums = rows.sums.lock().unwrap();
+                assert!(sums.iter().all(|s| *s == [0.0; 4]), "seed {seed}");
+            }
+        }
+    }
+
+    #[test]
+    fn avx_and_portable_upper_products_are_bit_identical() {
+        for seed in 0..5 {
+            let (pat, upper, p) = random_upper(seed);
+            let n = p.len();
+            let mut portable = vec![V3::zeros(); n];
+            let mut rows = UpperRows::default();
+            rows.copy_from(&pat, &upper);
+            let mut sums = vec![[0.0; 4]; n];
+            rows.multiply_portable(&p, &mut portable, &mut sums);
+            #[cfg(target_arch = "x86_64")]
+            if !std::arch::is_x86_feature_detected!("avx") {
+                eprintln!("no AVX on this CPU: only the portable path was run");
+            }
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx") {
+                let mut avx = vec![V3::zeros(); n];
+                // SAFETY: AVX detected.
+                unsafe { rows.multiply_avx(&p, &mut avx, &mut sums) };
+                for (a, b) in avx.iter().zip(&portable) {
+                    for k in 0..3 {
+                        assert_eq!(a[k].to_bits(), b[k].to_bits(), "seed {seed}");
+                    }
+                }
+            }
+        }
+    }
+}
