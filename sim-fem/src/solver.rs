@@ -333,10 +333,6 @@ impl BlockPattern {
     pub fn num_blocks(&self) -> usize {
         self.cols.len()
     }
-    /// Number of 3×3 blocks on and above the diagonal (those a symmetric assembly stores).
-    pub fn upper_blocks(&self) -> usize {
-        (self.cols.len() + self.diag.len()) / 2
-    }
     /// Block slots of element `e`, index `4a + b`.
     pub fn element_slots(&self, e: usize) -> &[u32; 16] {
         &self.elem_slots[e]

@@ -1,17 +1,22 @@
-//! CG's sparse product read from the symmetric operator's upper blocks in place, once the
-//! matrix outgrows the cache: `(A p)_i = Σ_{j ≥ i} A_ij p_j + Σ_{j < i} A_jiᵀ p_j`, each
-//! stored block used twice, for its own row and, transposed, for its column's row.
+//! CG's sparse product from the symmetric operator's upper blocks, copied once per step
+//! into contiguous rows, for a matrix that outgrows the cache:
+//! `(A p)_i = Σ_{j ≥ i} A_ij p_j + Σ_{j < i} A_jiᵀ p_j`, each stored block used twice, for
+//! its own row and, transposed, for its column's row.
 //!
 //! Why: at 98,304 tets the step is bound by the bytes it streams from memory, not by its
-//! arithmetic, and CG's product by full rows ([`BlockPattern::multiply_full`]) streams a
-//! copy of the whole matrix, every block stored twice (18 MB), every iteration, against
-//! 9 MB for the upper blocks; the full-row copy itself is one more pass (read and write)
-//! per step. In the cache the full rows stay: there arithmetic bounds the product, and
-//! the transposed half costs more than the blocks it saves (below the size of
-//! [`crate::prefetch::outgrows_cache`] this product is not used, so a smaller mesh steps on
-//! the same bits as before). The scalar upper product ([`BlockPattern::multiply_upper`])
-//! is arithmetic-bound even at 98,304 tets (an MG-PCG step 10–15 % slower with it than
-//! with the full rows, 2026-11-29); this one is vectorised.
+//! arithmetic, and CG's product by full rows ([`BlockPattern::multiply_full`]) streams
+//! every block twice (18 MB) every iteration, against 9 MB for the upper blocks. On
+//! the 98,304-tet beam's pattern (`cargo bench -p cosurg-sim-fem --bench product`,
+//! 2026-11-29, medians) this product takes 433 µs against 878 µs for the full rows, and
+//! its copy 1.05 ms against 2.82 ms for the full-row copy. In the cache (12,288 tets) both
+//! products take 56 µs; there the full rows stay (below the size of
+//! [`crate::prefetch::outgrows_cache`] this product is not used, so a smaller mesh steps
+//! on the same bits as before).
+//!
+//! Why a copy: read in place, in the assembly's storage, where each row's lower slots
+//! (unused by a symmetric assembly) lie between its upper blocks and the next row's,
+//! the same product took 1.70 ms; the scalar in-place product
+//! ([`BlockPattern::multiply_upper`]) 1.94 ms.
 //!
 //! **The transposed product.** A block is read as its three columns `c_k` (four lanes from
 //! its `k`-th column's first entry; the last column's fourth lane masked to zero).
@@ -41,9 +46,10 @@ pub struct UpperRows {
     start: Vec<u32>,
     cols: Vec<u32>,
     blocks: Vec<Matrix3<f64>>,
-    /// Per row, the transposed products gathered for it (lane 3 unused): all zero between
+    /// Per part of a product ([`UpperRows::multiply_parts`]), the transposed products
+    /// gathered for the rows from the part's first on (lane 3 unused): all zero between
     /// products.
-    sums: Mutex<Vec<[f64; 4]>>,
+    sums: Mutex<Vec<Vec<[f64; 4]>>>,
 }
 
 impl Clone for UpperRows {
@@ -60,50 +66,95 @@ impl Clone for UpperRows {
 
 impl UpperRows {
     /// The rows of `pat`'s upper blocks `upper` (slot-indexed, as
-    /// [`BlockPattern::multiply_upper`] reads them), into this storage (reused; its index
-    /// kept while the node count is the same, which is so for one pattern).
+    /// [`BlockPattern::multiply_upper`] reads them), into this storage (reused).
     pub fn copy_from(&mut self, pat: &BlockPattern, upper: &[Matrix3<f64>]) {
         let n = pat.row_ptr.len() - 1;
-        if self.start.len() != n + 1 || self.cols.len() != pat.upper_blocks() {
-            self.start.clear();
-            self.cols.clear();
-            self.start.push(0);
-            for i in 0..n {
-                let (d, end) = (pat.diag[i], pat.row_ptr[i + 1]);
-                self.cols.extend(pat.cols[d..end].iter().map(|&j| j as u32));
-                self.start.push(self.cols.len() as u32);
-            }
-        }
+        // The index too, every time: a pattern can change between steps (cuts,
+        // refinement) and this costs little beside the blocks.
+        self.start.clear();
+        self.cols.clear();
         self.blocks.clear();
+        self.start.push(0);
         for i in 0..n {
-            self.blocks
-                .extend_from_slice(&upper[pat.diag[i]..pat.row_ptr[i + 1]]);
+            let row = pat.diag[i]..pat.row_ptr[i + 1];
+            self.cols
+                .extend(pat.cols[row.clone()].iter().map(|&j| j as u32));
+            self.blocks.extend_from_slice(&upper[row]);
+            self.start.push(self.cols.len() as u32);
         }
     }
 
     /// `out = A p`, vectorised where the CPU has AVX, with the same result bit for bit
     /// elsewhere.
     pub fn multiply(&self, p: &[V3], out: &mut [V3]) {
+        self.multiply_parts(p, out, &[0, out.len()]);
+    }
+
+    /// [`UpperRows::multiply`] with the rows split at `node_start` (first 0, last the
+    /// node count), each part on its own thread ([`crate::parallel::run_parts`]). A part
+    /// gathers the transposed products that fall on later parts' rows in its own buffer;
+    /// those are added to the later rows after all parts, in the parts' order, so that
+    /// one split always gives the same bits (one part: those of [`UpperRows::multiply`]).
+    pub fn multiply_parts(&self, p: &[V3], out: &mut [V3], node_start: &[usize]) {
         let n = self.start.len().saturating_sub(1);
         assert!(
             p.len() == n && out.len() == n,
             "vectors of the matrix's {n} nodes"
         );
+        assert!(
+            node_start.first() == Some(&0)
+                && node_start.last() == Some(&n)
+                && node_start.windows(2).all(|w| w[0] <= w[1]),
+            "parts from 0 to {n}: {node_start:?}"
+        );
+        let parts = node_start.len() - 1;
         let mut sums = self.sums.lock().unwrap_or_else(|e| e.into_inner());
-        sums.resize(n, [0.0; 4]);
-        let sums = &mut sums[..];
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx") {
-            // SAFETY: the CPU has AVX (checked just above).
-            unsafe { self.multiply_avx(p, out, sums) };
+        sums.resize_with(parts, Vec::new);
+        for (k, s) in sums.iter_mut().enumerate() {
+            s.resize(n - node_start[k], [0.0; 4]);
+        }
+        let outs = crate::parallel::split_ranges(out, node_start);
+        let items: Vec<_> = outs.into_iter().zip(sums.iter_mut()).collect();
+        let run = |k: usize, (out, sums): (&mut [V3], &mut Vec<[f64; 4]>)| {
+            let first = node_start[k];
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx") {
+                // SAFETY: the CPU has AVX (checked just above).
+                unsafe { self.multiply_avx(p, first, out, sums) };
+                return;
+            }
+            self.multiply_portable(p, first, out, sums);
+        };
+        if parts == 1 {
+            let (k, item) = (0, items.into_iter().next().expect("one part"));
+            run(k, item);
             return;
         }
-        self.multiply_portable(p, out, sums);
+        crate::parallel::run_parts(items, run);
+        // The transposed products that fell on later parts' rows.
+        for k in 1..parts {
+            for j in node_start[k]..node_start[k + 1] {
+                for (q, s) in sums.iter_mut().enumerate().take(k) {
+                    let t = std::mem::replace(&mut s[j - node_start[q]], [0.0; 4]);
+                    out[j] += V3::new(t[0], t[1], t[2]);
+                }
+            }
+        }
     }
 
-    /// [`UpperRows::multiply`] in plain Rust (the reference order of operations).
-    pub(crate) fn multiply_portable(&self, p: &[V3], out: &mut [V3], sums: &mut [[f64; 4]]) {
-        for i in 0..out.len() {
+    /// Rows `first..first + out.len()` of [`UpperRows::multiply`] in plain Rust (the
+    /// reference order of operations), with `sums` the transposed products of rows
+    /// `first..` (all zero on entry; the rows of `out` zero again on return).
+    pub(crate) fn multiply_portable(
+        &self,
+        p: &[V3],
+        first: usize,
+        out: &mut [V3],
+        sums: &mut [[f64; 4]],
+    ) {
+        assert!(sums.len() + first == p.len() && out.len() <= sums.len());
+        for (r, o) in out.iter_mut().enumerate() {
+            let i = first + r;
             let (d, end) = (self.start[i] as usize, self.start[i + 1] as usize);
             let pi = &p[i];
             let (mut a0, mut a1, mut a2) = ([0.0; 3], [0.0; 3], [0.0; 3]);
@@ -116,7 +167,7 @@ impl UpperRows {
                     a2[l] += b[6 + l] * pj.z;
                 }
                 if s > d {
-                    let t = &mut sums[self.cols[s] as usize];
+                    let t = &mut sums[self.cols[s] as usize - first];
                     for k in 0..3 {
                         // Lane 3: the next column's first entry (none for the last) times
                         // the zero lane of `[p_i, 0]`.
@@ -126,8 +177,8 @@ impl UpperRows {
                     }
                 }
             }
-            let t = std::mem::replace(&mut sums[i], [0.0; 4]);
-            out[i] = V3::from_fn(|l, _| t[l] + ((a0[l] + a1[l]) + a2[l]));
+            let t = std::mem::replace(&mut sums[r], [0.0; 4]);
+            *o = V3::from_fn(|l, _| t[l] + ((a0[l] + a1[l]) + a2[l]));
         }
     }
 
@@ -137,16 +188,23 @@ impl UpperRows {
     /// The CPU must support AVX.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx")]
-    pub(crate) unsafe fn multiply_avx(&self, p: &[V3], out: &mut [V3], sums: &mut [[f64; 4]]) {
+    pub(crate) unsafe fn multiply_avx(
+        &self,
+        p: &[V3],
+        first: usize,
+        out: &mut [V3],
+        sums: &mut [[f64; 4]],
+    ) {
         use std::arch::x86_64::{
             _mm256_add_pd, _mm256_broadcast_sd, _mm256_hadd_pd, _mm256_loadu_pd,
             _mm256_maskload_pd, _mm256_mul_pd, _mm256_permute2f128_pd, _mm256_set_epi64x,
             _mm256_setzero_pd, _mm256_storeu_pd,
         };
-        assert!(sums.len() == out.len() && p.len() == out.len());
+        assert!(sums.len() + first == p.len() && out.len() <= sums.len());
         // Lanes 0–2: a block's last column, or `[p_i, 0]`.
         let three = _mm256_set_epi64x(0, -1, -1, -1);
-        for i in 0..out.len() {
+        for (r, o) in out.iter_mut().enumerate() {
+            let i = first + r;
             let (d, end) = (self.start[i] as usize, self.start[i + 1] as usize);
             // SAFETY (every block below): `p`, `blocks` and `sums` are indexed within
             // bounds (a row's blocks, nodes of their columns); a block holds 9 f64: the
@@ -181,16 +239,16 @@ impl UpperRows {
                             _mm256_permute2f128_pd::<0x20>(h01, h2),
                             _mm256_permute2f128_pd::<0x31>(h01, h2),
                         );
-                        let t = sums[j].as_mut_ptr();
+                        let t = sums[j - first].as_mut_ptr();
                         _mm256_storeu_pd(t, _mm256_add_pd(_mm256_loadu_pd(t), dots));
                     }
                 }
-                let t = sums[i].as_mut_ptr();
+                let t = sums[r].as_mut_ptr();
                 let row = _mm256_add_pd(_mm256_add_pd(a0, a1), a2);
                 let mut lanes = [0.0; 4];
                 _mm256_storeu_pd(lanes.as_mut_ptr(), _mm256_add_pd(_mm256_loadu_pd(t), row));
                 _mm256_storeu_pd(t, _mm256_setzero_pd());
-                out[i] = V3::new(lanes[0], lanes[1], lanes[2]);
+                *o = V3::new(lanes[0], lanes[1], lanes[2]);
             }
         }
     }
@@ -220,7 +278,7 @@ mod tests {
                     );
                 }
                 let sums = rows.sums.lock().unwrap();
-                assert!(sums.iter().all(|s| *s == [0.0; 4]), "seed {seed}");
+                assert!(sums.iter().flatten().all(|s| *s == [0.0; 4]), "seed {seed}");
             }
         }
     }
@@ -230,25 +288,65 @@ mod tests {
         for seed in 0..5 {
             let (pat, upper, p) = random_upper(seed);
             let n = p.len();
-            let mut portable = vec![V3::zeros(); n];
             let mut rows = UpperRows::default();
             rows.copy_from(&pat, &upper);
-            let mut sums = vec![[0.0; 4]; n];
-            rows.multiply_portable(&p, &mut portable, &mut sums);
-            #[cfg(target_arch = "x86_64")]
-            if !std::arch::is_x86_feature_detected!("avx") {
-                eprintln!("no AVX on this CPU: only the portable path was run");
-            }
-            #[cfg(target_arch = "x86_64")]
-            if std::arch::is_x86_feature_detected!("avx") {
-                let mut avx = vec![V3::zeros(); n];
-                // SAFETY: AVX detected.
-                unsafe { rows.multiply_avx(&p, &mut avx, &mut sums) };
-                for (a, b) in avx.iter().zip(&portable) {
-                    for k in 0..3 {
-                        assert_eq!(a[k].to_bits(), b[k].to_bits(), "seed {seed}");
+            // The whole product, and a part of it from row 17 on (its transposed products
+            // for rows past 25 left in its buffer).
+            for (first, end) in [(0, n), (17, 25)] {
+                let mut portable = vec![V3::zeros(); end - first];
+                let mut sums = vec![[0.0; 4]; n - first];
+                rows.multiply_portable(&p, first, &mut portable, &mut sums);
+                #[cfg(target_arch = "x86_64")]
+                if !std::arch::is_x86_feature_detected!("avx") {
+                    eprintln!("no AVX on this CPU: only the portable path was run");
+                }
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx") {
+                    let mut avx = vec![V3::zeros(); end - first];
+                    let mut avx_sums = vec![[0.0; 4]; n - first];
+                    // SAFETY: AVX detected.
+                    unsafe { rows.multiply_avx(&p, first, &mut avx, &mut avx_sums) };
+                    for (a, b) in avx.iter().zip(&portable) {
+                        for k in 0..3 {
+                            assert_eq!(a[k].to_bits(), b[k].to_bits(), "seed {seed}");
+                        }
+                    }
+                    for (a, b) in avx_sums.iter().zip(&sums) {
+                        for k in 0..3 {
+                            assert_eq!(a[k].to_bits(), b[k].to_bits(), "seed {seed}");
+                        }
                     }
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn split_upper_rows_products_equal_the_whole_one_and_repeat_their_bits() {
+        for seed in 0..5 {
+            let (pat, upper, p) = random_upper(seed);
+            let n = p.len();
+            let mut rows = UpperRows::default();
+            rows.copy_from(&pat, &upper);
+            let mut whole = vec![V3::zeros(); n];
+            rows.multiply(&p, &mut whole);
+            for split in [vec![0, 17, n], vec![0, 9, 9, 30, n], vec![0, n]] {
+                let mut first = vec![V3::zeros(); n];
+                rows.multiply_parts(&p, &mut first, &split);
+                for (w, g) in whole.iter().zip(&first) {
+                    assert!(
+                        (w - g).norm() <= 1e-13 * (1.0 + w.norm()),
+                        "{split:?}: {w} against {g}"
+                    );
+                }
+                let mut again = vec![V3::zeros(); n];
+                rows.multiply_parts(&p, &mut again, &split);
+                assert_eq!(first, again, "{split:?}");
+                if split.len() == 2 {
+                    assert_eq!(first, whole, "one part is the whole product");
+                }
+                let sums = rows.sums.lock().unwrap();
+                assert!(sums.iter().flatten().all(|s| *s == [0.0; 4]), "{split:?}");
             }
         }
     }

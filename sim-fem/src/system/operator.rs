@@ -166,13 +166,14 @@ impl SysOp<'_> {
     /// `out = A p` for a product made once, such as the step's right-hand side: where
     /// [`LinearOperator::apply`] would copy the blocks into full rows for a product on one
     /// thread, the symmetric upper product instead (a direct solve makes no other). Split
-    /// over threads, the copy is made (CG's products reuse it).
+    /// over threads, or beyond the cache, the copy that CG's products read (full or upper
+    /// rows) is made, and reused by them.
     pub(super) fn apply_once(&self, p: &[V3], out: &mut [V3]) {
         if let (Some(blocks), ElemMats::Rotated { .. }) = (&self.assembled, &self.elem)
             && self.product_partition(out.len()).is_none()
         {
             if crate::prefetch::outgrows_cache(blocks) {
-                self.multiply_upper_rows(blocks, p, out);
+                self.multiply_upper_rows(blocks, p, out, None);
             } else {
                 let pat = self.sys.caches.pattern.as_ref().expect("pattern");
                 pat.multiply_upper(blocks, p, out);
@@ -183,9 +184,16 @@ impl SysOp<'_> {
     }
 
     /// `out = A p` from the assembled blocks copied into contiguous upper rows, for a
-    /// matrix that outgrows the cache, on one thread (`solver/upper_product.rs`: half the
-    /// bytes of the full rows per product, and a cheaper copy).
-    fn multiply_upper_rows(&self, blocks: &[Matrix3<f64>], p: &[V3], out: &mut [V3]) {
+    /// matrix that outgrows the cache, on one thread or split by `part`'s rows
+    /// (`solver/upper_product.rs`: half the bytes of the full rows per product, and a
+    /// cheaper copy).
+    fn multiply_upper_rows(
+        &self,
+        blocks: &[Matrix3<f64>],
+        p: &[V3],
+        out: &mut [V3],
+        part: Option<&crate::parallel::Partition>,
+    ) {
         let rows = self.upper_rows.get_or_init(|| {
             let pat = self.sys.caches.pattern.as_ref().expect("pattern");
             let mut rows =
@@ -193,7 +201,10 @@ impl SysOp<'_> {
             rows.copy_from(pat, blocks);
             rows
         });
-        rows.multiply(p, out);
+        match part {
+            Some(part) => rows.multiply_parts(p, out, &part.node_start),
+            None => rows.multiply(p, out),
+        }
     }
 
     /// The partition an assembled product of `n` nodes is split over, if any: below
@@ -421,8 +432,8 @@ impl LinearOperator for SysOp<'_> {
         if let Some(blocks) = &self.assembled {
             let pat = self.sys.caches.pattern.as_ref().expect("pattern");
             match (&self.elem, self.product_partition(out.len())) {
-                (ElemMats::Rotated { .. }, None) if crate::prefetch::outgrows_cache(blocks) => {
-                    self.multiply_upper_rows(blocks, p, out);
+                (ElemMats::Rotated { .. }, part) if crate::prefetch::outgrows_cache(blocks) => {
+                    self.multiply_upper_rows(blocks, p, out, part);
                 }
                 (ElemMats::Rotated { .. }, part) => {
                     let full = self.full.get_or_init(|| {
