@@ -56,7 +56,7 @@ fn upper_rows_product(bencher: Bencher, cells: [usize; 3]) {
     let mut rows = cosurg_sim_fem::solver::UpperRows::default();
     rows.copy_from(&pat, &upper);
     let mut out = vec![V3::zeros(); p.len()];
-    bencher.bench_local(|| rows.multiply(&p, &mut out));
+    bencher.bench_local(|| rows.multiply(&pat, &p, &mut out));
 }
 
 #[divan::bench(args = CELLS)]

@@ -250,6 +250,11 @@ pub struct BlockPattern {
     /// Per element, bit `4a + b` set when block `(a, b)` lies on or above the diagonal
     /// (row node ≤ column node): the blocks a symmetric assembly stores.
     elem_upper: Vec<u16>,
+    /// The index of [`UpperRows`]: row `i`'s blocks on and above the diagonal are
+    /// `upper_ptr[i]..upper_ptr[i + 1]` there, in the columns `upper_cols` (u32: the
+    /// product streams them with the blocks).
+    upper_ptr: Vec<u32>,
+    upper_cols: Vec<u32>,
 }
 
 impl BlockPattern {
@@ -276,7 +281,7 @@ impl BlockPattern {
             let s = &cols[row_ptr[r]..row_ptr[r + 1]];
             row_ptr[r] + s.binary_search(&c).expect("in pattern")
         };
-        let diag = (0..n).map(|i| find(i, i)).collect();
+        let diag: Vec<usize> = (0..n).map(|i| find(i, i)).collect();
         let mirror = (0..n)
             .flat_map(|i| (row_ptr[i]..row_ptr[i + 1]).map(move |s| (i, s)))
             .map(|(i, s)| find(cols[s], i))
@@ -308,6 +313,15 @@ impl BlockPattern {
                 m
             })
             .collect();
+        let (mut upper_ptr, mut upper_cols) = (vec![0u32], Vec::new());
+        for (i, &d) in diag.iter().enumerate() {
+            upper_cols.extend(
+                cols[d..row_ptr[i + 1]]
+                    .iter()
+                    .map(|&j| u32::try_from(j).expect("fewer than 2³² nodes")),
+            );
+            upper_ptr.push(u32::try_from(upper_cols.len()).expect("fewer than 2³² blocks"));
+        }
         Self {
             row_ptr,
             cols,
@@ -315,6 +329,8 @@ impl BlockPattern {
             mirror,
             elem_slots,
             elem_upper,
+            upper_ptr,
+            upper_cols,
         }
     }
     /// Blocks of element `e` on or above the diagonal (bit `4a + b`).

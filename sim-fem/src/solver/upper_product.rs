@@ -5,18 +5,19 @@
 //!
 //! Why: at 98,304 tets the step is bound by the bytes it streams from memory, not by its
 //! arithmetic, and CG's product by full rows ([`BlockPattern::multiply_full`]) streams
-//! every block twice (18 MB) every iteration, against 9 MB for the upper blocks. On
+//! every block twice (19 MB) every iteration, against 10 MB for the upper blocks. On
 //! the 98,304-tet beam's pattern (`cargo bench -p cosurg-sim-fem --bench product`,
-//! 2026-11-29, medians) this product takes 433 µs against 878 µs for the full rows, and
-//! its copy 1.05 ms against 2.82 ms for the full-row copy. In the cache (12,288 tets) both
-//! products take 56 µs; there the full rows stay (below the size of
+//! 2026-11-29, medians of three runs on a noisy machine) this product takes 448–463 µs
+//! against 745–878 µs for the full rows, and its copy 0.79–1.0 ms against 2.4–2.8 ms for
+//! the full-row copy. In the cache (12,288 tets) the two products take about the same
+//! (55–62 µs); there the full rows stay (below the size of
 //! [`crate::prefetch::outgrows_cache`] this product is not used, so a smaller mesh steps
 //! on the same bits as before).
 //!
 //! Why a copy: read in place, in the assembly's storage, where each row's lower slots
 //! (unused by a symmetric assembly) lie between its upper blocks and the next row's,
-//! the same product took 1.70 ms; the scalar in-place product
-//! ([`BlockPattern::multiply_upper`]) 1.94 ms.
+//! the same vectorised product took 1.70 ms; the scalar in-place product
+//! ([`BlockPattern::multiply_upper`]) takes 1.76–1.94 ms.
 //!
 //! **The transposed product.** A block is read as its three columns `c_k` (four lanes from
 //! its `k`-th column's first entry; the last column's fourth lane masked to zero).
@@ -39,12 +40,11 @@ use super::BlockPattern;
 type V3 = Vector3<f64>;
 
 /// The upper blocks of a symmetric block matrix, row by row and contiguous, for
-/// [`UpperRows::multiply`].
+/// [`UpperRows::multiply`]: row `i`'s are `pat.upper_ptr[i]..pat.upper_ptr[i + 1]`, its
+/// diagonal block first, in the columns `pat.upper_cols` of the [`BlockPattern`] it was
+/// copied with (the pattern keeps the index, so that a copy is the blocks alone).
 #[derive(Debug, Default)]
 pub struct UpperRows {
-    /// Row `i`'s blocks are `start[i]..start[i + 1]`, its diagonal block first.
-    start: Vec<u32>,
-    cols: Vec<u32>,
     blocks: Vec<Matrix3<f64>>,
     /// Per part of a product ([`UpperRows::multiply_parts`]), the transposed products
     /// gathered for the rows from the part's first on (lane 3 unused): all zero between
@@ -55,8 +55,6 @@ pub struct UpperRows {
 impl Clone for UpperRows {
     fn clone(&self) -> Self {
         UpperRows {
-            start: self.start.clone(),
-            cols: self.cols.clone(),
             blocks: self.blocks.clone(),
             // All zero between products.
             sums: Mutex::default(),
@@ -68,26 +66,22 @@ impl UpperRows {
     /// The rows of `pat`'s upper blocks `upper` (slot-indexed, as
     /// [`BlockPattern::multiply_upper`] reads them), into this storage (reused).
     pub fn copy_from(&mut self, pat: &BlockPattern, upper: &[Matrix3<f64>]) {
-        let n = pat.row_ptr.len() - 1;
-        // The index too, every time: a pattern can change between steps (cuts,
-        // refinement) and this costs little beside the blocks.
-        self.start.clear();
-        self.cols.clear();
+        assert_eq!(
+            upper.len(),
+            pat.cols.len(),
+            "one block per slot of the pattern"
+        );
         self.blocks.clear();
-        self.start.push(0);
-        for i in 0..n {
-            let row = pat.diag[i]..pat.row_ptr[i + 1];
-            self.cols
-                .extend(pat.cols[row.clone()].iter().map(|&j| j as u32));
-            self.blocks.extend_from_slice(&upper[row]);
-            self.start.push(self.cols.len() as u32);
+        self.blocks.reserve(pat.upper_cols.len());
+        for (i, &d) in pat.diag.iter().enumerate() {
+            self.blocks.extend_from_slice(&upper[d..pat.row_ptr[i + 1]]);
         }
     }
 
     /// `out = A p`, vectorised where the CPU has AVX, with the same result bit for bit
     /// elsewhere.
-    pub fn multiply(&self, p: &[V3], out: &mut [V3]) {
-        self.multiply_parts(p, out, &[0, out.len()]);
+    pub fn multiply(&self, pat: &BlockPattern, p: &[V3], out: &mut [V3]) {
+        self.multiply_parts(pat, p, out, &[0, out.len()]);
     }
 
     /// [`UpperRows::multiply`] with the rows split at `node_start` (first 0, last the
@@ -95,11 +89,17 @@ impl UpperRows {
     /// gathers the transposed products that fall on later parts' rows in its own buffer;
     /// those are added to the later rows after all parts, in the parts' order, so that
     /// one split always gives the same bits (one part: those of [`UpperRows::multiply`]).
-    pub fn multiply_parts(&self, p: &[V3], out: &mut [V3], node_start: &[usize]) {
-        let n = self.start.len().saturating_sub(1);
+    pub fn multiply_parts(
+        &self,
+        pat: &BlockPattern,
+        p: &[V3],
+        out: &mut [V3],
+        node_start: &[usize],
+    ) {
+        let n = pat.num_rows();
         assert!(
-            p.len() == n && out.len() == n,
-            "vectors of the matrix's {n} nodes"
+            p.len() == n && out.len() == n && self.blocks.len() == pat.upper_cols.len(),
+            "vectors of the pattern's {n} nodes, blocks copied with it"
         );
         assert!(
             node_start.first() == Some(&0)
@@ -120,10 +120,10 @@ impl UpperRows {
             #[cfg(target_arch = "x86_64")]
             if std::arch::is_x86_feature_detected!("avx") {
                 // SAFETY: the CPU has AVX (checked just above).
-                unsafe { self.multiply_avx(p, first, out, sums) };
+                unsafe { self.multiply_avx(pat, p, first, out, sums) };
                 return;
             }
-            self.multiply_portable(p, first, out, sums);
+            self.multiply_portable(pat, p, first, out, sums);
         };
         if parts == 1 {
             let (k, item) = (0, items.into_iter().next().expect("one part"));
@@ -147,6 +147,7 @@ impl UpperRows {
     /// `first..` (all zero on entry; the rows of `out` zero again on return).
     pub(crate) fn multiply_portable(
         &self,
+        pat: &BlockPattern,
         p: &[V3],
         first: usize,
         out: &mut [V3],
@@ -155,19 +156,19 @@ impl UpperRows {
         assert!(sums.len() + first == p.len() && out.len() <= sums.len());
         for (r, o) in out.iter_mut().enumerate() {
             let i = first + r;
-            let (d, end) = (self.start[i] as usize, self.start[i + 1] as usize);
+            let (d, end) = (pat.upper_ptr[i] as usize, pat.upper_ptr[i + 1] as usize);
             let pi = &p[i];
             let (mut a0, mut a1, mut a2) = ([0.0; 3], [0.0; 3], [0.0; 3]);
             for s in d..end {
                 let b = self.blocks[s].as_slice();
-                let pj = &p[self.cols[s] as usize];
+                let pj = &p[pat.upper_cols[s] as usize];
                 for l in 0..3 {
                     a0[l] += b[l] * pj.x;
                     a1[l] += b[3 + l] * pj.y;
                     a2[l] += b[6 + l] * pj.z;
                 }
                 if s > d {
-                    let t = &mut sums[self.cols[s] as usize - first];
+                    let t = &mut sums[pat.upper_cols[s] as usize - first];
                     for k in 0..3 {
                         // Lane 3: the next column's first entry (none for the last) times
                         // the zero lane of `[p_i, 0]`.
@@ -190,6 +191,7 @@ impl UpperRows {
     #[target_feature(enable = "avx")]
     pub(crate) unsafe fn multiply_avx(
         &self,
+        pat: &BlockPattern,
         p: &[V3],
         first: usize,
         out: &mut [V3],
@@ -205,7 +207,7 @@ impl UpperRows {
         let three = _mm256_set_epi64x(0, -1, -1, -1);
         for (r, o) in out.iter_mut().enumerate() {
             let i = first + r;
-            let (d, end) = (self.start[i] as usize, self.start[i + 1] as usize);
+            let (d, end) = (pat.upper_ptr[i] as usize, pat.upper_ptr[i + 1] as usize);
             // SAFETY (every block below): `p`, `blocks` and `sums` are indexed within
             // bounds (a row's blocks, nodes of their columns); a block holds 9 f64: the
             // loads at 0 and 3 read four each, the masked load at 6 three (the masked
@@ -225,7 +227,7 @@ impl UpperRows {
                         _mm256_loadu_pd(c.add(3)),
                         _mm256_maskload_pd(c.add(6), three),
                     );
-                    let j = self.cols[s] as usize;
+                    let j = pat.upper_cols[s] as usize;
                     let pj = &p[j];
                     a0 = _mm256_add_pd(a0, _mm256_mul_pd(c0, _mm256_broadcast_sd(&pj.x)));
                     a1 = _mm256_add_pd(a1, _mm256_mul_pd(c1, _mm256_broadcast_sd(&pj.y)));
@@ -270,7 +272,7 @@ mod tests {
             rows.copy_from(&pat, &upper);
             // Twice: the second product starts from the sums the first left.
             for _ in 0..2 {
-                rows.multiply(&p, &mut got);
+                rows.multiply(&pat, &p, &mut got);
                 for (w, g) in want.iter().zip(&got) {
                     assert!(
                         (w - g).norm() <= 1e-13 * (1.0 + w.norm()),
@@ -295,7 +297,7 @@ mod tests {
             for (first, end) in [(0, n), (17, 25)] {
                 let mut portable = vec![V3::zeros(); end - first];
                 let mut sums = vec![[0.0; 4]; n - first];
-                rows.multiply_portable(&p, first, &mut portable, &mut sums);
+                rows.multiply_portable(&pat, &p, first, &mut portable, &mut sums);
                 #[cfg(target_arch = "x86_64")]
                 if !std::arch::is_x86_feature_detected!("avx") {
                     eprintln!("no AVX on this CPU: only the portable path was run");
@@ -305,7 +307,7 @@ mod tests {
                     let mut avx = vec![V3::zeros(); end - first];
                     let mut avx_sums = vec![[0.0; 4]; n - first];
                     // SAFETY: AVX detected.
-                    unsafe { rows.multiply_avx(&p, first, &mut avx, &mut avx_sums) };
+                    unsafe { rows.multiply_avx(&pat, &p, first, &mut avx, &mut avx_sums) };
                     for (a, b) in avx.iter().zip(&portable) {
                         for k in 0..3 {
                             assert_eq!(a[k].to_bits(), b[k].to_bits(), "seed {seed}");
@@ -329,10 +331,10 @@ mod tests {
             let mut rows = UpperRows::default();
             rows.copy_from(&pat, &upper);
             let mut whole = vec![V3::zeros(); n];
-            rows.multiply(&p, &mut whole);
+            rows.multiply(&pat, &p, &mut whole);
             for split in [vec![0, 17, n], vec![0, 9, 9, 30, n], vec![0, n]] {
                 let mut first = vec![V3::zeros(); n];
-                rows.multiply_parts(&p, &mut first, &split);
+                rows.multiply_parts(&pat, &p, &mut first, &split);
                 for (w, g) in whole.iter().zip(&first) {
                     assert!(
                         (w - g).norm() <= 1e-13 * (1.0 + w.norm()),
@@ -340,7 +342,7 @@ mod tests {
                     );
                 }
                 let mut again = vec![V3::zeros(); n];
-                rows.multiply_parts(&p, &mut again, &split);
+                rows.multiply_parts(&pat, &p, &mut again, &split);
                 assert_eq!(first, again, "{split:?}");
                 if split.len() == 2 {
                     assert_eq!(first, whole, "one part is the whole product");

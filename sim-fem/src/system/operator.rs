@@ -194,16 +194,16 @@ impl SysOp<'_> {
         out: &mut [V3],
         part: Option<&crate::parallel::Partition>,
     ) {
+        let pat = self.sys.caches.pattern.as_ref().expect("pattern");
         let rows = self.upper_rows.get_or_init(|| {
-            let pat = self.sys.caches.pattern.as_ref().expect("pattern");
             let mut rows =
                 std::mem::take(&mut *self.upper_spare.lock().unwrap_or_else(|e| e.into_inner()));
             rows.copy_from(pat, blocks);
             rows
         });
         match part {
-            Some(part) => rows.multiply_parts(p, out, &part.node_start),
-            None => rows.multiply(p, out),
+            Some(part) => rows.multiply_parts(pat, p, out, &part.node_start),
+            None => rows.multiply(pat, p, out),
         }
     }
 
