@@ -147,7 +147,7 @@ pub(super) struct SysOp<'a> {
     pub(super) full: OnceLock<Vec<RowBlock>>,
     full_spare: Mutex<Vec<RowBlock>>,
     /// The assembled blocks by contiguous upper rows, for the product of a matrix that
-    /// outgrows the cache on one thread, made at its first product in the storage of
+    /// outgrows the cache (on one thread or split), made at its first product in the storage of
     /// `upper_spare` (as `full`).
     pub(super) upper_rows: OnceLock<UpperRows>,
     upper_spare: Mutex<UpperRows>,
@@ -216,8 +216,8 @@ impl SysOp<'_> {
             .filter(|_| n >= PARALLEL_PRODUCT_MIN_NODES)
     }
 
-    /// Hands back the assembled block storage and its full-row copy (for reuse by the
-    /// next step: [`super::caches::Caches::recycle`]).
+    /// Hands back the assembled block storage and its full-row or upper-row copy (for
+    /// reuse by the next step: [`super::caches::Caches::recycle`]).
     pub(super) fn into_buffers(self) -> OperatorBuffers {
         OperatorBuffers {
             blocks: self.assembled.unwrap_or_default(),

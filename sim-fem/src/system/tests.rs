@@ -379,8 +379,8 @@ fn a_source_of_mixed_stiffness_assembles_as_one_when_its_damping_is_shared() {
     }
 }
 
-/// A matrix that outgrows the cache is multiplied on one thread from contiguous upper rows
-/// (`solver/upper_product.rs`), not from full rows: the operator's products (CG's and the
+/// A matrix that outgrows the cache is multiplied (here on one thread) from contiguous
+/// upper rows (`solver/upper_product.rs`), not from full rows: the operator's products (CG's and the
 /// right-hand side's) equal the symmetric upper product of its assembled blocks to
 /// rounding, and no full-row copy is made.
 #[test]
