@@ -132,8 +132,8 @@ impl UpperRows {
             self.multiply_portable(pat, p, first, out, sums);
         };
         if parts == 1 {
-            let (k, item) = (0, items.into_iter().next().expect("one part"));
-            run(k, item);
+            // On the calling thread, without a parallel region.
+            run(0, items.into_iter().next().expect("one part"));
             return;
         }
         crate::parallel::run_parts(items, run);

@@ -31,6 +31,7 @@ pub(super) struct Caches {
     /// The same by full rows for the one-thread product, kept likewise (a new 1.7 MB
     /// buffer per step at 5,184 tets cost as much in page faults as the copy itself).
     pub(super) full_buf: Vec<crate::solver::RowBlock>,
+    /// The same by contiguous upper rows, for the product beyond the cache, kept likewise.
     pub(super) upper_rows_buf: crate::solver::UpperRows,
     /// Per-element rotated blocks of earlier assemblies (`element_blocks.rs`), kept while
     /// most rotations stay as they were.
